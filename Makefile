@@ -1,0 +1,48 @@
+# Set-up and go on a fresh Debian machine: `make demo` and `make test` install what is missing.
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
+STAMP := $(VENV)/.fae-installed
+export PYOPENGL_PLATFORM ?= osmesa
+
+.PHONY: all install system-deps demo test test-fast clean
+
+all: install
+
+# Debian packages: OSMesa for headless OpenGL. Installed only when missing.
+system-deps:
+	@if ! ldconfig -p 2>/dev/null | grep -q 'libOSMesa\.so'; then \
+	  echo "installing libosmesa6 from Debian"; \
+	  $(SUDO) apt-get update -qq && $(SUDO) DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libosmesa6 >/dev/null; \
+	fi
+
+# The virtual environment. pyrender is installed last with --no-deps: its pin on
+# PyOpenGL==3.1.0 cannot use OSMesa (see the comment in pyproject.toml).
+$(STAMP): pyproject.toml | system-deps
+	@[ -x $(PY) ] || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -e '.[dev]'
+	$(PY) -m pip install -q --no-deps 'pyrender==0.1.45'
+	@if command -v npm >/dev/null 2>&1 && [ ! -d tools/node_modules/gltf-validator ]; then \
+	  (cd tools && npm install --silent --no-audit --no-fund gltf-validator@2.0.0-dev.3.10 >/dev/null 2>&1) \
+	  || echo "gltf-validator not installed: its test will be skipped"; \
+	fi
+	@touch $(STAMP)
+
+install: system-deps $(STAMP)
+
+demo: install
+	$(VENV)/bin/fae play fap_streams/expressions.fap -o demo.mp4
+	@echo "wrote demo.mp4"
+
+# The whole suite, slow end-to-end tests included, on both cores.
+test: install
+	$(PY) -m pytest -n 2 -q
+
+test-fast: install
+	$(PY) -m pytest -n 2 -q -m "not slow"
+
+clean:
+	rm -rf $(VENV) build *.egg-info .pytest_cache .hypothesis

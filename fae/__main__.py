@@ -1,0 +1,5 @@
+import sys
+
+from fae.cli import main
+
+sys.exit(main())

@@ -1,0 +1,52 @@
+"""The `fae` command line: one sub-command per module in :mod:`fae.commands`.
+
+Each command module exposes ``register(subparsers)``, which adds its parser and sets
+``func(args) -> int`` (the exit status). Modules are imported lazily by name so that
+`fae --help` stays fast and a broken optional stack (OpenGL, Warp) only affects the
+commands that need it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from fae import __version__
+
+# Module names under fae.commands, in the order `fae --help` lists them.
+COMMANDS = (
+    "inspect",
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="fae",
+        description="MPEG-4 Facial Animation engine: play .fap streams on a generic or "
+        "personalized head, adapt the template to a scan, render headless.",
+    )
+    parser.add_argument("--version", action="version", version=f"fae {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in COMMANDS:
+        importlib.import_module(f"fae.commands.{name}").register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args.func(args) or 0)
+    except KeyboardInterrupt:
+        print("fae: interrupted", file=sys.stderr)
+        return 130
+    except BrokenPipeError:
+        return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
