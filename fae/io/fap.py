@@ -91,7 +91,7 @@ class FapFormatError(ValueError):
         self.token = token
         self.expected = expected
         shown = token if token is None or len(token) <= 40 else token[:37] + "..."
-        where = f"{self.path}:{self.line}"
+        where = f"{self.path}:{self.line}" if self.line > 0 else self.path
         super().__init__(f"{where}: expected {expected}" if token is None else f"{where}: token {shown!r}: expected {expected}")
 
 
