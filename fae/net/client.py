@@ -1,0 +1,152 @@
+"""A native-protocol client: stream a .fap text frame by frame, time every acknowledgement."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from fae.net.connection import READ_CHUNK
+
+
+@dataclass
+class SendReport:
+    """What the server said about one streamed file.
+
+    frames_sent   frames (mask/values pairs) sent
+    frames_ok     frames acknowledged with `ok`
+    errors        the server's `error ...` lines, in order
+    latencies     (frames_ok,) float64 seconds from sending a frame's values line to
+                  reading its `ok`
+    elapsed       seconds from the first frame sent to the last reply read
+    fps           the stream's frame rate from the server's header reply (0 if none)
+    """
+
+    frames_sent: int = 0
+    frames_ok: int = 0
+    errors: list[str] = field(default_factory=list)
+    latencies: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    elapsed: float = 0.0
+    fps: float = 0.0
+    header_ok: bool = False
+
+    @property
+    def frames_per_second(self) -> float:
+        return self.frames_ok / self.elapsed if self.elapsed > 0 else 0.0
+
+    def latency_ms(self, q: float) -> float:
+        """The q-th percentile (0..100) of the latencies, milliseconds (nan if none)."""
+        return float(np.percentile(self.latencies, q) * 1e3) if self.latencies.size else float("nan")
+
+    @property
+    def complete(self) -> bool:
+        """Every frame acknowledged, no error."""
+        return self.header_ok and not self.errors and self.frames_ok == self.frames_sent
+
+    def summary(self) -> str:
+        return (f"{self.frames_ok}/{self.frames_sent} frames ok, {len(self.errors)} errors, "
+                f"{self.frames_per_second:.0f} frames/s, latency p50 {self.latency_ms(50):.2f} ms, "
+                f"p99 {self.latency_ms(99):.2f} ms")
+
+
+def split_fap_text(text: str) -> tuple[str, list[tuple[str, str]]]:
+    """(header line, [(mask line, values line), ...]) of a .fap text.
+
+    Blank and `#` comment lines are left out; no other check is made (the server judges
+    the content), except that lines must pair up.
+    """
+    lines = [ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
+    if not lines:
+        raise ValueError("expected a .fap text with a header line, got no lines")
+    body = lines[1:]
+    if len(body) % 2:
+        raise ValueError(f"expected mask/values line pairs after the header, got {len(body)} lines")
+    return lines[0], list(zip(body[0::2], body[1::2]))
+
+
+async def send_fap(text: str, host: str = "127.0.0.1", port: int = 50011, *, rate: str = "max",
+                   timeout: float = 30.0) -> SendReport:
+    """Stream `text` to a fae server and collect its replies.
+
+    rate     "max": send as fast as the server takes them (TCP backpressure);
+             "realtime": frame k is sent k / fps seconds after the first
+    timeout  seconds to wait for any one reply before giving up
+    """
+    if rate not in ("max", "realtime"):
+        raise ValueError(f"rate: expected 'max' or 'realtime', got {rate!r}")
+    header, frames = split_fap_text(text)
+    reader, writer = await asyncio.open_connection(host, port)
+    report = SendReport()
+    sent_at: dict[str, list[float]] = {}
+    latencies: list[float] = []
+    header_seen = asyncio.Event()
+    start = [0.0]
+
+    async def receive() -> None:
+        buf = b""
+        while True:  # until the server closes, after answering everything sent
+            chunk = await asyncio.wait_for(reader.read(READ_CHUNK), timeout)
+            if not chunk:
+                break
+            buf += chunk
+            if buf.startswith(b"<notify"):  # the Xface greeting, sent to silent clients
+                end = buf.find(b"\0\0")
+                if end < 0:
+                    continue
+                buf = buf[end + 2:]
+            *lines, buf = buf.split(b"\n")
+            now = time.perf_counter()
+            for raw in lines:
+                line = raw.decode("utf-8", "replace").strip()
+                if line.startswith("ok header"):
+                    report.header_ok = True
+                    parts = line.split()
+                    report.fps = float(parts[2]) if len(parts) > 2 else 0.0
+                    header_seen.set()
+                elif line.startswith("ok "):
+                    times = sent_at.get(line[3:])
+                    if times:
+                        latencies.append(now - times.pop(0))
+                    report.frames_ok += 1
+                elif line.startswith("error"):
+                    report.errors.append(line)
+                    header_seen.set()
+                    if "closing" in line:
+                        return
+            report.elapsed = now - start[0]
+
+    receiver = asyncio.create_task(receive())
+    try:
+        writer.write(header.encode("utf-8") + b"\n")
+        await writer.drain()
+        await asyncio.wait([receiver, asyncio.create_task(header_seen.wait())], timeout=timeout,
+                           return_when=asyncio.FIRST_COMPLETED)
+        fps = report.fps if report.fps > 0 else 25.0
+        start[0] = time.perf_counter()
+        for k, (mask, values) in enumerate(frames):
+            if receiver.done():
+                break
+            if rate == "realtime":
+                delay = start[0] + k / fps - time.perf_counter()
+                if delay > 0:
+                    await asyncio.sleep(delay)
+            number = values.split(maxsplit=1)[0] if values.split() else ""
+            sent_at.setdefault(number, []).append(time.perf_counter())
+            writer.write(f"{mask}\n{values}\n".encode("utf-8"))
+            report.frames_sent += 1
+            await writer.drain()
+        if writer.can_write_eof():
+            writer.write_eof()
+        await asyncio.wait_for(receiver, timeout)
+    finally:
+        if not receiver.done():
+            receiver.cancel()
+        writer.close()
+        try:
+            await writer.wait_closed()
+        except ConnectionError:
+            pass
+    report.latencies = np.asarray(latencies, dtype=np.float64)
+    return report

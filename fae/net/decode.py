@@ -1,0 +1,145 @@
+"""One .fap stream arriving line by line: header, then mask/values pairs -> dense frames.
+
+Wraps the incremental reader (fae.io.fap) and the hold/clamp state (fae.io.frames) for
+the server: a bad frame is reported and skipped, and the stream goes on with the next
+frame (the reader is re-synchronized on the next mask line).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from fae.io.fap import FapFormatError, FapParser
+from fae.mpeg4.faps import FAP_COUNT
+from fae.io.frames import DenseFrame, FrameState, dense_frames
+
+__all__ = ["FapFormatError", "HeaderRead", "StreamFrame", "StreamDecoder", "decode_text"]
+
+
+@dataclass(frozen=True)
+class HeaderRead:
+    """The stream's header line was accepted; fps is its frame rate (frames/s)."""
+
+    fps: float
+    frame_count: int
+
+
+@dataclass(frozen=True)
+class StreamFrame:
+    """One decoded frame of a live stream.
+
+    number  the frame number as the client wrote it (acknowledged as `ok <number>`)
+    dt      seconds since the previous frame (frame-number gap / fps; 1 / fps first)
+    dense   the held, clamped FAP state (index counts from the stream's first frame)
+    """
+
+    number: int
+    dt: float
+    dense: DenseFrame
+
+
+class StreamDecoder:
+    """Feed text lines; get HeaderRead once, then a StreamFrame per complete frame.
+
+    After a bad mask line the next line is taken as that frame's values line and skipped
+    unless it is itself a well-formed mask, so one bad frame gives one error.
+    """
+
+    def __init__(self, source_name: str) -> None:
+        self.source_name = source_name
+        self._parser = FapParser(source_name)
+        self._state: FrameState | None = None
+        self._in_frame = False
+        self._skip_values = False
+        self._first_number: int | None = None
+        self._last_index = -1
+
+    @property
+    def header(self):
+        """The FapHeader once read, else None."""
+        return self._parser.header
+
+    @property
+    def fps(self) -> float:
+        """Frames per second from the header (0 before it)."""
+        return float(self.header.fps) if self.header is not None else 0.0
+
+    @property
+    def dt(self) -> float:
+        """Seconds per frame."""
+        return 1.0 / self.fps
+
+    @property
+    def in_frame(self) -> bool:
+        """True between a frame's mask line and its values line."""
+        return self._in_frame
+
+    def skip_line(self, number: int) -> None:
+        """A line that could not be read at all (not text, too long): its frame is lost.
+
+        The reader is given the line as an unreadable token, so it drops a pending mask
+        exactly as it does for any bad values line.
+        """
+        if self.header is None:
+            return
+        if self._in_frame:
+            self._in_frame = False
+            try:
+                self._parser.feed_line("\ufffd", number)
+            except FapFormatError:
+                pass
+        else:
+            self._skip_values = True
+
+    def feed(self, text: str, number: int):
+        """Returns HeaderRead, a DenseFrame, or None (line consumed, frame incomplete).
+
+        Raises FapFormatError; the frame it belongs to is dropped and the stream goes on.
+        """
+        stripped = text.strip()
+        content = bool(stripped) and not stripped.startswith("#")
+        if self.header is None:
+            self._parser.feed_line(text, number)
+            if self.header is None:
+                return None
+            self._state = FrameState(source_name=self.source_name)
+            return HeaderRead(self.fps, int(self.header.declared_frame_count))
+        if not content:
+            return None
+        if self._skip_values:
+            self._skip_values = False
+            tokens = stripped.split("#", 1)[0].split()
+            if not (len(tokens) in (FAP_COUNT, FAP_COUNT + 1) and all(t in ("0", "1") for t in tokens)):
+                return None
+        was_mask = not self._in_frame
+        try:
+            frame = self._parser.feed_line(text, number)
+        except FapFormatError:
+            if was_mask:
+                self._skip_values = True
+            self._in_frame = False
+            raise
+        if frame is None:
+            self._in_frame = True
+            return None
+        self._in_frame = False
+        values = self._state.update(frame)
+        if self._first_number is None:
+            self._first_number = frame.number
+        index = frame.number - self._first_number
+        dt = (index - self._last_index) / self.fps if self._last_index >= 0 else 1.0 / self.fps
+        self._last_index = index
+        dense = DenseFrame(index, index / self.fps, values, self._state.viseme, self._state.expression)
+        return StreamFrame(frame.number, dt, dense)
+
+
+def decode_text(text: str, source_name: str) -> tuple[float, list[DenseFrame]]:
+    """A whole .fap text -> (fps, dense frames: held, clamped, gaps filled). Raises FapFormatError."""
+    parser = FapParser(source_name)
+    frames = []
+    for number, line in enumerate(text.splitlines(), start=1):
+        frame = parser.feed_line(line, number)
+        if frame is not None:
+            frames.append(frame)
+    parser.finish()
+    return float(parser.header.fps), list(dense_frames(frames, source_fps=parser.header.fps))

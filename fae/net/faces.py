@@ -1,0 +1,85 @@
+"""Faces the server drives: the frame-consumer interface and the thread that steps one face.
+
+A face turns one dense FAP frame into a pose. The server never does that CPU work on its
+event loop: each face lives in its own :class:`FaceWorker`, a single worker thread that
+builds the face and then runs its steps one after another, in submission order. Warp
+releases the GIL during launches, so several faces use several cores.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from typing import Callable, Protocol
+
+import numpy as np
+
+from fae.io.frames import DenseFrame
+
+
+@dataclass(frozen=True)
+class Pose:
+    """The face after one frame.
+
+    skin_vertices    (V, 3) float64, metres: deformed epidermis
+    bone_transforms  bone name ("head", "jaw", "eye_l", "eye_r", "tongue") -> (4, 4)
+                     float64 rigid transform in the face frame (metres), or empty
+    """
+
+    skin_vertices: np.ndarray
+    bone_transforms: dict
+
+
+class FrameConsumer(Protocol):
+    """One face: `step` is called with each dense frame of one stream, in order."""
+
+    def step(self, frame: DenseFrame, dt: float) -> Pose:
+        """One frame (frame.values (68,) float64 held/clamped FAP values, FAP n at index
+        n-1, plus the held viseme/expression records) lasting dt seconds."""
+
+    def reset(self) -> None:
+        """Back to the neutral face at rest."""
+
+
+FaceFactory = Callable[[], FrameConsumer]
+
+
+class FaceWorker:
+    """A face and the one thread that builds and steps it.
+
+    factory  called once, in the worker thread, to build the face (model set-up and
+             kernel compilation stay off the event loop)
+    name     thread name prefix, for diagnostics
+    """
+
+    def __init__(self, factory: FaceFactory, name: str = "fae-face") -> None:
+        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix=name)
+        self._face_future = self._executor.submit(factory)
+        self.step_count = 0
+
+    def _face(self) -> FrameConsumer:
+        return self._face_future.result()
+
+    def _step(self, frame: DenseFrame, dt: float) -> Pose:
+        pose = self._face().step(frame, dt)
+        self.step_count += 1
+        return pose
+
+    def submit(self, frame: DenseFrame, dt: float) -> asyncio.Future:
+        """Queue one step; the returned future resolves to its Pose. Steps run in order."""
+        loop = asyncio.get_running_loop()
+        return loop.run_in_executor(self._executor, self._step, frame, dt)
+
+    async def ready(self) -> None:
+        """Wait until the face is built; raises what its factory raised."""
+        await asyncio.wrap_future(self._face_future)
+
+    async def reset(self) -> None:
+        """Reset the face, after every step queued before this call."""
+        loop = asyncio.get_running_loop()
+        await loop.run_in_executor(self._executor, lambda: self._face().reset())
+
+    def close(self) -> None:
+        """Drop queued steps and let the thread end once the running step returns."""
+        self._executor.shutdown(wait=False, cancel_futures=True)

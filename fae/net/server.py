@@ -1,0 +1,168 @@
+"""`FapServer`: FAP streams over TCP, the native line protocol and Xface tasks on one port.
+
+Protocol detection (docs/protocol.md): the server waits `greeting_delay` seconds for the
+client's first bytes. A client that stays silent gets the Xface greeting
+(`<notify name="CONNECTION_OK" .../>` and two NULs), as Xface clients wait for it. Then
+the first non-blank byte decides: `<` is an Xface client, anything else a native one.
+
+Faces: each native connection drives its own face, built by `face_factory` when its
+header arrives and stepped in its own worker thread; all Xface clients share one face
+(as in Xface). Every pose is published to subscribers (:meth:`FapServer.subscribe`).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+from fae.net import xface
+from fae.net.connection import READ_CHUNK, Connection
+from fae.net.faces import FaceFactory
+from fae.net.hub import FrameHub, Subscription
+from fae.net.native import NativeSession
+from fae.net.stage import XfaceStage
+
+log = logging.getLogger("fae.net")
+
+DEFAULT_HOST = "127.0.0.1"
+DEFAULT_PORT = 50011
+
+
+@dataclass(frozen=True)
+class ServerLimits:
+    """What one client may cost.
+
+    greeting_delay  seconds of silence after which a client gets the Xface greeting
+    max_line        bytes per native line
+    max_task        bytes per Xface task (an UPLOAD_FAP carries a whole file)
+    window          native frames in flight per client before reading pauses
+    max_errors      error replies after which a native connection is closed
+    max_output      bytes waiting unsent to a client before it is dropped as dead
+    max_clients     connections at once; more are closed on accept
+    """
+
+    greeting_delay: float = 0.25
+    max_line: int = 8192
+    max_task: int = 8 << 20
+    window: int = 32
+    max_errors: int = 32
+    max_output: int = 1 << 20
+    max_clients: int = 64
+
+
+class FapServer:
+    """An asyncio TCP server playing FAP streams on faces.
+
+    face_factory  builds one face (a FrameConsumer); called in a worker thread, once per
+                  native stream and once for the shared Xface face
+    host, port    where to listen; port 0 picks a free port (see `.port` after start)
+    fap_dir       folder Xface LOAD_FAP may read .fap files from (None: LOAD_FAP refused)
+    """
+
+    def __init__(self, face_factory: FaceFactory, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, *,
+                 fap_dir: str | Path | None = None, limits: ServerLimits = ServerLimits()) -> None:
+        self.face_factory = face_factory
+        self.host = host
+        self.requested_port = port
+        self.limits = limits
+        self.hub = FrameHub()
+        self.clients: dict[int, Connection] = {}
+        self.stage = XfaceStage(face_factory, self.hub, self.clients,
+                                fap_dir=Path(fap_dir) if fap_dir is not None else None, max_task=limits.max_task)
+        self.connections_total = 0
+        self._next_id = 1
+        self._server: asyncio.Server | None = None
+        self._handlers: set[asyncio.Task] = set()
+
+    # -- public --------------------------------------------------------------------
+    async def start(self) -> None:
+        """Bind and start accepting."""
+        self._server = await asyncio.start_server(self._on_connect, self.host, self.requested_port)
+
+    @property
+    def port(self) -> int:
+        """The port actually bound (after start)."""
+        if self._server is None:
+            raise RuntimeError("FapServer.port: the server is not started")
+        return self._server.sockets[0].getsockname()[1]
+
+    def subscribe(self, maxsize: int = 8, lossless: bool = False) -> Subscription:
+        """Receive every FrameEvent/StreamEnd the server produces (see fae.net.hub)."""
+        return self.hub.subscribe(maxsize=maxsize, lossless=lossless)
+
+    async def serve_until(self, stop: asyncio.Event) -> None:
+        """Serve until `stop` is set, then close gracefully."""
+        if self._server is None:
+            await self.start()
+        try:
+            await stop.wait()
+        finally:
+            await self.close()
+
+    async def close(self) -> None:
+        """Stop accepting, close every connection, stop playback, end subscriptions."""
+        if self._server is not None:
+            self._server.close()
+        for task in list(self._handlers):
+            task.cancel()
+        if self._handlers:
+            await asyncio.gather(*self._handlers, return_exceptions=True)
+        await self.stage.close()
+        self.hub.close()
+        if self._server is not None:
+            await self._server.wait_closed()
+
+    # -- connections ---------------------------------------------------------------
+    async def _on_connect(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        task = asyncio.current_task()
+        self._handlers.add(task)
+        client_id = self._next_id
+        self._next_id += 1
+        self.connections_total += 1
+        conn = Connection(client_id, reader, writer, max_output=self.limits.max_output)
+        try:
+            if len(self.clients) >= self.limits.max_clients:
+                log.warning("client %d (%s): refused, %d clients connected", client_id, conn.peer, len(self.clients))
+                return
+            self.clients[client_id] = conn
+            first = await self._first_bytes(conn)
+            if not first:
+                return
+            if first.lstrip()[:1] == b"<":
+                await self.stage.session(conn, first)
+            else:
+                await NativeSession(conn, self.face_factory, self.hub, window=self.limits.window,
+                                    max_line=self.limits.max_line, max_errors=self.limits.max_errors).run(first)
+        except (ConnectionError, asyncio.CancelledError):
+            pass
+        except Exception:
+            log.exception("client %d (%s): unexpected failure", client_id, conn.peer)
+        finally:
+            self.clients.pop(client_id, None)
+            self._handlers.discard(task)
+            writer.close()
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(writer.wait_closed(), 1.0)
+
+    async def _first_bytes(self, conn: Connection) -> bytes:
+        """Bytes up to and including the first non-blank one (b"" if the client left)."""
+        greeted = False
+        data = b""
+        while not data.strip():
+            if len(data) > self.limits.max_line:
+                return b""
+            try:
+                chunk = await asyncio.wait_for(conn.reader.read(READ_CHUNK), None if greeted else self.limits.greeting_delay)
+            except asyncio.TimeoutError:
+                greeted = True
+                conn.send(xface.notify_bytes("CONNECTION_OK", conn.client_id, 0, xface.STATUS_UNKNOWN))
+                continue
+            if not chunk:
+                return b""
+            data += chunk
+        if data.lstrip()[:1] == b"<" and not greeted:
+            conn.send(xface.notify_bytes("CONNECTION_OK", conn.client_id, 0, xface.STATUS_UNKNOWN))
+        return data

@@ -1,0 +1,229 @@
+"""The Xface side of the server: one shared face, one current stream, one task queue.
+
+As in the Xface player, every Xface client drives the same face: tasks from all of
+them go through one queue, in arrival order; a RESUME plays the current stream at its
+own frame rate in the background, and later tasks (STOP, REWIND, uploads) act on it
+while it plays. Replies follow the Xface byte format exactly (fae.net.xface).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from pathlib import Path
+
+from fae.net import xface
+from fae.net.connection import READ_CHUNK, Connection
+from fae.net.decode import FapFormatError, decode_text
+from fae.net.faces import FaceFactory, FaceWorker, Pose
+from fae.net.hub import FrameEvent, FrameHub, StreamEnd
+
+log = logging.getLogger("fae.net")
+
+STREAM = "xface"
+
+# Tasks fae carries out; any other name (audio, scripts, KILL_APP, ...) gets ERROR 7.
+HANDLED = ("UPLOAD_FAP", "LOAD_FAP", "RESUME_PLAYBACK", "STOP_PLAYBACK", "REWIND_PLAYBACK",
+           "RENDER_FRAME", "ADVANCE_FRAME")
+
+
+def resolve_fap_path(fap_dir: Path | None, param: str) -> Path:
+    """The file a LOAD_FAP parameter names, kept inside `fap_dir`.
+
+    Raises PermissionError when loading is disabled (no fap_dir), the path leaves
+    fap_dir (absolute elsewhere, `..`, symlinks), or does not end in `.fap`;
+    FileNotFoundError when there is no such file.
+    """
+    if fap_dir is None:
+        raise PermissionError("LOAD_FAP is disabled: the server was started without --fap-dir")
+    root = fap_dir.resolve()
+    path = (root / param.strip()).resolve()
+    if not path.is_relative_to(root):
+        raise PermissionError(f"{param!r}: expected a path inside {root}")
+    if path.suffix.lower() != ".fap":
+        raise PermissionError(f"{param!r}: expected a .fap file")
+    if not path.is_file():
+        raise FileNotFoundError(f"{param!r}: no such file in {root}")
+    return path
+
+
+class XfaceStage:
+    """State shared by all Xface clients of one server.
+
+    clients    the server's connections by client id (notifications are routed by ownerId)
+    fap_dir    folder LOAD_FAP may read from, or None to refuse LOAD_FAP
+    max_task   bytes per task message (an UPLOAD_FAP holds a whole file)
+    """
+
+    def __init__(self, face_factory: FaceFactory, hub: FrameHub, clients: dict[int, Connection], *,
+                 fap_dir: Path | None = None, max_task: int = 8 << 20, queue_size: int = 64) -> None:
+        self.face_factory = face_factory
+        self.hub = hub
+        self.clients = clients
+        self.fap_dir = Path(fap_dir) if fap_dir is not None else None
+        self.max_task = max_task
+        self.frames: list = []
+        self.fps = 25.0
+        self.pos = 0
+        self.last_pose: Pose | None = None
+        self.last_index = 0
+        self.worker: FaceWorker | None = None
+        self.playback: asyncio.Task | None = None
+        self._queue: asyncio.Queue = asyncio.Queue(queue_size)
+        self._dispatcher: asyncio.Task | None = None
+
+    # -- per connection ------------------------------------------------------------
+    async def session(self, conn: Connection, first: bytes) -> None:
+        """Read tasks from one Xface client until it closes."""
+        if self._dispatcher is None:
+            self._dispatcher = asyncio.create_task(self._dispatch())
+        splitter = xface.TaskSplitter(self.max_task)
+        data = first
+        while data and not conn.closing:
+            try:
+                messages = splitter.feed(data)
+            except xface.TaskFormatError as exc:
+                log.warning("xface client %d: %s; closing", conn.client_id, exc)
+                await conn.send_and_drain(xface.error_notify_bytes())
+                return
+            for message in messages:
+                try:
+                    task = xface.parse_task(message)
+                except xface.TaskFormatError as exc:
+                    log.warning("xface client %d: %s", conn.client_id, exc)
+                    await conn.send_and_drain(xface.error_notify_bytes())
+                    continue
+                if task.name not in HANDLED:
+                    log.warning("xface client %d: task %s is not supported", conn.client_id, task.name)
+                    await conn.send_and_drain(xface.error_notify_bytes())
+                    continue
+                await conn.send_and_drain(xface.notify_bytes(task.name, task.owner_id, task.task_id, xface.STATUS_QUEUED))
+                await self._queue.put(task)
+            data = await conn.reader.read(READ_CHUNK)
+
+    # -- the shared task queue -----------------------------------------------------
+    def _route(self, task: xface.XfaceTask, status: int) -> None:
+        if task.owner_id == 0:
+            return
+        conn = self.clients.get(task.owner_id)
+        if conn is not None:
+            conn.send(xface.notify_bytes(task.name, task.owner_id, task.task_id, status))
+
+    async def _dispatch(self) -> None:
+        while True:
+            task = await self._queue.get()
+            try:
+                await getattr(self, "_task_" + task.name.lower())(task)
+            except asyncio.CancelledError:
+                raise
+            except Exception:
+                log.exception("xface task %s failed", task.name)
+                self._route(task, xface.STATUS_ERROR)
+
+    async def _load(self, task: xface.XfaceTask, read_text) -> None:
+        self._route(task, xface.STATUS_STARTED)
+        if not task.params:
+            log.warning("xface %s: expected one <param>", task.name)
+            self._route(task, xface.STATUS_ERROR)
+            return
+        try:
+            text, source = await asyncio.to_thread(read_text, task.params[0])
+        except (OSError, UnicodeDecodeError) as exc:
+            log.warning("xface %s: %s", task.name, exc)
+            self._route(task, xface.STATUS_ERROR)
+            return
+        try:
+            fps, frames = await asyncio.to_thread(decode_text, text, source)
+        except FapFormatError as exc:
+            log.warning("xface %s: %s", task.name, exc)
+            self._route(task, xface.STATUS_ERROR)
+        else:
+            self.frames, self.fps, self.pos = frames, fps, 0
+        self._route(task, xface.STATUS_FINISHED)
+
+    async def _task_upload_fap(self, task: xface.XfaceTask) -> None:
+        await self._load(task, lambda text: (text, f"UPLOAD_FAP task {task.task_id} of client {task.owner_id}"))
+
+    async def _task_load_fap(self, task: xface.XfaceTask) -> None:
+        def read(param: str) -> tuple[str, str]:
+            path = resolve_fap_path(self.fap_dir, param)
+            if path.stat().st_size > self.max_task:
+                raise PermissionError(f"{path}: expected at most {self.max_task} bytes")
+            return path.read_text(encoding="utf-8"), str(path)
+        await self._load(task, read)
+
+    async def _task_resume_playback(self, task: xface.XfaceTask) -> None:
+        if not self.frames:
+            log.warning("xface RESUME_PLAYBACK: no FAP stream loaded")
+            self._route(task, xface.STATUS_ERROR)
+            return
+        self._cancel_playback()
+        self.playback = asyncio.create_task(self._play(task))
+
+    async def _task_stop_playback(self, task: xface.XfaceTask) -> None:
+        self._cancel_playback()
+        self.pos = 0
+        if self.frames:
+            await self._face().reset()
+            await self._apply(self.frames[0])
+            await self.hub.publish(StreamEnd(STREAM))
+        self._route(task, xface.STATUS_FINISHED)
+
+    async def _task_rewind_playback(self, task: xface.XfaceTask) -> None:
+        self.pos = 0
+        if self.worker is not None:
+            await self.worker.reset()
+        self._route(task, xface.STATUS_FINISHED)
+
+    async def _task_render_frame(self, task: xface.XfaceTask) -> None:
+        if self.last_pose is not None:
+            await self.hub.publish(FrameEvent(STREAM, self.last_index, self.last_index / self.fps, self.fps, self.last_pose))
+
+    async def _task_advance_frame(self, task: xface.XfaceTask) -> None:
+        if self.pos < len(self.frames):
+            await self._apply(self.frames[self.pos])
+            self.pos += 1
+
+    # -- playback ------------------------------------------------------------------
+    def _face(self) -> FaceWorker:
+        if self.worker is None:
+            self.worker = FaceWorker(self.face_factory, name="fae-xface")
+        return self.worker
+
+    async def _apply(self, frame) -> None:
+        pose = await self._face().submit(frame, 1.0 / self.fps)
+        self.last_pose, self.last_index = pose, frame.index
+        await self.hub.publish(FrameEvent(STREAM, frame.index, frame.time, self.fps, pose))
+
+    async def _play(self, task: xface.XfaceTask) -> None:
+        self._route(task, xface.STATUS_STARTED)
+        loop = asyncio.get_running_loop()
+        due = loop.time()
+        while self.pos < len(self.frames):
+            frame = self.frames[self.pos]
+            self.pos += 1
+            await self._apply(frame)
+            due += 1.0 / self.fps
+            delay = due - loop.time()
+            if delay > 0:
+                await asyncio.sleep(delay)
+        await self.hub.publish(StreamEnd(STREAM))
+        self._route(task, xface.STATUS_FINISHED)
+
+    def _cancel_playback(self) -> None:
+        if self.playback is not None and not self.playback.done():
+            self.playback.cancel()
+        self.playback = None
+
+    async def close(self) -> None:
+        """Stop playback and the task queue; release the face."""
+        self._cancel_playback()
+        for t in (self._dispatcher,):
+            if t is not None:
+                t.cancel()
+                try:
+                    await t
+                except (asyncio.CancelledError, Exception):
+                    pass
+        if self.worker is not None:
+            self.worker.close()

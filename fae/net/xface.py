@@ -1,0 +1,130 @@
+"""The Xface toolkit's player protocol: task framing, task parsing, notify bytes.
+
+Pure codec, no sockets: :class:`TaskSplitter` cuts a byte stream into task messages,
+:func:`parse_task` reads one, :func:`notify_bytes` writes a reply exactly as Xface does
+(see docs/protocol.md and the standard's reference notes on Xface).
+"""
+
+from __future__ import annotations
+
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass
+
+# Notification status codes (Xface sends 0, 1, 2, 3 and 7).
+STATUS_UNKNOWN = 0
+STATUS_QUEUED = 1
+STATUS_STARTED = 2
+STATUS_FINISHED = 3
+STATUS_ERROR = 7
+
+_END_TAG = b"</task>"
+
+
+class TaskFormatError(ValueError):
+    """A message that is not a `<task name=".." ownerId=".." taskId="..">` element."""
+
+
+@dataclass(frozen=True)
+class XfaceTask:
+    """One client request.
+
+    name      task name, e.g. "UPLOAD_FAP"
+    owner_id  client id the replies are routed to (0: only the queued ack is sent)
+    task_id   the client's own number for this task, echoed in replies
+    params    the text of each `<param>` element, as written
+    """
+
+    name: str
+    owner_id: int
+    task_id: int
+    params: tuple[str, ...]
+
+
+def notify_bytes(name: str, owner_id: int, task_id: int, status: int) -> bytes:
+    """The reply for one task state: the XML element and two NUL bytes, no newline."""
+    return f'<notify name="{name}" ownerId="{owner_id}" taskId="{task_id}" status="{status}"/>'.encode("utf-8") + b"\0\0"
+
+
+def error_notify_bytes() -> bytes:
+    """The reply to an unknown task name or a message that is not a task."""
+    return notify_bytes("ERROR", 0, 0, STATUS_ERROR)
+
+
+def parse_task(message: bytes) -> XfaceTask:
+    """Read one task message (without its NUL terminators).
+
+    Raises TaskFormatError naming what was expected when the message is not UTF-8, not
+    XML, not a `task` element, or lacks a name or an integer ownerId/taskId.
+    """
+    try:
+        text = message.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise TaskFormatError(f"byte {exc.start}: expected UTF-8 text") from None
+    try:
+        root = ET.fromstring(text)
+    except ET.ParseError as exc:
+        raise TaskFormatError(f"expected a well-formed <task> element ({exc})") from None
+    if root.tag != "task":
+        raise TaskFormatError(f"expected a <task> element, got <{root.tag}>")
+    name = root.get("name")
+    if not name:
+        raise TaskFormatError('<task>: expected a name="..." attribute')
+    ids = []
+    for attr in ("ownerId", "taskId"):
+        raw = root.get(attr, "0")
+        try:
+            ids.append(int(raw))
+        except ValueError:
+            raise TaskFormatError(f'<task name="{name}">: expected an integer {attr}, got {raw!r}') from None
+    params = tuple(p.text or "" for p in root.findall("param"))
+    return XfaceTask(name=name, owner_id=ids[0], task_id=ids[1], params=params)
+
+
+class TaskSplitter:
+    """Cut a byte stream into task messages.
+
+    A message ends at a NUL byte or right after `</task>`, whichever comes first, so
+    tasks ending in one NUL, two NULs or nothing at all are all found, and a read may
+    hold several tasks or part of one. Empty and whitespace-only pieces are skipped.
+
+    max_message  bytes one message may hold; a longer one raises TaskFormatError (the
+                 caller should close the connection: the stream cannot be resynchronized
+                 cheaply) and the buffer is dropped, so memory stays bounded.
+    """
+
+    def __init__(self, max_message: int = 8 << 20) -> None:
+        self.max_message = int(max_message)
+        self._buf = bytearray()
+        self._scan_from = 0
+
+    @property
+    def buffered(self) -> int:
+        """Bytes held waiting for the end of a message."""
+        return len(self._buf)
+
+    def feed(self, data: bytes) -> list[bytes]:
+        """Add bytes; return the complete messages now available, in order."""
+        self._buf += data
+        out: list[bytes] = []
+        while True:
+            start = max(0, self._scan_from - len(_END_TAG))
+            nul = self._buf.find(b"\0", start)
+            end = self._buf.find(_END_TAG, start)
+            if end >= 0 and (nul < 0 or end < nul):
+                cut, skip = end + len(_END_TAG), 0
+            elif nul >= 0:
+                cut, skip = nul, 1
+            else:
+                self._scan_from = len(self._buf)
+                if len(self._buf) > self.max_message:
+                    self._buf.clear()
+                    self._scan_from = 0
+                    raise TaskFormatError(f"expected a task of at most {self.max_message} bytes")
+                return out
+            piece = bytes(self._buf[:cut])
+            del self._buf[: cut + skip]
+            self._scan_from = 0
+            if len(piece) > self.max_message:
+                raise TaskFormatError(f"expected a task of at most {self.max_message} bytes")
+            if piece.strip():
+                out.append(piece)
