@@ -50,7 +50,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fae.io.atomic import atomic_open
+from fae.io.atomic import atomic_path
 from fae.mpeg4.faps import FAP_COUNT
 from fae.mpeg4.highlevel import (
     BLEND_MAX,
@@ -461,8 +461,12 @@ def write_fap(path: str | os.PathLike, header: FapHeader, frames: Iterable[FapFr
     Returns the number of frames written.
     """
     lines = [format_frame(frame) for frame in frames]
-    with atomic_open(path, "w", encoding="utf-8", newline="\n") as out:
-        out.write(format_header(header, len(lines)) + "\n")
-        for text in lines:
-            out.write(text + "\n")
+    with atomic_path(path) as tmp:
+        with open(tmp, "w", encoding="utf-8", newline="\n") as out:
+            out.write(format_header(header, len(lines)) + "\n")
+            for text in lines:
+                out.write(text + "\n")
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # an ordinary file, as open() would have made it
     return len(lines)
