@@ -69,7 +69,7 @@ class NativeSession:
                     break
                 data = await self.conn.reader.read(READ_CHUNK)
             if not data and not self._stop_reading and (self.splitter.pending or self.decoder.in_frame):
-                number = self.splitter.line_count + (1 if self.splitter.pending else 0)
+                number = self.splitter.line_count + 1
                 await acks.put(("error", number, "stream ended inside a frame; expected the rest of the frame"))
             await acks.put(_END)
             await ack_task
@@ -94,7 +94,9 @@ class NativeSession:
         try:
             out = self.decoder.feed(line.text, line.number)
         except FapFormatError as exc:
-            return self._error(line.number, exc.expected_text())
+            shown = exc.token if exc.token is None or len(exc.token) <= 40 else exc.token[:37] + "..."
+            what = f"expected {exc.expected}" if shown is None else f"token {shown!r}: expected {exc.expected}"
+            return self._error(exc.line or line.number, what)
         if out is None:
             return None
         if isinstance(out, HeaderRead):

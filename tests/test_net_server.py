@@ -1,0 +1,494 @@
+"""The FAP server over real loopback sockets: native protocol, Xface protocol, bad input."""
+
+from __future__ import annotations
+
+import asyncio
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fae.net import xface
+from fae.net.client import send_fap, split_fap_text
+from fae.net.faces import Pose
+from fae.net.hub import FrameEvent, StreamEnd
+from fae.net.server import FapServer, ServerLimits
+
+DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "fap"
+TIMEOUT = 10.0
+
+
+def fap_text(name: str = "xface_test.fap") -> str:
+    path = DATA / name
+    if not path.is_file():
+        pytest.skip(f"{path} not present")
+    return path.read_text()
+
+
+class LinearFace:
+    """A face whose skin moves linearly with the FAP values (rest + values @ basis)."""
+
+    rest = np.random.default_rng(7).normal(size=(40, 3)) * 0.05
+    basis = np.random.default_rng(8).normal(size=(68, 120)) * 1e-6
+
+    def __init__(self) -> None:
+        self.steps = 0
+
+    def step(self, frame, dt: float) -> Pose:
+        assert dt > 0
+        self.steps += 1
+        return Pose(self.rest + (frame.values @ self.basis).reshape(-1, 3), {})
+
+    def reset(self) -> None:
+        self.steps = 0
+
+    @classmethod
+    def expected(cls, values: np.ndarray) -> np.ndarray:
+        return cls.rest + (values @ cls.basis).reshape(-1, 3)
+
+
+def run(coro):
+    return asyncio.run(asyncio.wait_for(coro, 60))
+
+
+async def started(factory=LinearFace, **kwargs) -> FapServer:
+    server = FapServer(factory, port=0, **kwargs)
+    await server.start()
+    return server
+
+
+async def read_until(reader: asyncio.StreamReader, marker: bytes, timeout: float = TIMEOUT) -> bytes:
+    buf = b""
+    while marker not in buf:
+        chunk = await asyncio.wait_for(reader.read(65536), timeout)
+        if not chunk:
+            break
+        buf += chunk
+    return buf
+
+
+async def read_all(reader: asyncio.StreamReader, timeout: float = TIMEOUT) -> bytes:
+    buf = b""
+    while chunk := await asyncio.wait_for(reader.read(65536), timeout):
+        buf += chunk
+    return buf
+
+
+async def native_exchange(port: int, payload: bytes) -> list[str]:
+    """Send `payload`, half-close, return the server's reply lines (it closes when done)."""
+    reader, writer = await asyncio.open_connection("127.0.0.1", port)
+    writer.write(payload)
+    await writer.drain()
+    writer.write_eof()
+    data = await read_all(reader)
+    writer.close()
+    return data.decode().splitlines()
+
+
+async def well_behaved(port: int) -> None:
+    report = await send_fap(fap_text(), port=port)
+    assert report.complete, report.summary()
+
+
+# -- native protocol ---------------------------------------------------------------
+
+def test_native_stream_acks_every_frame_and_publishes_its_pose():
+    text = fap_text()
+    header, frames = split_fap_text(text)
+
+    async def main():
+        server = await started()
+        sub = server.subscribe(maxsize=1000)
+        replies = await native_exchange(server.port, text.encode())
+        events = []
+        while not sub._queue.empty():
+            events.append(await sub.get())
+        await server.close()
+        return replies, events
+
+    replies, events = run(main())
+    numbers = [values.split()[0] for _, values in frames]
+    assert replies == ["ok header 25"] + [f"ok {n}" for n in numbers]
+    poses = [e for e in events if isinstance(e, FrameEvent)]
+    assert [str(e.index) for e in poses] == numbers
+    assert isinstance(events[-1], StreamEnd)
+    # The pose of the last frame is the face at the held values of the whole stream.
+    held = np.zeros(68)
+    for mask, values in frames:
+        bits = np.array(mask.split(), dtype=int).astype(bool)
+        held[bits] = np.array(values.split()[1:], dtype=float)
+    np.testing.assert_allclose(poses[-1].pose.skin_vertices, LinearFace.expected(held), atol=1e-12)
+
+
+def test_send_client_reports_latency_and_rate():
+    async def main():
+        server = await started()
+        report = await send_fap(fap_text(), port=server.port, rate="max")
+        await server.close()
+        return report
+
+    report = run(main())
+    assert report.complete and report.frames_ok == 43
+    assert report.latencies.shape == (43,) and np.all(report.latencies > 0)
+    assert report.latency_ms(50) <= report.latency_ms(99)
+    assert report.frames_per_second > 0
+
+
+def test_several_clients_each_get_their_own_stream_and_face():
+    text = fap_text()
+
+    async def main():
+        faces = []
+
+        def factory():
+            faces.append(LinearFace())
+            return faces[-1]
+
+        server = await started(factory)
+        reports = await asyncio.gather(*[send_fap(text, port=server.port) for _ in range(6)])
+        await server.close()
+        return reports, faces
+
+    reports, faces = run(main())
+    assert all(r.complete and r.frames_ok == 43 for r in reports)
+    assert len(faces) == 6 and all(f.steps == 43 for f in faces)
+
+
+def test_silent_native_client_gets_the_greeting_and_can_still_stream():
+    text = fap_text()
+
+    async def main():
+        server = await started(limits=ServerLimits(greeting_delay=0.05))
+        reader, writer = await asyncio.open_connection("127.0.0.1", server.port)
+        greeting = await read_until(reader, b"\0\0")
+        writer.write(text.encode())
+        writer.write_eof()
+        rest = await read_all(reader)
+        writer.close()
+        await server.close()
+        return greeting, rest.decode().splitlines()
+
+    greeting, lines = run(main())
+    assert greeting == b'<notify name="CONNECTION_OK" ownerId="1" taskId="0" status="0"/>\0\0'
+    assert lines[0] == "ok header 25" and len(lines) == 44 and all(ln.startswith("ok ") for ln in lines)
+
+
+# -- bad input -----------------------------------------------------------------------
+
+def _first_frame(text: str) -> tuple[str, str, str]:
+    header, frames = split_fap_text(text)
+    return header, frames[0][0], frames[0][1]
+
+
+def test_malformed_lines_get_an_error_naming_the_line_and_the_stream_goes_on():
+    text = fap_text()
+    header, frames = split_fap_text(text)
+    (m0, v0), (m1, v1), (m2, v2) = frames[:3]
+    payload = "\n".join([header, m0, v0,
+                         m1.replace("1", "7", 1), v1,   # bad mask: one error, its values line is skipped
+                         m2, v2 + " 99",               # one value too many
+                         *frames[3]]) + "\n"
+
+    async def main():
+        server = await started()
+        replies = await native_exchange(server.port, payload.encode())
+        await well_behaved(server.port)
+        await server.close()
+        return replies
+
+    replies = run(main())
+    assert replies[0] == "ok header 25"
+    assert replies[1] == f"ok {v0.split()[0]}"
+    assert replies[2].startswith("error 4: ") and "mask bit 0 or 1" in replies[2]
+    assert replies[3].startswith("error 7: ") and "values after the frame number" in replies[3]
+    assert replies[4] == f"ok {frames[3][1].split()[0]}"
+    assert len(replies) == 5
+
+
+def test_bad_header_binary_garbage_and_oversized_lines_are_answered_and_others_still_served():
+    header, mask, values = _first_frame(fap_text())
+
+    async def main():
+        server = await started(limits=ServerLimits(max_line=2048))
+        bad_header = await native_exchange(server.port, b"hello there\n" + f"{header}\n{mask}\n{values}\n".encode())
+        garbage = await native_exchange(server.port, f"{header}\n".encode() + bytes(range(256)) * 3 + b"\n"
+                                        + f"{mask}\n{values}\n".encode())
+        oversized = await native_exchange(server.port, f"{header}\n".encode() + b"1 " * 100_000 + b"\n"
+                                          + f"{mask}\n{values}\n".encode())
+        await well_behaved(server.port)
+        await server.close()
+        return bad_header, garbage, oversized
+
+    bad_header, garbage, oversized = run(main())
+    assert bad_header[0].startswith("error 1: ") and "version" in bad_header[0]
+    assert bad_header[1:] == ["ok header 25", f"ok {values.split()[0]}"]
+    assert garbage[0] == "ok header 25"
+    assert garbage[1].startswith("error ") and "expected" in garbage[1]
+    assert garbage[-1] == f"ok {values.split()[0]}"
+    assert oversized[0] == "ok header 25"
+    assert oversized[1] == "error 2: expected a line of at most 2048 bytes"
+    assert oversized[2:] == [f"ok {values.split()[0]}"]
+
+
+def test_partial_frame_at_disconnect_is_reported():
+    header, mask, values = _first_frame(fap_text())
+
+    async def main():
+        server = await started()
+        cut_after_mask = await native_exchange(server.port, f"{header}\n{mask}\n".encode())
+        cut_mid_line = await native_exchange(server.port, f"{header}\n{mask}\n{values[:10]}".encode())
+        await well_behaved(server.port)
+        await server.close()
+        return cut_after_mask, cut_mid_line
+
+    cut_after_mask, cut_mid_line = run(main())
+    assert cut_after_mask == ["ok header 25", "error 3: stream ended inside a frame; expected the rest of the frame"]
+    assert cut_mid_line[-1] == "error 3: stream ended inside a frame; expected the rest of the frame"
+
+
+def test_a_client_that_keeps_sending_garbage_is_closed_after_max_errors():
+    async def main():
+        server = await started(limits=ServerLimits(max_errors=5))
+        reader, writer = await asyncio.open_connection("127.0.0.1", server.port)
+        writer.write(b"2.1 flood 25 10\n" + b"x y z\n" * 10_000)
+        await writer.drain()
+        data = await read_all(reader)  # the server closes: read ends
+        writer.close()
+        await well_behaved(server.port)
+        await server.close()
+        return data.decode().splitlines()
+
+    lines = run(main())
+    assert lines[0] == "ok header 25"
+    assert len(lines) == 6 and lines[-1].endswith("(error 5: closing)")
+
+
+def test_abrupt_disconnect_mid_frame_and_a_client_that_never_reads_do_not_stall_others():
+    text = fap_text("xface_anger.fap")
+    header, frames = split_fap_text(text)
+    body = "".join(f"{m}\n{v}\n" for m, v in frames)
+
+    async def main():
+        server = await started(limits=ServerLimits(window=4, max_output=4096))
+        # A client that floods frames and never reads its acks.
+        _, hog = await asyncio.open_connection("127.0.0.1", server.port)
+        hog.write((header + "\n" + body).encode())
+        # A client that vanishes in the middle of a line.
+        _, gone = await asyncio.open_connection("127.0.0.1", server.port)
+        gone.write((header + "\n" + frames[0][0] + "\n" + frames[0][1][:5]).encode())
+        await gone.drain()
+        gone.transport.abort()
+        await asyncio.wait_for(well_behaved(server.port), TIMEOUT)
+        hog.transport.abort()
+        await asyncio.wait_for(well_behaved(server.port), TIMEOUT)
+        await server.close()
+
+    run(main())
+
+
+def test_a_face_that_fails_to_build_is_reported_and_the_server_keeps_serving():
+    calls = []
+
+    def factory():
+        calls.append(1)
+        if len(calls) == 1:
+            raise RuntimeError("no head here")
+        return LinearFace()
+
+    async def main():
+        server = await started(factory)
+        replies = await native_exchange(server.port, fap_text().encode())
+        await well_behaved(server.port)
+        await server.close()
+        return replies
+
+    replies = run(main())
+    assert replies[0].startswith("error 1: the server could not build a face") and "no head here" in replies[0]
+
+
+# -- Xface protocol ------------------------------------------------------------------
+
+def task(name: str, owner: int, task_id: int, *params: str, end: bytes = b"\0") -> bytes:
+    body = "".join(f"<param>{p}</param>" for p in params)
+    return f'<task name="{name}" ownerId="{owner}" taskId="{task_id}">{body}</task>'.encode() + end
+
+
+def notifies(data: bytes) -> list[str]:
+    assert data.endswith(b"\0\0"), data[-40:]
+    parts = data.split(b"\0\0")[:-1]
+    return [p.decode() for p in parts]
+
+
+def n(name: str, owner: int, task_id: int, status: int) -> str:
+    return f'<notify name="{name}" ownerId="{owner}" taskId="{task_id}" status="{status}"/>'
+
+
+async def xface_connect(port: int):
+    reader, writer = await asyncio.open_connection("127.0.0.1", port)
+    greeting = await read_until(reader, b"\0\0")
+    owner = int(greeting.split(b'ownerId="')[1].split(b'"')[0])
+    assert greeting == n("CONNECTION_OK", owner, 0, 0).encode() + b"\0\0"
+    return reader, writer, owner
+
+
+async def expect(reader: asyncio.StreamReader, count: int, timeout: float = TIMEOUT) -> list[str]:
+    buf = b""
+    while buf.count(b"\0\0") < count:
+        chunk = await asyncio.wait_for(reader.read(65536), timeout)
+        assert chunk, f"connection closed after {buf!r}"
+        buf += chunk
+    return notifies(buf)
+
+
+def test_xface_upload_resume_stop_rewind_with_exact_notify_bytes():
+    text = fap_text()  # 43 frames at 25 fps
+
+    async def main():
+        server = await started(limits=ServerLimits(greeting_delay=0.05))
+        sub = server.subscribe(maxsize=1000)
+        reader, writer, me = await xface_connect(server.port)
+        # Two tasks in one write, one ended by two NULs, the other by nothing.
+        writer.write(task("UPLOAD_FAP", me, 1, text, end=b"\0\0") + task("RESUME_PLAYBACK", me, 2, end=b""))
+        got = await expect(reader, 5)
+        # The session acks each task at once; the shared queue reports progress: order across the two varies.
+        assert sorted(got) == sorted([n("UPLOAD_FAP", me, 1, 1), n("UPLOAD_FAP", me, 1, 2), n("UPLOAD_FAP", me, 1, 3),
+                                      n("RESUME_PLAYBACK", me, 2, 1), n("RESUME_PLAYBACK", me, 2, 2)])
+        loop = asyncio.get_running_loop()
+        t0 = loop.time()
+        assert await expect(reader, 1, timeout=5) == [n("RESUME_PLAYBACK", me, 2, 3)]
+        played_for = loop.time() - t0
+        frames = []
+        while not sub._queue.empty():
+            frames.append(await sub.get())
+        # Rewind, play again, stop mid-playback: no 3 for that RESUME; STOP answers 1 then 3.
+        writer.write(task("REWIND_PLAYBACK", me, 3))
+        assert await expect(reader, 2) == [n("REWIND_PLAYBACK", me, 3, 1), n("REWIND_PLAYBACK", me, 3, 3)]
+        writer.write(task("RESUME_PLAYBACK", me, 4))
+        assert await expect(reader, 2) == [n("RESUME_PLAYBACK", me, 4, 1), n("RESUME_PLAYBACK", me, 4, 2)]
+        await asyncio.sleep(0.2)
+        writer.write(task("STOP_PLAYBACK", me, 5))
+        assert await expect(reader, 2) == [n("STOP_PLAYBACK", me, 5, 1), n("STOP_PLAYBACK", me, 5, 3)]
+        after_stop = []
+        while not sub._queue.empty():
+            after_stop.append(await sub.get())
+        # Nothing else arrives (the interrupted RESUME never finishes).
+        with pytest.raises(asyncio.TimeoutError):
+            await asyncio.wait_for(reader.read(1), 0.3)
+        writer.close()
+        await server.close()
+        return frames, played_for, after_stop
+
+    frames, played_for, after_stop = run(main())
+    # The second playback got a few frames in before STOP; STOP shows frame 0 again and ends the stream.
+    replay = [e.index for e in after_stop if isinstance(e, FrameEvent)]
+    assert 2 <= len(replay) < 43 and replay[:-1] == list(range(len(replay) - 1)) and replay[-1] == 0
+    assert isinstance(after_stop[-1], StreamEnd)
+    poses = [e for e in frames if isinstance(e, FrameEvent)]
+    assert [e.index for e in poses] == list(range(43)) and isinstance(frames[-1], StreamEnd)
+    assert 42 / 25 - 0.25 < played_for < 42 / 25 + 1.0  # played at the stream's 25 fps
+
+
+def test_xface_errors_unknown_task_garbage_missing_stream_and_bad_fap():
+    async def main():
+        server = await started(limits=ServerLimits(greeting_delay=0.05))
+        reader, writer, me = await xface_connect(server.port)
+        writer.write(task("PAUSE_PLAYBACK", me, 1))
+        assert await expect(reader, 1) == [n("ERROR", 0, 0, 7)]
+        writer.write(b"<task name='x' ownerId='1'\0")
+        assert await expect(reader, 1) == [n("ERROR", 0, 0, 7)]
+        writer.write(task("RESUME_PLAYBACK", me, 2))  # nothing loaded
+        assert await expect(reader, 2) == [n("RESUME_PLAYBACK", me, 2, 1), n("RESUME_PLAYBACK", me, 2, 7)]
+        writer.write(task("UPLOAD_FAP", me, 3, "2.1 bad 25 1\n0 1\n5 5\n"))
+        assert await expect(reader, 4) == [n("UPLOAD_FAP", me, 3, 1), n("UPLOAD_FAP", me, 3, 2),
+                                           n("UPLOAD_FAP", me, 3, 7), n("UPLOAD_FAP", me, 3, 3)]
+        writer.write(task("LOAD_FAP", me, 4, "/etc/passwd"))  # no --fap-dir: refused
+        assert await expect(reader, 3) == [n("LOAD_FAP", me, 4, 1), n("LOAD_FAP", me, 4, 2), n("LOAD_FAP", me, 4, 7)]
+        writer.write(task("UPLOAD_FAP", 0, 5, fap_text()))  # ownerId 0: only the queued ack
+        assert await expect(reader, 1) == [n("UPLOAD_FAP", 0, 5, 1)]
+        writer.close()
+        await well_behaved(server.port)
+        await server.close()
+
+    run(main())
+
+
+def test_xface_load_fap_reads_only_inside_fap_dir(tmp_path):
+    (tmp_path / "a.fap").write_text(fap_text())
+    (tmp_path / "notes.txt").write_text("2.1 x 25 0\n")
+
+    async def main():
+        server = await started(fap_dir=tmp_path, limits=ServerLimits(greeting_delay=0.05))
+        reader, writer, me = await xface_connect(server.port)
+        results = {}
+        for i, path in enumerate(["a.fap", str(tmp_path / "a.fap"), "../a.fap", "notes.txt", "missing.fap"], 1):
+            writer.write(task("LOAD_FAP", me, i, path))
+            got = await expect(reader, 3)
+            results[path] = got[-1]
+        writer.close()
+        await server.close()
+        return results, me
+
+    results, me = run(main())
+    assert results["a.fap"].endswith('status="3"/>')
+    assert results[str(tmp_path / "a.fap")].endswith('status="3"/>')
+    for bad in ("../a.fap", "notes.txt", "missing.fap"):
+        assert results[bad].endswith('status="7"/>'), bad
+
+
+def test_xface_notifications_are_routed_by_owner_id_and_clients_share_one_face():
+    text = fap_text()
+
+    async def main():
+        built = []
+
+        def factory():
+            built.append(LinearFace())
+            return built[-1]
+
+        server = await started(factory, limits=ServerLimits(greeting_delay=0.05))
+        r1, w1, id1 = await xface_connect(server.port)
+        r2, w2, id2 = await xface_connect(server.port)
+        assert id2 == id1 + 1
+        # Client 1 uploads on behalf of client 2: client 1 gets the queued ack, client 2 the rest.
+        w1.write(task("UPLOAD_FAP", id2, 9, text))
+        assert await expect(r1, 1) == [n("UPLOAD_FAP", id2, 9, 1)]
+        assert await expect(r2, 2) == [n("UPLOAD_FAP", id2, 9, 2), n("UPLOAD_FAP", id2, 9, 3)]
+        w1.write(task("ADVANCE_FRAME", id1, 10))
+        w2.write(task("ADVANCE_FRAME", id2, 11))
+        assert await expect(r1, 1) == [n("ADVANCE_FRAME", id1, 10, 1)]
+        assert await expect(r2, 1) == [n("ADVANCE_FRAME", id2, 11, 1)]
+        await asyncio.sleep(0.1)
+        w1.close()
+        w2.close()
+        await server.close()
+        return built
+
+    built = run(main())
+    assert len(built) == 1 and built[0].steps == 2
+
+
+def test_xface_oversized_task_closes_only_that_client():
+    async def main():
+        server = await started(limits=ServerLimits(greeting_delay=0.05, max_task=4096))
+        reader, writer, me = await xface_connect(server.port)
+        writer.write(b"<task name=\"UPLOAD_FAP\" ownerId=\"1\" taskId=\"1\"><param>" + b"0 " * 10_000)
+        data = await read_all(reader)
+        writer.close()
+        await well_behaved(server.port)
+        await server.close()
+        return data
+
+    assert notifies(run(main())) == [n("ERROR", 0, 0, 7)]
+
+
+# -- codecs --------------------------------------------------------------------------
+
+def test_task_splitter_finds_tasks_across_reads_and_terminators():
+    splitter = xface.TaskSplitter()
+    stream = task("A", 1, 1, end=b"") + task("B", 1, 2, end=b"\0\0") + task("C", 1, 3, "x\ny", end=b"\0")
+    got = []
+    for i in range(0, len(stream), 7):
+        got += splitter.feed(stream[i:i + 7])
+    tasks = [xface.parse_task(m) for m in got]
+    assert [(t.name, t.task_id, t.params) for t in tasks] == [("A", 1, ()), ("B", 2, ()), ("C", 3, ("x\ny",))]
+    assert splitter.buffered == 0
