@@ -395,3 +395,28 @@ def test_shipped_template_round_trips_and_validates(tmp_path):
     assert_same(model, read_facemodel(again))
     report = validate(TEMPLATE)
     assert report["issues"]["numErrors"] == 0, report["issues"]["messages"]
+
+
+# -- any corruption gives FaceModelError ------------------------------------------------------
+
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(data=st.data())
+def test_corrupted_bytes_raise_facemodel_error_or_decode(head_file, data):
+    original = head_file.read_bytes()
+    json_end = 20 + struct.unpack_from("<I", original, 12)[0]
+    corrupted = bytearray(original)
+    for _ in range(data.draw(st.integers(1, 4))):
+        at = data.draw(st.integers(0, json_end + 64))  # mostly the header and the JSON chunk
+        corrupted[at] = data.draw(st.integers(0, 255))
+    if data.draw(st.booleans()):
+        corrupted = corrupted[: data.draw(st.integers(0, len(corrupted)))]
+    try:
+        model = facemodel_from_glb(bytes(corrupted), name="corrupt.glb")
+    except FaceModelError as exc:
+        assert "corrupt.glb" in str(exc)
+    else:
+        assert structural_problems(model) == []

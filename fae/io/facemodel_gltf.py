@@ -596,7 +596,13 @@ def read_facemodel(path: str | os.PathLike, *, check: bool = True) -> FaceModel:
 
 def facemodel_from_glb(data: bytes, *, name: str = "<bytes>", check: bool = True) -> FaceModel:
     """Decode FaceModel .glb bytes; `name` is used in error messages."""
-    model = _Reader(data, name).model()
+    try:
+        model = _Reader(data, name).model()
+    except FaceModelError:
+        raise
+    except (AttributeError, IndexError, KeyError, TypeError, ValueError, OverflowError, MemoryError, struct.error) as exc:
+        # a malformation the field checks above did not anticipate: still name the file
+        raise FaceModelError(f"{name}: malformed FaceModel file ({type(exc).__name__}: {exc})") from exc
     if check:
         problems = structural_problems(model)
         if problems:
