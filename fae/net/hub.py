@@ -114,10 +114,18 @@ class FrameHub:
         for sub in list(self._subs):
             await sub._push(event)
 
-    def close(self) -> None:
-        """End every subscription (their get() returns None after queued events)."""
+    async def close(self) -> None:
+        """End every subscription (their get() returns None after queued events).
+
+        A lossless subscriber keeps every queued event: this waits until it has room
+        for the end marker.
+        """
         for sub in list(self._subs):
-            sub.close()
+            self._remove(sub)
+            if sub.lossless:
+                await sub._queue.put(None)
+            else:
+                sub._push_nowait(None)
 
     def _remove(self, sub: Subscription) -> None:
         if sub in self._subs:

@@ -111,7 +111,7 @@ class FapServer:
         if self._handlers:
             await asyncio.gather(*self._handlers, return_exceptions=True)
         await self.stage.close()
-        self.hub.close()
+        await self.hub.close()
         if self._server is not None:
             await self._server.wait_closed()
 
