@@ -39,12 +39,18 @@ def _mesh(mesh: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int32)
 
 
-def _surface_point(part: str, vertices: np.ndarray, faces: np.ndarray, target) -> SurfacePoint:
+def _surface_points(part: str, vertices: np.ndarray, faces: np.ndarray, targets) -> list[SurfacePoint]:
+    """The points of mesh `part` closest to each of `targets` (k, 3)."""
     mesh = trimesh.Trimesh(vertices, faces, process=False)
-    closest, _, triangle = trimesh.proximity.closest_point(mesh, np.asarray([target], dtype=np.float64))
-    bary = trimesh.triangles.points_to_barycentric(vertices[faces[triangle]], closest)[0]
+    closest, _, triangles = trimesh.proximity.closest_point(mesh, np.asarray(targets, dtype=np.float64))
+    bary = trimesh.triangles.points_to_barycentric(vertices[faces[triangles]], closest)
     bary = np.clip(bary, 0.0, None)
-    return SurfacePoint(part=part, triangle=int(triangle[0]), bary=bary / bary.sum())
+    bary /= bary.sum(axis=1, keepdims=True)
+    return [SurfacePoint(part=part, triangle=int(t), bary=b.copy()) for t, b in zip(triangles, bary)]
+
+
+def _surface_point(part: str, vertices: np.ndarray, faces: np.ndarray, target) -> SurfacePoint:
+    return _surface_points(part, vertices, faces, [target])[0]
 
 
 def _mirror_index(vertices: np.ndarray) -> np.ndarray:
@@ -99,13 +105,15 @@ def synthetic_head(personalized: bool = True) -> FaceModel:
         add(name, eye, (0.95, 0.95, 0.93, 1.0), colors)
         eye_centers[name] = centre
 
-    feature_points = {}
+    targets = []
     for point in FEATURE_POINTS:
         target = FDP_TARGETS.get(point.name)
         if target is None:
             spread = 0.012 * ((point.index - 1) % 4) + 0.005
             target = (point.side * spread, 0.08 - 0.012 * (point.group - 2), 0.12)
-        feature_points[point.name] = _surface_point("skin", skin_v, skin_f, target)
+        targets.append(target)
+    points = _surface_points("skin", skin_v, skin_f, targets)
+    feature_points = {point.name: sp for point, sp in zip(FEATURE_POINTS, points)}
 
     cv, cf = parts["cranium"].vertices, parts["cranium"].faces
     muscles = []

@@ -202,13 +202,20 @@ def test_fapu_are_stored_for_other_readers(head, head_file):
     assert fapu["AU"] == 1e-5
 
 
-def test_a_crashed_write_leaves_no_file(head, tmp_path):
+def test_a_failed_write_leaves_the_previous_file_untouched(head, head_file, tmp_path):
+    target = tmp_path / "head.glb"
+    shutil.copyfile(head_file, target)
     model = copy.deepcopy(head)
     model.meta = {"bad": object()}
-    target = tmp_path / "broken.glb"
     with pytest.raises(FaceModelError, match="meta"):
         write_facemodel(model, target, check=False)
-    assert list(tmp_path.iterdir()) == []
+    model.skin_vertices = model.skin_vertices.copy()
+    model.skin_vertices[0, 0] = np.nan
+    model.meta = {}
+    with pytest.raises(FaceModelError, match="head.glb"):
+        write_facemodel(model, target, check=False)
+    assert target.read_bytes() == head_file.read_bytes()
+    assert [p.name for p in tmp_path.iterdir()] == ["head.glb"]
 
 
 # -- reading bad files --------------------------------------------------------------------

@@ -376,7 +376,12 @@ def facemodel_to_glb(model: FaceModel, *, check: bool = True, name: str = "<Face
         problems = structural_problems(model)
         if problems:
             raise FaceModelError(f"{name}: refusing to write an inconsistent FaceModel: " + "; ".join(problems))
-    return _Writer(model, name).glb()
+    try:
+        return _Writer(model, name).glb()
+    except FaceModelError:
+        raise
+    except (TypeError, ValueError, OverflowError) as exc:  # e.g. NaN bounds with check=False
+        raise FaceModelError(f"{name}: cannot encode the FaceModel ({type(exc).__name__}: {exc})") from exc
 
 
 class _Writer:
