@@ -12,6 +12,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from fae.io.facemodel import FaceModel, SurfacePoint
 from fae.io.facemodel_gltf import (
@@ -405,10 +407,6 @@ def test_shipped_template_round_trips_and_validates(tmp_path):
 
 
 # -- any corruption gives FaceModelError ------------------------------------------------------
-
-from hypothesis import HealthCheck, given, settings  # noqa: E402
-from hypothesis import strategies as st  # noqa: E402
-
 
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(data=st.data())
