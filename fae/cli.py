@@ -17,6 +17,10 @@ from fae import __version__
 # Module names under fae.commands, in the order `fae --help` lists them.
 COMMANDS = (
     "inspect",
+    "serve",
+    "send",
+    "render",
+    "play",
 )
 
 

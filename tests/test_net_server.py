@@ -492,3 +492,30 @@ def test_task_splitter_finds_tasks_across_reads_and_terminators():
     tasks = [xface.parse_task(m) for m in got]
     assert [(t.name, t.task_id, t.params) for t in tasks] == [("A", 1, ()), ("B", 2, ()), ("C", 3, ("x\ny",))]
     assert splitter.buffered == 0
+
+
+# -- the `fae send` command ------------------------------------------------------------
+
+def test_fae_send_reports_and_exits_nonzero_when_frames_are_rejected(tmp_path, capsys):
+    from fae.cli import main as fae_main
+
+    good = DATA / "xface_test.fap"
+    fap_text()
+    header, frames = split_fap_text(good.read_text())
+    bad = tmp_path / "bad.fap"
+    bad.write_text("\n".join([header, frames[0][0], frames[0][1] + " 1 2 3", *frames[1]]) + "\n")
+
+    async def main():
+        server = await started()
+        ok = await asyncio.to_thread(fae_main, ["send", str(good), "--port", str(server.port), "--rate", "max"])
+        rejected = await asyncio.to_thread(fae_main, ["send", str(bad), "--port", str(server.port)])
+        await server.close()
+        refused = await asyncio.to_thread(fae_main, ["send", str(good), "--port", str(server.port)])
+        return ok, rejected, refused
+
+    ok, rejected, refused = run(main())
+    out, err = capsys.readouterr()
+    assert (ok, rejected, refused) == (0, 1, 2)
+    assert "43/43 frames ok, 0 errors" in out and "latency p50" in out
+    assert "1/2 frames ok, 1 errors" in out
+    assert "server: error 3:" in err

@@ -83,3 +83,29 @@ class FaceWorker:
     def close(self) -> None:
         """Drop queued steps and let the thread end once the running step returns."""
         self._executor.shutdown(wait=False, cancel_futures=True)
+
+
+class PlayerFace:
+    """A FaceModel animated by fae's Player (fae.animate.player), as a FrameConsumer.
+
+    model   the head (shared read-only between faces)
+    device  Warp device ("cpu" or "cuda:0")
+    """
+
+    def __init__(self, model, device: str = "cpu") -> None:
+        from fae.animate.player import Player  # the animation layer, above fae.net's inputs
+
+        self.player = Player(model, device=device)
+
+    def step(self, frame: DenseFrame, dt: float) -> Pose:
+        skin = self.player.step(frame, dt=dt)
+        bones = getattr(self.player, "bone_transforms", None)
+        return Pose(np.asarray(skin), dict(bones() if callable(bones) else bones or {}))
+
+    def reset(self) -> None:
+        self.player.reset()
+
+
+def player_face_factory(model, device: str = "cpu") -> FaceFactory:
+    """A factory building a new PlayerFace on `model` for each stream."""
+    return lambda: PlayerFace(model, device)

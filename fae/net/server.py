@@ -81,13 +81,14 @@ class FapServer:
     async def start(self) -> None:
         """Bind and start accepting."""
         self._server = await asyncio.start_server(self._on_connect, self.host, self.requested_port)
+        self._port = self._server.sockets[0].getsockname()[1]
 
     @property
     def port(self) -> int:
         """The port actually bound (after start)."""
         if self._server is None:
             raise RuntimeError("FapServer.port: the server is not started")
-        return self._server.sockets[0].getsockname()[1]
+        return self._port
 
     def subscribe(self, maxsize: int = 8, lossless: bool = False) -> Subscription:
         """Receive every FrameEvent/StreamEnd the server produces (see fae.net.hub)."""
