@@ -1,0 +1,263 @@
+"""Geometry helpers for building anatomical meshes from signed distances.
+
+Signed distance functions take points `P (n, 3)` and return `(n,)` values, negative
+inside. Shapes are combined with smooth minimum/maximum (polynomial blend of width `k`).
+Meshes are `V (n, 3) float64, F (m, 3) int` with counter-clockwise faces seen from outside.
+All functions are pure: inputs are never modified.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+# ---------------------------------------------------------------------------------------
+# signed distance primitives (approximate where exact is costly; all 1-Lipschitz-ish)
+
+def sdf_ellipsoid(P: np.ndarray, center, radii) -> np.ndarray:
+    """(n,) approximate signed distance to an axis-aligned ellipsoid (bound-corrected)."""
+    q = (P - np.asarray(center, dtype=np.float64)) / np.asarray(radii, dtype=np.float64)
+    k0 = np.sqrt(np.einsum("ij,ij->i", q, q))
+    q2 = q / np.asarray(radii, dtype=np.float64)
+    k1 = np.sqrt(np.einsum("ij,ij->i", q2, q2))
+    return k0 * (k0 - 1.0) / np.maximum(k1, 1e-12)
+
+
+def sdf_sphere(P: np.ndarray, center, radius: float) -> np.ndarray:
+    """(n,) signed distance to a sphere."""
+    return np.linalg.norm(P - np.asarray(center, dtype=np.float64), axis=1) - radius
+
+
+def segment_parameter(P: np.ndarray, a, b) -> np.ndarray:
+    """(n,) parameter t in [0, 1] of the point of segment a-b closest to each point."""
+    a = np.asarray(a, dtype=np.float64)
+    ab = np.asarray(b, dtype=np.float64) - a
+    return np.clip((P - a) @ ab / float(ab @ ab), 0.0, 1.0)
+
+
+def sdf_capsule(P: np.ndarray, a, b, ra: float, rb: float | None = None) -> np.ndarray:
+    """(n,) signed distance to a capsule from a to b, radius ra at a and rb at b."""
+    rb = ra if rb is None else rb
+    t = segment_parameter(P, a, b)
+    a = np.asarray(a, dtype=np.float64)
+    c = a + t[:, None] * (np.asarray(b, dtype=np.float64) - a)
+    return np.linalg.norm(P - c, axis=1) - (ra + (rb - ra) * t)
+
+
+def sdf_polyline(P: np.ndarray, points, radii) -> np.ndarray:
+    """(n,) union of tapered capsules along a polyline `points (k, 3)` with `radii (k,)`."""
+    points = np.asarray(points, dtype=np.float64)
+    radii = np.asarray(radii, dtype=np.float64)
+    d = np.full(P.shape[0], np.inf)
+    for i in range(len(points) - 1):
+        d = np.minimum(d, sdf_capsule(P, points[i], points[i + 1], radii[i], radii[i + 1]))
+    return d
+
+
+def sdf_round_box(P: np.ndarray, center, half_size, radius: float) -> np.ndarray:
+    """(n,) signed distance to an axis-aligned box with rounded edges."""
+    q = np.abs(P - np.asarray(center, dtype=np.float64)) - (np.asarray(half_size, dtype=np.float64) - radius)
+    outside = np.linalg.norm(np.maximum(q, 0.0), axis=1)
+    inside = np.minimum(q.max(axis=1), 0.0)
+    return outside + inside - radius
+
+
+def smooth_union(a: np.ndarray, b: np.ndarray, k: float) -> np.ndarray:
+    """Polynomial smooth minimum of two distance fields, blend width k (same unit)."""
+    if k <= 0:
+        return np.minimum(a, b)
+    h = np.clip(0.5 + 0.5 * (b - a) / k, 0.0, 1.0)
+    return b + (a - b) * h - k * h * (1.0 - h)
+
+
+def smooth_subtract(a: np.ndarray, b: np.ndarray, k: float) -> np.ndarray:
+    """Shape a with shape b carved out, blend width k."""
+    return -smooth_union(-a, b, k)
+
+
+def smooth_intersect(a: np.ndarray, b: np.ndarray, k: float) -> np.ndarray:
+    """Smooth intersection of two shapes, blend width k."""
+    return -smooth_union(-a, -b, k)
+
+
+# ---------------------------------------------------------------------------------------
+# meshing
+
+def grid_points(lo, hi, step: float) -> tuple[np.ndarray, tuple[int, int, int], np.ndarray]:
+    """Regular grid from `lo` (3,) with spacing `step` covering `hi`.
+
+    Returns (P (nx*ny*nz, 3) in C order, shape (nx, ny, nz), origin (3,)).
+    """
+    lo = np.asarray(lo, dtype=np.float64)
+    hi = np.asarray(hi, dtype=np.float64)
+    n = np.ceil((hi - lo) / step).astype(int) + 1
+    axes = [lo[i] + step * np.arange(n[i]) for i in range(3)]
+    X, Y, Z = np.meshgrid(*axes, indexing="ij")
+    P = np.stack([X.ravel(), Y.ravel(), Z.ravel()], axis=1)
+    return P, (int(n[0]), int(n[1]), int(n[2])), lo
+
+
+def marching_cubes(values: np.ndarray, origin, step: float) -> tuple[np.ndarray, np.ndarray]:
+    """Zero level set of a sampled signed distance (negative inside) as (V, F), faces outward."""
+    from skimage.measure import marching_cubes as _mc
+
+    verts, faces, _normals, _vals = _mc(values, level=0.0, spacing=(step, step, step),
+                                        gradient_direction="ascent", allow_degenerate=False)
+    V = verts.astype(np.float64) + np.asarray(origin, dtype=np.float64)
+    F = faces.astype(np.int64)
+    return V, F
+
+
+def sample_sdf(sdf, lo, step: float, shape, coarse: int = 4, band: float | None = None) -> np.ndarray:
+    """Values of `sdf` on the grid lo + step * (i, j, k), `shape` (nx, ny, nz).
+
+    The field is first sampled every `coarse` steps and interpolated; it is evaluated
+    exactly wherever the interpolated value lies within `band` of zero (default: two
+    coarse cells), which is everywhere the zero set can be for a field with slope <= 1.
+    """
+    from scipy.ndimage import map_coordinates
+
+    lo = np.asarray(lo, dtype=np.float64)
+    shape = tuple(int(n) for n in shape)
+    nc = [(n - 1) // coarse + 2 for n in shape]
+    axes = [lo[i] + step * coarse * np.arange(nc[i]) for i in range(3)]
+    Pc = np.stack([a.ravel() for a in np.meshgrid(*axes, indexing="ij")], axis=1)
+    coarse_values = sdf(Pc).reshape(nc)
+    idx = np.meshgrid(*[np.arange(n, dtype=np.float64) / coarse for n in shape], indexing="ij")
+    values = map_coordinates(coarse_values, idx, order=1, mode="nearest")
+    band = 2.0 * coarse * step if band is None else band
+    near = np.abs(values) < band
+    ijk = np.argwhere(near)
+    values[near] = sdf(lo + step * ijk.astype(np.float64))
+    return values
+
+
+def mesh_from_sdf(sdf, lo, hi, step: float, pad: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Mesh (V, F) of the shape `sdf(P) < 0` inside the box lo..hi.
+
+    With `pad` the box grows by two steps on every side, so the mesh is closed; without
+    it, the surface ends in open borders on the box faces it crosses.
+    """
+    lo = np.asarray(lo, dtype=np.float64) - (2 * step if pad else 0.0)
+    hi = np.asarray(hi, dtype=np.float64) + (2 * step if pad else 0.0)
+    shape = np.ceil((hi - lo) / step).astype(int) + 1
+    values = sample_sdf(sdf, lo, step, shape)
+    V, F = marching_cubes(values, lo, step)
+    return orient_outward(*remove_unreferenced(V, F))
+
+
+def remove_unreferenced(V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(V', F') without vertices no face uses, order kept."""
+    used = np.zeros(len(V), dtype=bool)
+    used[F.ravel()] = True
+    remap = np.cumsum(used) - 1
+    return V[used], remap[F]
+
+
+def signed_volume(V: np.ndarray, F: np.ndarray) -> float:
+    """Signed volume enclosed by a closed mesh (positive when faces point outward)."""
+    a, b, c = V[F[:, 0]], V[F[:, 1]], V[F[:, 2]]
+    return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
+
+
+def orient_outward(V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Flip all faces if the mesh's signed volume is negative."""
+    if signed_volume(V, F) < 0:
+        F = F[:, ::-1]
+    return V, np.ascontiguousarray(F)
+
+
+def largest_component(V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The connected component (by shared vertices) with the most faces."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    n = len(V)
+    rows = np.concatenate([F[:, 0], F[:, 1], F[:, 2]])
+    cols = np.concatenate([F[:, 1], F[:, 2], F[:, 0]])
+    graph = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n))
+    _count, labels = connected_components(graph, directed=False)
+    face_label = labels[F[:, 0]]
+    keep = face_label == np.bincount(face_label).argmax()
+    return remove_unreferenced(V, F[keep])
+
+
+def boundary_edges(F: np.ndarray) -> np.ndarray:
+    """(b, 2) directed edges used by exactly one face."""
+    E = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
+    key = np.sort(E, axis=1)
+    _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    return E[counts[inverse.ravel()] == 1]
+
+
+def decimate(V: np.ndarray, F: np.ndarray, target_faces: int) -> tuple[np.ndarray, np.ndarray]:
+    """Quadric-error decimation to about `target_faces` faces (open borders may slide)."""
+    import pyfqmr
+
+    simplifier = pyfqmr.Simplify()
+    simplifier.setMesh(np.ascontiguousarray(V, dtype=np.float64), np.ascontiguousarray(F, dtype=np.int32))
+    simplifier.simplify_mesh(target_count=int(target_faces), aggressiveness=7, preserve_border=False,
+                             verbose=False, max_iterations=200)
+    V2, F2, _ = simplifier.getMesh()
+    return remove_unreferenced(np.asarray(V2, dtype=np.float64), np.asarray(F2, dtype=np.int64))
+
+
+def mirror_half(V: np.ndarray, F: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Mirror a half mesh lying in x >= 0 whose open border lies on x = 0.
+
+    Border vertices are snapped to x = 0 exactly and shared by both halves.
+    Returns (V2 (n2, 3), F2 (m2, 3), mirror (n2,) int: index of each vertex's x -> -x partner).
+    """
+    V = V.copy()
+    border = np.zeros(len(V), dtype=bool)
+    border[boundary_edges(F).ravel()] = True
+    if np.any(np.abs(V[border, 0]) > tol):
+        raise ValueError(f"mirror_half: open border leaves the plane x = 0 by {np.abs(V[border, 0]).max():g}")
+    V[border, 0] = 0.0
+    # midline vertices first, then the x > 0 side, then its mirror image
+    order = np.concatenate([np.flatnonzero(border), np.flatnonzero(~border)])
+    remap = np.empty(len(V), dtype=np.int64)
+    remap[order] = np.arange(len(V))
+    V = V[order]
+    F = remap[F]
+    n_mid = int(border.sum())
+    n = len(V)
+    side = np.arange(n_mid, n)
+    Vm = V[side] * np.array([-1.0, 1.0, 1.0])
+    index_m = np.arange(n, dtype=np.int64)
+    index_m[side] = n + np.arange(len(side))
+    Fm = index_m[F][:, ::-1]
+    V2 = np.concatenate([V, Vm])
+    F2 = np.concatenate([F, Fm])
+    # a side vertex i pairs with n + (i - n_mid); midline vertices pair with themselves
+    mirror = np.empty(len(V2), dtype=np.int64)
+    mirror[:n_mid] = np.arange(n_mid)
+    mirror[n_mid:n] = n + np.arange(len(side))
+    mirror[n:] = side
+    return V2, F2, mirror
+
+
+def closest_surface_points(V: np.ndarray, F: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For each query point (k, 3): (closest point (k, 3), triangle (k,), barycentric (k, 3))."""
+    import trimesh
+
+    mesh = trimesh.Trimesh(V, F, process=False)
+    closest, _dist, tri = trimesh.proximity.closest_point(mesh, np.asarray(points, dtype=np.float64))
+    bary = trimesh.triangles.points_to_barycentric(V[F[tri]], closest)
+    return closest, tri.astype(np.int64), bary
+
+
+def ray_hits(V: np.ndarray, F: np.ndarray, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    """(k, 3) first hit of each ray on the mesh (nan where a ray misses)."""
+    import trimesh
+
+    mesh = trimesh.Trimesh(V, F, process=False)
+    locs, ray_idx, _tri = mesh.ray.intersects_location(origins, directions, multiple_hits=True)
+    out = np.full((len(origins), 3), np.nan)
+    best = np.full(len(origins), np.inf)
+    for loc, r in zip(locs, ray_idx):
+        d = float(np.dot(loc - origins[r], directions[r]))
+        if 0 <= d < best[r]:
+            best[r] = d
+            out[r] = loc
+    return out

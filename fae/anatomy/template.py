@@ -1,0 +1,349 @@
+"""The shipped generic head: an anatomical FaceModel built from the fields of template_shapes.
+
+    build_template() -> FaceModel      deterministic: the same arrays on every build
+    TEMPLATE_PATH                      where the package ships the built head (.glb)
+
+Every surface is meshed from a signed distance field by marching cubes on the x >= 0 half
+of a regular grid, decimated by quadric error and mirrored, so each mesh is exactly
+symmetric and its midline vertices lie on x = 0. The skin is one closed surface: the mouth
+slit separates the upper from the lower lip and opens into a pouch (the mouth cavity), and
+the eyelids wrap a socket around each eyeball with an almond-shaped opening.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from fae import __version__
+from fae.anatomy import template_shapes as S
+from fae.anatomy.geometry import (
+    closest_surface_points,
+    decimate,
+    largest_component,
+    mesh_from_sdf,
+    mirror_half,
+    ray_hits,
+)
+from fae.anatomy.template_muscles import template_muscles
+from fae.anatomy.template_regions import REGION_NAMES, skin_regions
+from fae.io.facemodel import FaceModel, Part, SurfacePoint
+from fae.mpeg4 import FEATURE_POINTS
+
+TEMPLATE_PATH = Path(__file__).resolve().parents[2] / "templates" / "generic_head.glb"
+MM = 1e-3  # the shape fields are in millimetres
+
+SKIN_STEP = 1.0  # mm, marching-cubes grid of the skin
+SKIN_HALF_FACES = 9000  # about 9,000 skin vertices in all
+THICKNESS_CAP = 0.025  # m, soft-tissue depth reported where no bone lies below
+LAYER_DEPTH_FRACTIONS = [0.0, 0.35, 1.0]
+SKIN_COLOR = np.array([0.745, 0.42, 0.31, 1.0], dtype=np.float32)  # linear RGB of a light skin tone
+
+# (field, grid box lo/hi in mm for the x >= 0 half, grid step mm, faces in the half mesh)
+_PART_SPECS = {
+    "cranium": (S.cranium_sdf, (0.0, -110.0, -115.0), (85.0, 125.0, 115.0), 2.0, 4000),
+    "mandible": (S.mandible_sdf, (0.0, -130.0, -10.0), (65.0, -5.0, 100.0), 1.25, 1500),
+    "upper_teeth": (S.upper_teeth_sdf, (0.0, -84.0, 20.0), (40.0, -60.0, 95.0), 0.6, 1200),
+    "lower_teeth": (S.lower_teeth_sdf, (0.0, -100.0, 20.0), (40.0, -76.0, 95.0), 0.6, 1200),
+    "tongue": (S.tongue_sdf, (0.0, -96.0, 14.0), (25.0, -74.0, 82.0), 1.0, 500),
+}
+_PART_COLORS = {
+    "cranium": (0.80, 0.75, 0.62, 1.0),
+    "mandible": (0.80, 0.75, 0.62, 1.0),
+    "upper_teeth": (0.88, 0.86, 0.78, 1.0),
+    "lower_teeth": (0.88, 0.86, 0.78, 1.0),
+    "tongue": (0.62, 0.18, 0.18, 1.0),
+    "eye_l": (0.92, 0.92, 0.90, 1.0),
+    "eye_r": (0.92, 0.92, 0.90, 1.0),
+}
+_BONES = {"cranium": "head", "upper_teeth": "head", "mandible": "jaw", "lower_teeth": "jaw", "tongue": "tongue",
+          "eye_l": "eye_l", "eye_r": "eye_r"}
+IRIS_COLOR = np.array([0.10, 0.22, 0.30, 1.0], dtype=np.float32)
+PUPIL_COLOR = np.array([0.005, 0.005, 0.005, 1.0], dtype=np.float32)
+
+
+# --- meshes ----------------------------------------------------------------------------------
+
+def symmetric_mesh(sdf, lo, hi, step: float, half_faces: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Mirror-symmetric closed mesh of `sdf < 0` (mm): (V (n, 3) mm, F (m, 3), mirror (n,))."""
+    V, F = mesh_from_sdf(sdf, lo, hi, step, pad=False)
+    V, F = largest_component(V, F)
+    V, F = decimate(V, F, half_faces)
+    return mirror_half(V, F, tol=1e-9)
+
+
+def eyeball(center_mm: np.ndarray, rings: int = 40, segments: int = 48) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Eyeball looking along +Z: (V (n, 3) m, F (m, 3), vertex colours (n, 4)); vertex 0 is the pupil centre."""
+    theta = np.linspace(0.0, np.pi, rings + 1)[1:-1]  # polar angle from +Z
+    phi = 2.0 * np.pi * np.arange(segments) / segments
+    st, ct = np.sin(theta)[:, None], np.cos(theta)[:, None]
+    ring = np.stack([np.broadcast_to(st * np.cos(phi), (len(theta), segments)),
+                     np.broadcast_to(st * np.sin(phi), (len(theta), segments)),
+                     np.broadcast_to(ct, (len(theta), segments))], axis=-1).reshape(-1, 3)
+    unit = np.concatenate([[[0.0, 0.0, 1.0]], ring, [[0.0, 0.0, -1.0]]])
+    n_ring = len(theta)
+    faces = []
+    top, bottom = 0, len(unit) - 1
+    idx = lambda r, s: 1 + r * segments + (s % segments)  # noqa: E731
+    for s in range(segments):
+        faces.append((top, idx(0, s), idx(0, s + 1)))
+        faces.append((bottom, idx(n_ring - 1, s + 1), idx(n_ring - 1, s)))
+    for r in range(n_ring - 1):
+        for s in range(segments):
+            a, b, c, d = idx(r, s), idx(r, s + 1), idx(r + 1, s), idx(r + 1, s + 1)
+            faces.append((a, c, b))
+            faces.append((b, c, d))
+    F = np.array(faces, dtype=np.int64)
+    angle = np.arccos(np.clip(unit[:, 2], -1.0, 1.0))
+    colors = np.tile(np.array(_PART_COLORS["eye_l"], dtype=np.float32), (len(unit), 1))
+    colors[angle < np.arcsin(S.IRIS_RADIUS / S.EYE_RADIUS)] = IRIS_COLOR
+    colors[angle < np.arcsin(S.PUPIL_RADIUS / S.EYE_RADIUS)] = PUPIL_COLOR
+    V = (center_mm + S.EYE_RADIUS * unit) * MM
+    return V, F, colors
+
+
+def _part(name: str, V: np.ndarray, F: np.ndarray, vertex_colors=None) -> Part:
+    return Part(vertices=np.ascontiguousarray(V, dtype=np.float64), faces=np.ascontiguousarray(F, dtype=np.int32),
+                color=np.array(_PART_COLORS[name], dtype=np.float32), bone=_BONES[name], vertex_colors=vertex_colors)
+
+
+# --- surface points --------------------------------------------------------------------------
+
+def vertex_point(part: str, F: np.ndarray, vertex: int) -> SurfacePoint:
+    """SurfacePoint exactly at `vertex`, on the lowest-numbered face that uses it."""
+    tri = int(np.flatnonzero((F == vertex).any(axis=1))[0])
+    bary = (F[tri] == vertex).astype(np.float64)
+    return SurfacePoint(part=part, triangle=tri, bary=bary)
+
+
+def closest_point(part: str, V: np.ndarray, F: np.ndarray, target) -> SurfacePoint:
+    """SurfacePoint closest to `target` (3,) on mesh (V, F) (same unit as V)."""
+    _, tri, bary = closest_surface_points(V, F, np.asarray(target, dtype=np.float64)[None])
+    b = np.clip(bary[0], 0.0, None)
+    return SurfacePoint(part=part, triangle=int(tri[0]), bary=b / b.sum())
+
+
+def _nearest(V: np.ndarray, candidates: np.ndarray, target) -> int:
+    """Index (into V) of the candidate vertex nearest to target; ties go to the lower index."""
+    d = np.linalg.norm(V[candidates] - np.asarray(target, dtype=np.float64), axis=1)
+    return int(candidates[np.argmin(d)])
+
+
+def _front(V: np.ndarray, F: np.ndarray, x: float, y: float) -> np.ndarray:
+    """(3,) the outermost skin point straight in front of (x, y) (mm)."""
+    hit = ray_hits(V, F, np.array([[x, y, 160.0]]), np.array([[0.0, 0.0, -1.0]]))[0]
+    if not np.all(np.isfinite(hit)):
+        raise RuntimeError(f"template: no skin in front of x={x} y={y} mm")
+    return hit
+
+
+def skin_feature_vertices(V: np.ndarray, F: np.ndarray, mirror: np.ndarray, region: np.ndarray) -> dict[str, int]:
+    """FDP name -> skin vertex for every FDP on the skin (mm mesh, left points chosen, right mirrored)."""
+    names = {n: i for i, n in enumerate(REGION_NAMES)}
+    in_region = lambda *rs: np.flatnonzero(np.isin(region, [names[r] for r in rs]))  # noqa: E731
+    mid = np.flatnonzero(V[:, 0] == 0.0)
+    mid_in = lambda *rs: np.intersect1d(mid, in_region(*rs))  # noqa: E731
+    left = np.flatnonzero(V[:, 0] > 0.0)
+    left_in = lambda *rs: np.intersect1d(left, in_region(*rs))  # noqa: E731
+    e = S.EYE_CENTER
+    y0, g = S.STOMION_Y, 0.5 * S.LIP_GAP
+    out: dict[str, int] = {}
+
+    # chin and jaw
+    chin_mid = mid_in("chin")
+    out["2.1"] = int(chin_mid[np.argmin(V[chin_mid, 1])])
+    out["2.10"] = _nearest(V, chin_mid, _front(V, F, 0.0, -104.0))
+    out["2.11"] = _nearest(V, left_in("chin", "jaw_l"), _front(V, F, 17.0, -108.0))
+    out["2.13"] = _nearest(V, left_in("jaw_l", "neck"), (62.0, -100.0, 4.0))
+    # lips: inner contour is the front edge of the slit, outer contour the vermilion border
+    upper_mid = mid_in("lip_upper")
+    edge = upper_mid[V[upper_mid, 1] < y0 + g + 0.8]
+    out["2.2"] = int(edge[np.argmax(V[edge, 2])])
+    lower_mid = mid_in("lip_lower")
+    edge = lower_mid[V[lower_mid, 1] > y0 - g - 0.8]
+    out["2.3"] = int(edge[np.argmax(V[edge, 2])])
+    corner = S.MOUTH_HALF_WIDTH
+    out["8.3"] = _nearest(V, left_in("lip_upper", "lip_lower"), (corner + 1.0, y0, 86.0))
+    out["2.4"] = _nearest(V, left_in("lip_upper", "lip_lower"), (corner - 2.5, y0, 86.0))
+    for name, x, sign, reg in (("2.6", 0.5 * corner, 1, "lip_upper"), ("2.8", 0.5 * corner, -1, "lip_lower")):
+        cand = left_in(reg)
+        cand = cand[np.abs(V[cand, 1] - (y0 + sign * g)) < 1.0]
+        target = np.array([x, y0 + sign * g, 110.0])
+        out[name] = _nearest(V, cand, target)
+    out["8.1"] = _nearest(V, mid_in("lip_upper"), _front(V, F, 0.0, y0 + 8.2))
+    out["8.2"] = _nearest(V, mid_in("lip_lower"), _front(V, F, 0.0, y0 - 9.4))
+    out["8.5"] = _nearest(V, left_in("lip_upper"), _front(V, F, 13.0, y0 + 7.0))
+    out["8.7"] = _nearest(V, left_in("lip_lower"), _front(V, F, 13.0, y0 - 8.5))
+    out["8.10"] = _nearest(V, left_in("lip_upper"), _front(V, F, 5.0, y0 + 8.8))
+    # eyes: lid margins over the pupil, corners, outer lid contours
+    lid_up = left_in("eyelid_upper_l")
+    lid_lo = left_in("eyelid_lower_l")
+    r = S.EYE_RADIUS + S.EYE_GAP
+    s = S.IRIS_RADIUS / r
+    out["3.1"] = _nearest(V, lid_up, e + r * np.array([0.0, s, np.sqrt(1 - s * s)]))
+    out["3.3"] = _nearest(V, lid_lo, e + r * np.array([0.0, -s, np.sqrt(1 - s * s)]))
+    lids = np.union1d(lid_up, lid_lo)
+    out["3.7"] = _nearest(V, lids, e + np.array([S.FISSURE_HALF_WIDTH, 0.4, 4.0]))
+    out["3.11"] = _nearest(V, lids, e + np.array([-S.FISSURE_HALF_WIDTH, -0.4, 4.0]))
+    out["3.13"] = _nearest(V, lid_up, _front(V, F, e[0], e[1] + 10.0))
+    out["3.9"] = _nearest(V, lid_lo, _front(V, F, e[0], e[1] - 9.0))
+    # eyebrows (left brow: 4.1 inner end, 4.3 top, 4.5 outer end)
+    brow = left_in("forehead")
+    out["4.1"] = _nearest(V, brow, _front(V, F, 15.0, 17.0))
+    out["4.3"] = _nearest(V, brow, _front(V, F, 31.0, 21.0))
+    out["4.5"] = _nearest(V, brow, _front(V, F, 46.0, 16.0))
+    # cheeks
+    out["5.1"] = _nearest(V, left_in("cheek_l"), _front(V, F, 40.0, -48.0))
+    out["5.3"] = _nearest(V, left_in("cheek_l"), _front(V, F, 46.0, -16.0))
+    # nose
+    nose_mid = mid_in("nose")
+    out["9.3"] = int(nose_mid[np.argmax(V[nose_mid, 2])])
+    out["9.12"] = _nearest(V, nose_mid, _front(V, F, 0.0, -22.0))
+    out["9.15"] = _nearest(V, mid, (0.0, -53.5, 100.5))
+    nose_left = left_in("nose")
+    out["9.1"] = _nearest(V, nose_left, (20.0, -47.0, 98.0))
+    out["9.5"] = _nearest(V, nose_left, (14.0, -53.0, 97.0))
+    out["9.7"] = _nearest(V, nose_left, _front(V, F, 7.0, 2.0))
+    out["9.13"] = _nearest(V, nose_left, _front(V, F, 8.0, -22.0))
+    # ears
+    ear = left_in("ear_l")
+    out["10.1"] = int(ear[np.argmax(V[ear, 1])])
+    out["10.5"] = int(ear[np.argmin(V[ear, 1])])
+    out["10.3"] = int(ear[np.argmin(V[ear, 2])])
+    contact = _region_border(F, region, names["ear_l"])
+    contact = np.intersect1d(contact, left)
+    out["10.9"] = int(contact[np.argmax(V[contact, 1])])
+    out["10.7"] = int(contact[np.argmin(V[contact, 1])])
+    # hairline and skull
+    out["11.1"] = _nearest(V, mid, _front(V, F, 0.0, 72.0))
+    out["11.3"] = _nearest(V, left, _front(V, F, 42.0, 62.0))
+    top = mid[V[mid, 2] > -40.0]
+    out["11.4"] = int(top[np.argmax(V[top, 1])])
+    out["11.5"] = out["11.4"]  # a bald head: no hair over the top of the skull
+    back = mid[V[mid, 1] > 0.0]
+    out["11.6"] = int(back[np.argmin(V[back, 2])])
+
+    by_name = {p.name: p for p in FEATURE_POINTS}
+    for name in list(out):
+        partner = by_name[name].mirror
+        if partner != name:
+            out[partner] = int(mirror[out[name]])
+    return out
+
+
+def _region_border(F: np.ndarray, region: np.ndarray, r: int) -> np.ndarray:
+    """Vertices of region r that share a face with another region."""
+    fr = region[F]
+    mixed = (fr == r).any(axis=1) & (fr != r).any(axis=1)
+    verts = np.unique(F[mixed])
+    return verts[region[verts] == r]
+
+
+def part_feature_points(parts_mm: dict[str, tuple[np.ndarray, np.ndarray]]) -> dict[str, SurfacePoint]:
+    """FDPs on rigid parts: pupils (3.5/3.6), teeth (9.8-9.11), tongue (6.x), top of the spine (7.1)."""
+    out: dict[str, SurfacePoint] = {}
+    out["3.5"] = vertex_point("eye_l", parts_mm["eye_l"][1], 0)
+    out["3.6"] = vertex_point("eye_r", parts_mm["eye_r"][1], 0)
+
+    def midline_extreme(part: str, key) -> SurfacePoint:
+        V, F = parts_mm[part]
+        mid = np.flatnonzero(V[:, 0] == 0.0)
+        return vertex_point(part, F, int(mid[np.argmax(key(V[mid]))]))
+
+    front_low = lambda W: W[:, 2] - 3.0 * W[:, 1]  # noqa: E731  incisal edge: forward and down
+    front_high = lambda W: W[:, 2] + 3.0 * W[:, 1]  # noqa: E731
+    out["9.10"] = midline_extreme("upper_teeth", front_low)   # bottom of the upper teeth
+    out["9.8"] = midline_extreme("upper_teeth", front_high)   # top of the upper teeth
+    out["9.11"] = midline_extreme("lower_teeth", front_high)  # top of the lower teeth
+    out["9.9"] = midline_extreme("lower_teeth", front_low)    # bottom of the lower teeth
+    out["6.1"] = midline_extreme("tongue", lambda W: W[:, 2])
+    V, F = parts_mm["tongue"]
+    mid = np.flatnonzero(V[:, 0] == 0.0)
+    zc = 0.5 * (V[:, 2].min() + V[:, 2].max())
+    out["6.2"] = vertex_point("tongue", F, _nearest(V, mid, (0.0, V[:, 1].max() + 1.0, zc)))
+    left = int(np.lexsort((np.abs(V[:, 2] - zc), -V[:, 0]))[0])
+    out["6.3"] = vertex_point("tongue", F, left)
+    partner = _nearest(V, np.arange(len(V)), V[left] * np.array([-1.0, 1.0, 1.0]))
+    out["6.4"] = vertex_point("tongue", F, partner)
+    # 7.1: where the spine meets the skull, on the cranium's base above the neck
+    V, F = parts_mm["cranium"]
+    mid = np.flatnonzero(V[:, 0] == 0.0)
+    base = mid[(V[mid, 2] > -30.0) & (V[mid, 2] < -5.0)]
+    out["7.1"] = vertex_point("cranium", F, int(base[np.argmin(V[base, 1])]))
+    return out
+
+
+# --- skin attributes -------------------------------------------------------------------------
+
+def skin_uv(V: np.ndarray) -> np.ndarray:
+    """(n, 2) float32 cylindrical texture coordinates: u around the head (face at 0.5), v up."""
+    u = 0.5 + np.arctan2(V[:, 0], V[:, 2]) / (2.0 * np.pi)
+    lo, hi = V[:, 1].min(), V[:, 1].max()
+    v = (V[:, 1] - lo) / (hi - lo)
+    return np.clip(np.stack([u, v], axis=1), 0.0, 1.0).astype(np.float32)
+
+
+def skin_thickness(V: np.ndarray, bones: list[tuple[np.ndarray, np.ndarray]], cap: float) -> np.ndarray:
+    """(n,) distance from each skin vertex to the nearest bone surface, at most `cap` (V's unit)."""
+    import trimesh
+
+    depth = np.full(len(V), np.inf)
+    for BV, BF in bones:
+        mesh = trimesh.Trimesh(BV, BF, process=False)
+        _, d, _ = trimesh.proximity.closest_point(mesh, V)
+        depth = np.minimum(depth, d)
+    return np.minimum(depth, cap)
+
+
+# --- the whole head --------------------------------------------------------------------------
+
+def build_template() -> FaceModel:
+    """Build the generic head (about 15 s on one core). Deterministic."""
+    V, F, mirror = symmetric_mesh(S.skin_sdf, (0.0, -240.0, -125.0), (100.0, 130.0, 130.0), SKIN_STEP, SKIN_HALF_FACES)
+    region = skin_regions(V, F)
+    parts_mm: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    for name, (sdf, lo, hi, step, half_faces) in _PART_SPECS.items():
+        PV, PF, _ = symmetric_mesh(sdf, lo, hi, step, half_faces)
+        parts_mm[name] = (PV, PF)
+    eye_r_center = S.EYE_CENTER * np.array([-1.0, 1.0, 1.0])
+    eye_l = eyeball(S.EYE_CENTER)
+    eye_r = eyeball(eye_r_center)
+    parts_mm["eye_l"] = (eye_l[0] / MM, eye_l[1])
+    parts_mm["eye_r"] = (eye_r[0] / MM, eye_r[1])
+
+    feature_points: dict[str, SurfacePoint] = {}
+    for name, vertex in skin_feature_vertices(V, F, mirror, region).items():
+        feature_points[name] = vertex_point("skin", F, vertex)
+    feature_points.update(part_feature_points(parts_mm))
+    order = [p.name for p in FEATURE_POINTS]
+    feature_points = {name: feature_points[name] for name in order}
+
+    muscles = template_muscles(V, F, region, parts_mm)
+    thickness = skin_thickness(V, [parts_mm["cranium"], parts_mm["mandible"]], THICKNESS_CAP / MM) * MM
+
+    parts = {name: _part(name, PV * MM, PF) for name, (PV, PF) in parts_mm.items() if not name.startswith("eye")}
+    parts["eye_l"] = _part("eye_l", eye_l[0], eye_l[1], eye_l[2])
+    parts["eye_r"] = _part("eye_r", eye_r[0], eye_r[1], eye_r[2])
+    return FaceModel(
+        skin_vertices=np.ascontiguousarray(V * MM, dtype=np.float64),
+        skin_faces=np.ascontiguousarray(F, dtype=np.int32),
+        skin_uv=skin_uv(V),
+        skin_color=SKIN_COLOR.copy(),
+        skin_mirror=mirror.astype(np.int32),
+        skin_region=region.astype(np.int32),
+        region_names=list(REGION_NAMES),
+        skin_thickness=thickness.astype(np.float64),
+        layer_params={"layer_depth_fractions": list(LAYER_DEPTH_FRACTIONS)},
+        parts=parts,
+        jaw_pivot=S.JAW_PIVOT * MM,
+        jaw_axis=np.array([1.0, 0.0, 0.0]),
+        eye_centers={"eye_l": S.EYE_CENTER * MM, "eye_r": eye_r_center * MM},
+        feature_points=feature_points,
+        muscles=muscles,
+        face_def_tables=[],
+        fap_mapping={},
+        scan_transform=np.eye(4),
+        meta={"name": "generic_head", "generator": "tools/build_template.py", "fae_version": __version__,
+              "units": "metres", "description": "fae generic anatomical head (MPEG-4 neutral face)"},
+    )
