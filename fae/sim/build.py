@@ -1,0 +1,359 @@
+"""Build a SkinModel from any FaceModel: the 3-layer skin, springs, bone anchors, muscle
+influences and bone distance grids (all setup work; nothing here runs per frame).
+
+Layers: the epidermis is the skin mesh; the middle and deepest layers are the skin moved
+inward along the vertex normals by skin_thickness x layer fraction (default fractions
+[0, 0.5, 1], `layer_params["layer_depth_fractions"]`). Springs join the ends of every
+mesh edge within each layer, each vertex to itself in the next layer, and crosswise each
+edge's ends to the other end in the next layer. Every deepest-layer particle is held with a
+stiff zero-length spring to an anchor on the skull or the mandible, whichever mesh (with
+its teeth) is nearer. Muscles act on the middle layer; pull fields on the two upper layers.
+
+Parameters (keys of `layer_params`, else these defaults): stiffness per unit mass kappa
+(1/s^2) `kappa_epidermis` 2500, `kappa_middle` 1250, `kappa_deep` 1250, `kappa_vertical`
+2500, `kappa_cross` 800, `kappa_anchor` 10000; `spring_damping_ratio` 0.0005 s (damping =
+ratio x stiffness); `drag` 110 1/s; `density` 1100 kg/m^3; `muscle_acceleration` 50 m/s^2
+(force per unit activation and weight, per kg). Only skin near a muscle, a pull field or
+the jaw is simulated (`active_rings` 3 edge rings around it, plus one fixed ring).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+import warp as wp
+from scipy.spatial import cKDTree
+
+from fae.io.facemodel import FaceModel
+from fae.sim.model import (BONE_COUNT, BONE_NAMES, LAYER_COUNT, MUSCLE_FIELD, MUSCLE_LINEAR, MUSCLE_SPHINCTER,
+                           SkinModel)
+from fae.sim.sdf import sample_grid, signed_distance_grid
+
+DEFAULTS = {
+    "layer_depth_fractions": [0.0, 0.5, 1.0],
+    "kappa_epidermis": 2500.0,
+    "kappa_middle": 1250.0,
+    "kappa_deep": 1250.0,
+    "kappa_vertical": 2500.0,
+    "kappa_cross": 800.0,
+    "kappa_anchor": 10000.0,
+    "spring_damping_ratio": 0.0005,
+    "drag": 110.0,
+    "density": 1100.0,
+    "muscle_acceleration": 50.0,
+    "active_rings": 3,
+    "cfl": 0.9,
+    "sdf_cell": 0.003,
+}
+
+
+@dataclass
+class PullField:
+    """A directional pull field (a pseudo-muscle of kind MUSCLE_FIELD).
+
+    name        unique name
+    direction   (3,) unit vector in the head frame
+    skin_weight (V,) float64 in [0, 1], weight of each skin vertex (zero: untouched)
+    """
+
+    name: str
+    direction: np.ndarray
+    skin_weight: np.ndarray
+
+
+def mesh_edges(F: np.ndarray) -> np.ndarray:
+    """(E, 2) int64 unique undirected edges (i < j) of triangles F (m, 3)."""
+    e = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]).astype(np.int64)
+    e.sort(axis=1)
+    return np.unique(e, axis=0)
+
+
+def vertex_normals(V: np.ndarray, F: np.ndarray) -> np.ndarray:
+    """(n, 3) unit area-weighted vertex normals of (V, F)."""
+    fn = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+    n = np.zeros_like(V)
+    for k in range(3):
+        n += np.column_stack([np.bincount(F[:, k], weights=fn[:, c], minlength=len(V)) for c in range(3)])
+    length = np.linalg.norm(n, axis=1, keepdims=True)
+    return n / np.maximum(length, 1e-12)
+
+
+def vertex_areas(V: np.ndarray, F: np.ndarray) -> np.ndarray:
+    """(n,) m^2: a third of the area of the triangles around each vertex."""
+    a = 0.5 * np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]), axis=1)
+    return np.bincount(F.reshape(-1), weights=np.repeat(a / 3.0, 3), minlength=len(V))
+
+
+def adjacency(n: int, edges: np.ndarray) -> sp.csr_matrix:
+    """(n, n) boolean symmetric vertex adjacency of `edges` (E, 2)."""
+    A = sp.coo_matrix((np.ones(len(edges), dtype=bool), (edges[:, 0], edges[:, 1])), shape=(n, n)).tocsr()
+    return (A + A.T).tocsr()
+
+
+def dilate(mask: np.ndarray, A: sp.csr_matrix, rings: int) -> np.ndarray:
+    """(n,) bool: `mask` grown by `rings` edge rings over adjacency A."""
+    m = mask.copy()
+    for _ in range(rings):
+        m = m | (A @ m.astype(np.float64) > 0)
+    return m
+
+
+def _bone_mesh(face: FaceModel, bone: str) -> tuple[np.ndarray, np.ndarray]:
+    vs, fs, off = [], [], 0
+    for part in face.parts.values():
+        if part.bone == bone and part.faces is not None and len(part.faces):
+            vs.append(np.asarray(part.vertices, dtype=np.float64))
+            fs.append(np.asarray(part.faces, dtype=np.int64) + off)
+            off += len(part.vertices)
+    if not vs:
+        return np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64)
+    return np.concatenate(vs), np.concatenate(fs)
+
+
+def _surface_samples(V: np.ndarray, F: np.ndarray) -> np.ndarray:
+    """Vertices, triangle centroids and edge midpoints: points to find the nearer bone."""
+    if len(F) == 0:
+        return V
+    return np.concatenate([V, V[F].mean(axis=1), 0.5 * (V[F[:, 0]] + V[F[:, 1]])])
+
+
+def _muscle_weights(face: FaceModel, points: np.ndarray) -> list[tuple[dict, np.ndarray]]:
+    """Per muscle: (arrays of the muscle, (V,) weight at skin rest `points`)."""
+    regions = np.asarray(face.skin_region)
+    out = []
+    for m in face.muscles:
+        allowed = np.ones(len(points), dtype=bool)
+        if m.regions:
+            ids = [face.region_names.index(r) for r in m.regions if r in face.region_names]
+            allowed = np.isin(regions, ids)
+        if m.kind == "linear":
+            if m.insertion is None:
+                raise ValueError(f"muscle {m.name!r}: a linear muscle needs an insertion point")
+            a = face.surface_point_position(m.attachment)
+            ins = face.surface_point_position(m.insertion)
+            axis = ins - a
+            d = points - a
+            dist = np.linalg.norm(d, axis=1)
+            cosang = (d @ axis) / np.maximum(dist * np.linalg.norm(axis), 1e-12)
+            ang = np.arccos(np.clip(cosang, -1.0, 1.0))
+            zone = max(float(m.zone_angle), 1e-6)
+            w_ang = np.where(ang < zone, np.cos(0.5 * np.pi * ang / zone), 0.0)
+            rs, rf = float(m.fall_start), float(m.fall_end)
+            if not rf > rs > 0:
+                raise ValueError(f"muscle {m.name!r}: expected 0 < fall_start < fall_end, got {rs}, {rf}")
+            w_rad = np.where(dist <= rs, 1.0, np.where(dist < rf, np.cos(0.5 * np.pi * (dist - rs) / (rf - rs)), 0.0))
+            w = w_ang * w_rad
+            bone = face.parts[m.attachment.part].bone if m.attachment.part in face.parts else "head"
+            arr = dict(kind=MUSCLE_LINEAR, bone=BONE_NAMES.index(bone) if bone in BONE_NAMES else 0, point=a,
+                       u=np.zeros(3), v=np.zeros(3), scale=1.0)
+        elif m.kind == "sphincter":
+            c = face.surface_point_position(m.attachment)
+            axes = np.asarray(m.axes, dtype=np.float64).reshape(2, 3)
+            semi = np.asarray(m.semi_axes, dtype=np.float64).reshape(2)
+            d = points - c
+            r = np.sqrt((d @ axes[0] / semi[0]) ** 2 + (d @ axes[1] / semi[1]) ** 2)
+            # depth limit: only skin near the sphincter's plane (within the smaller semi-axis)
+            normal = np.cross(axes[0], axes[1])
+            depth = np.abs(d @ normal)
+            w = np.where((r < 1.0) & (depth < semi.max()), np.cos(0.5 * np.pi * r), 0.0)
+            arr = dict(kind=MUSCLE_SPHINCTER, bone=0, point=c, u=axes[0], v=axes[1], scale=float(semi.max()))
+        else:
+            raise ValueError(f"muscle {m.name!r}: unknown kind {m.kind!r} (expected 'linear' or 'sphincter')")
+        out.append((arr, np.where(allowed, w, 0.0)))
+    return out
+
+
+def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | None = None,
+               params: dict | None = None) -> SkinModel:
+    """The SkinModel of `face` on `device` ("cpu" or "cuda"), with extra pull `fields`.
+
+    params override `face.layer_params` and the module defaults (see module docstring).
+    """
+    p = dict(DEFAULTS)
+    p.update({k: v for k, v in (face.layer_params or {}).items() if k in DEFAULTS})
+    p.update(params or {})
+    fields = fields or []
+    V = np.asarray(face.skin_vertices, dtype=np.float64)
+    F = np.asarray(face.skin_faces, dtype=np.int64)
+    nv = len(V)
+    thickness = np.asarray(face.skin_thickness, dtype=np.float64)
+    if thickness.shape != (nv,):
+        raise ValueError(f"skin_thickness: expected shape ({nv},), got {thickness.shape}")
+    if not np.all(np.isfinite(thickness)) or np.any(thickness < 0):
+        raise ValueError("skin_thickness: expected finite non-negative depths in metres")
+    thickness = np.maximum(thickness, 1e-3)
+    fr = np.asarray(p["layer_depth_fractions"], dtype=np.float64)
+    if fr.shape != (LAYER_COUNT,) or fr[0] != 0.0 or not np.all(np.diff(fr) > 0):
+        raise ValueError(f"layer_params.layer_depth_fractions: expected [0, f1, f2] increasing, got {fr.tolist()}")
+
+    normals = vertex_normals(V, F)
+    layers = [V - normals * (thickness * fr[k])[:, None] for k in range(LAYER_COUNT)]
+    edges = mesh_edges(F)
+    A = adjacency(nv, edges)
+
+    # Which bone holds each deepest-layer particle: the nearer one.
+    bone_meshes = [_bone_mesh(face, b) for b in BONE_NAMES]
+    dist = np.full((BONE_COUNT, nv), np.inf)
+    for b, (bv, bf) in enumerate(bone_meshes):
+        if len(bv):
+            dist[b] = cKDTree(_surface_samples(bv, bf)).query(layers[-1])[0]
+    vertex_bone = np.argmin(dist, axis=0)
+
+    # Muscle and field weights on skin vertices.
+    muscle_arrays, muscle_w, muscle_names, muscle_layers = [], [], [], []
+    for (arr, w), m in zip(_muscle_weights(face, V), face.muscles):
+        muscle_arrays.append(arr)
+        muscle_w.append(w)
+        muscle_names.append(m.name)
+        muscle_layers.append((1,))
+    for fld in fields:
+        w = np.asarray(fld.skin_weight, dtype=np.float64)
+        if w.shape != (nv,):
+            raise ValueError(f"pull field {fld.name!r}: skin_weight must have shape ({nv},), got {w.shape}")
+        d = np.asarray(fld.direction, dtype=np.float64)
+        muscle_arrays.append(dict(kind=MUSCLE_FIELD, bone=0, point=np.zeros(3), u=d / np.linalg.norm(d),
+                                  v=np.zeros(3), scale=1.0))
+        muscle_w.append(w)
+        muscle_names.append(fld.name)
+        muscle_layers.append((0, 1))
+
+    # The simulated set: near any influence or on the jaw; plus one fixed ring.
+    touched = vertex_bone == BONE_NAMES.index("jaw")
+    for w in muscle_w:
+        touched |= w > 0
+    active = dilate(touched, A, int(p["active_rings"]))
+    simulated = dilate(active, A, 1)
+    sim_vertices = np.flatnonzero(simulated)
+    nsv = len(sim_vertices)
+    local = np.full(nv, -1, dtype=np.int64)
+    local[sim_vertices] = np.arange(nsv)
+
+    def pid(layer: int, verts: np.ndarray) -> np.ndarray:
+        return layer * nsv + local[verts]
+
+    P = LAYER_COUNT * nsv
+    q = np.concatenate([layers[k][sim_vertices] for k in range(LAYER_COUNT)])
+    area = vertex_areas(V, F)[sim_vertices]
+    m_layer = np.maximum(area * thickness[sim_vertices] / LAYER_COUNT * float(p["density"]), 1e-9)
+    mass = np.tile(m_layer, LAYER_COUNT)
+    movable = np.tile(active[sim_vertices], LAYER_COUNT)
+    inv_mass = np.where(movable, 1.0 / mass, 0.0)
+    layer_of = np.repeat(np.arange(LAYER_COUNT), nsv)
+
+    # Springs: only those touching a movable particle.
+    se = edges[simulated[edges[:, 0]] & simulated[edges[:, 1]]]
+    pairs, kappas = [], []
+    for k, key in enumerate(("kappa_epidermis", "kappa_middle", "kappa_deep")):
+        pairs.append(np.column_stack([pid(k, se[:, 0]), pid(k, se[:, 1])]))
+        kappas.append(np.full(len(se), float(p[key])))
+    for k in range(LAYER_COUNT - 1):
+        pairs.append(np.column_stack([pid(k, sim_vertices), pid(k + 1, sim_vertices)]))
+        kappas.append(np.full(nsv, float(p["kappa_vertical"])))
+        pairs.append(np.column_stack([pid(k, se[:, 0]), pid(k + 1, se[:, 1])]))
+        pairs.append(np.column_stack([pid(k, se[:, 1]), pid(k + 1, se[:, 0])]))
+        kappas += [np.full(len(se), float(p["kappa_cross"]))] * 2
+    spr = np.concatenate(pairs)
+    kap = np.concatenate(kappas)
+    keep = movable[spr[:, 0]] | movable[spr[:, 1]]
+    spr, kap = spr[keep], kap[keep]
+    q32 = q.astype(np.float32)
+    rest_len = np.linalg.norm(q32[spr[:, 0]].astype(np.float64) - q32[spr[:, 1]], axis=1)
+    ks = kap * 0.5 * (mass[spr[:, 0]] + mass[spr[:, 1]])
+    kd = ks * float(p["spring_damping_ratio"])
+
+    # Anchors: every movable deepest-layer particle.
+    deep = np.flatnonzero(movable & (layer_of == LAYER_COUNT - 1))
+    anchor_bone = vertex_bone[sim_vertices[deep - (LAYER_COUNT - 1) * nsv]]
+    anchor_k = float(p["kappa_anchor"]) * mass[deep]
+
+    # Muscle influences on the particles.
+    inf_m, inf_p, inf_w = [], [], []
+    accel = float(p["muscle_acceleration"])
+    for mi, (w, lays) in enumerate(zip(muscle_w, muscle_layers)):
+        vs = np.flatnonzero((w > 0) & active)
+        for layer in lays:
+            pp = pid(layer, vs)
+            inf_m.append(np.full(len(vs), mi))
+            inf_p.append(pp)
+            inf_w.append(w[vs] * mass[pp] * accel)
+    inf_m = np.concatenate(inf_m) if inf_m else np.zeros(0, dtype=np.int64)
+    inf_p = np.concatenate(inf_p) if inf_p else np.zeros(0, dtype=np.int64)
+    inf_w = np.concatenate(inf_w) if inf_w else np.zeros(0)
+
+    # Bone distance grids and which particles must stay outside them.
+    sdf_values, sdf_origin, sdf_spacing = [], np.zeros((BONE_COUNT, 3)), np.ones(BONE_COUNT)
+    phi_rest = np.full(P, np.inf)
+    for b, (bv, bf) in enumerate(bone_meshes):
+        if len(bf) == 0:
+            sdf_values.append(None)
+            continue
+        vals, origin, spacing = signed_distance_grid(bv, bf, cell=float(p["sdf_cell"]), device=device)
+        sdf_values.append(wp.array(vals, dtype=float, device=device))
+        sdf_origin[b], sdf_spacing[b] = origin, spacing
+        phi_rest = np.minimum(phi_rest, sample_grid(vals, origin, spacing, q)[0])
+    collide = movable & (layer_of < LAYER_COUNT - 1) & (phi_rest > 0.0005)
+
+    # Stable substep (Gershgorin bound on M^-1 K, see fae.sim.solver).
+    row_k = np.bincount(spr.reshape(-1), weights=np.repeat(2.0 * ks, 2), minlength=P)
+    row_k[deep] += anchor_k
+    row_c = np.bincount(spr.reshape(-1), weights=np.repeat(2.0 * kd, 2), minlength=P)
+    rate_k = np.max(np.where(movable, row_k / mass, 0.0)) if P else 1.0
+    rate_c = np.max(np.where(movable, row_c / mass, 0.0)) if P else 0.0
+    dt_max = float(p["cfl"]) * 2.0 / (np.sqrt(max(rate_k, 1e-12)) + rate_c)
+
+    def arr(x, dtype):
+        return wp.array(np.ascontiguousarray(x), dtype=dtype, device=device)
+
+    skin_particle = np.where(active, local, -1)
+    ma = muscle_arrays
+    return SkinModel(
+        device=device,
+        particle_count=P,
+        particle_q=arr(q32, wp.vec3),
+        particle_mass=arr(mass.astype(np.float32), float),
+        particle_inv_mass=arr(inv_mass.astype(np.float32), float),
+        particle_layer=arr(layer_of.astype(np.int32), int),
+        collider_count=int(collide.sum()),
+        collider_particle=arr(np.flatnonzero(collide).astype(np.int32), int),
+        spring_count=len(spr),
+        spring_indices=arr(spr.reshape(-1).astype(np.int32), int),
+        spring_rest_length=arr(rest_len.astype(np.float32), float),
+        spring_stiffness=arr(ks.astype(np.float32), float),
+        spring_damping=arr(kd.astype(np.float32), float),
+        anchor_count=len(deep),
+        anchor_particle=arr(deep.astype(np.int32), int),
+        anchor_bone=arr(anchor_bone.astype(np.int32), int),
+        anchor_rest=arr(q32[deep], wp.vec3),
+        anchor_stiffness=arr(anchor_k.astype(np.float32), float),
+        muscle_count=len(ma),
+        muscle_names=muscle_names,
+        muscle_kind=arr(np.array([m["kind"] for m in ma], dtype=np.int32), int),
+        muscle_bone=arr(np.array([m["bone"] for m in ma], dtype=np.int32), int),
+        muscle_point=arr(np.array([m["point"] for m in ma], dtype=np.float32).reshape(-1, 3), wp.vec3),
+        muscle_axis_u=arr(np.array([m["u"] for m in ma], dtype=np.float32).reshape(-1, 3), wp.vec3),
+        muscle_axis_v=arr(np.array([m["v"] for m in ma], dtype=np.float32).reshape(-1, 3), wp.vec3),
+        muscle_scale=arr(np.array([m["scale"] for m in ma], dtype=np.float32), float),
+        influence_count=len(inf_p),
+        influence_muscle=arr(inf_m.astype(np.int32), int),
+        influence_particle=arr(inf_p.astype(np.int32), int),
+        influence_weight=arr(inf_w.astype(np.float32), float),
+        sdf_values=sdf_values,
+        sdf_origin=sdf_origin,
+        sdf_spacing=sdf_spacing,
+        skin_particle=skin_particle,
+        skin_rest=V.copy(),
+        dt_max=dt_max,
+        damping=float(p["drag"]),
+        jaw_pivot=np.asarray(face.jaw_pivot, dtype=np.float64).copy(),
+        jaw_axis=np.asarray(face.jaw_axis, dtype=np.float64).copy(),
+    )
+
+
+def skin_positions(model: SkinModel, particle_q: np.ndarray) -> np.ndarray:
+    """(V, 3) float64 metres: skin vertices from epidermis particle positions (P, 3)."""
+    out = model.skin_rest.copy()
+    sim = model.skin_particle >= 0
+    out[sim] = particle_q[model.skin_particle[sim]]
+    return out

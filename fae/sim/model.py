@@ -1,0 +1,174 @@
+"""SkinModel, State and Control: the static arrays, the changing state and the inputs of the skin.
+
+Reads like Warp's simulators: a `SkinModel` holds what never changes while a head plays
+(rest positions, masses, springs, bone anchors, muscle influences, skull distance grids),
+a `State` what does (particle positions and velocities), a `Control` the inputs of one
+step (muscle activations, bone poses). A solver maps ``(model, state_in, control, dt)`` to
+``state_out``. Arrays are named ``<thing>_<attr>``, counts ``<thing>_count``.
+
+Everything here lives in the head's own frame (metres, +y up, +z forward, +x the face's
+left). Bones: index 0 is "head" (cranium, upper teeth), index 1 is "jaw" (mandible, lower
+teeth); a bone pose maps rest positions to current positions, x' = R x + t.
+
+Muscles are the face model's Waters muscles plus directional pull fields (kind 2): a
+pull field pushes its particles along a fixed direction of the head frame, weighted by a
+radial fall-off around a feature point; the runtime uses them for motions no muscle makes
+(eyelids, ears, nostrils, lip protrusion), see :mod:`fae.animate.calibrate`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import warp as wp
+
+BONE_NAMES = ("head", "jaw")
+BONE_COUNT = len(BONE_NAMES)
+
+MUSCLE_LINEAR = 0
+MUSCLE_SPHINCTER = 1
+MUSCLE_FIELD = 2
+
+LAYER_COUNT = 3
+
+
+@dataclass
+class SkinModel:
+    """Static arrays of the 3-layer mass-spring-damper skin (Warp arrays on `device`).
+
+    Particles are the simulated subset of the three layers (see `particle_layer`); skin
+    vertices far from every muscle and from the jaw never move relative to the head and
+    are not simulated (`skin_particle` is -1 for them).
+
+    particle_q          (P,) vec3  metres, rest positions
+    particle_mass       (P,) float kg
+    particle_inv_mass   (P,) float 1/kg; 0 for particles held fixed (the border ring)
+    particle_layer      (P,) int   0 epidermis, 1 middle, 2 deepest
+    collider_particle   (C,) int   particles that must stay outside the bones
+    spring_indices      (S*2,) int particle pairs
+    spring_rest_length  (S,) float metres
+    spring_stiffness    (S,) float N/m
+    spring_damping      (S,) float N s/m, along the spring
+    anchor_particle     (A,) int   deepest-layer particles held to a bone
+    anchor_bone         (A,) int   0 head, 1 jaw
+    anchor_rest         (A,) vec3  metres, anchor position at rest (= particle rest)
+    anchor_stiffness    (A,) float N/m
+    muscle_kind         (M,) int   MUSCLE_LINEAR / MUSCLE_SPHINCTER / MUSCLE_FIELD
+    muscle_bone         (M,) int   bone carrying a linear muscle's attachment (else 0)
+    muscle_point        (M,) vec3  metres: linear attachment at rest; sphincter centre
+    muscle_axis_u       (M,) vec3  sphincter horizontal axis; field direction
+    muscle_axis_v       (M,) vec3  sphincter vertical axis
+    muscle_scale        (M,) float metres: sphincter's larger semi-axis (else 1)
+    influence_muscle    (I,) int   one entry per (muscle, particle) with non-zero weight
+    influence_particle  (I,) int
+    influence_weight    (I,) float N per unit activation (weight x particle mass x
+                                   `muscle_acceleration`)
+    sdf_values          (BONE_COUNT,) wp.array3d float metres, signed distance to the
+                                   bone's meshes in its own rest frame (< 0 inside)
+    sdf_origin          (BONE_COUNT, 3) numpy float64 metres, grid corner
+    sdf_spacing         (BONE_COUNT,) numpy float64 metres, cell size
+    skin_particle       (V,) numpy int, epidermis particle of each skin vertex or -1
+    skin_rest           (V, 3) numpy float64 metres, skin at rest
+    dt_max              seconds: the largest stable substep (see solver)
+    damping             1/s: velocity drag applied implicitly each substep
+    """
+
+    device: str
+    particle_count: int
+    particle_q: wp.array
+    particle_mass: wp.array
+    particle_inv_mass: wp.array
+    particle_layer: wp.array
+    collider_count: int
+    collider_particle: wp.array
+    spring_count: int
+    spring_indices: wp.array
+    spring_rest_length: wp.array
+    spring_stiffness: wp.array
+    spring_damping: wp.array
+    anchor_count: int
+    anchor_particle: wp.array
+    anchor_bone: wp.array
+    anchor_rest: wp.array
+    anchor_stiffness: wp.array
+    muscle_count: int
+    muscle_names: list[str]
+    muscle_kind: wp.array
+    muscle_bone: wp.array
+    muscle_point: wp.array
+    muscle_axis_u: wp.array
+    muscle_axis_v: wp.array
+    muscle_scale: wp.array
+    influence_count: int
+    influence_muscle: wp.array
+    influence_particle: wp.array
+    influence_weight: wp.array
+    sdf_values: list
+    sdf_origin: np.ndarray
+    sdf_spacing: np.ndarray
+    skin_particle: np.ndarray
+    skin_rest: np.ndarray
+    dt_max: float
+    damping: float
+    jaw_pivot: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    jaw_axis: np.ndarray = field(default_factory=lambda: np.array([1.0, 0.0, 0.0]))
+
+    def state(self) -> "State":
+        """A State at rest, on the model's device."""
+        q = wp.clone(self.particle_q)
+        qd = wp.zeros(self.particle_count, dtype=wp.vec3, device=self.device)
+        return State(particle_q=q, particle_qd=qd)
+
+    def control(self) -> "Control":
+        """A Control at rest: no activation, bones at their rest pose."""
+        return Control(
+            muscle_activation=wp.zeros(self.muscle_count, dtype=wp.float32, device=self.device),
+            bone_rotation=wp.array(np.tile(np.eye(3, dtype=np.float32), (BONE_COUNT, 1, 1)), dtype=wp.mat33, device=self.device),
+            bone_translation=wp.zeros(BONE_COUNT, dtype=wp.vec3, device=self.device),
+        )
+
+    def numpy_arrays(self) -> dict[str, np.ndarray]:
+        """All Warp arrays of the model as numpy arrays (for the reference step and tests)."""
+        out = {}
+        for name, value in vars(self).items():
+            if isinstance(value, wp.array):
+                out[name] = value.numpy()
+        out["sdf_values"] = [v.numpy() for v in self.sdf_values]
+        return out
+
+
+@dataclass
+class State:
+    """particle_q (P,) vec3 metres; particle_qd (P,) vec3 metres/s."""
+
+    particle_q: wp.array
+    particle_qd: wp.array
+
+    def assign(self, other: "State") -> None:
+        wp.copy(self.particle_q, other.particle_q)
+        wp.copy(self.particle_qd, other.particle_qd)
+
+
+@dataclass
+class Control:
+    """Inputs of a step.
+
+    muscle_activation (M,) float, dimensionless (muscle force = activation x weight)
+    bone_rotation     (BONE_COUNT,) mat33, rest -> now
+    bone_translation  (BONE_COUNT,) vec3 metres, rest -> now
+    """
+
+    muscle_activation: wp.array
+    bone_rotation: wp.array
+    bone_translation: wp.array
+
+    def set(self, muscle_activation: np.ndarray | None = None, bone_rotation: np.ndarray | None = None,
+            bone_translation: np.ndarray | None = None) -> None:
+        """Copy numpy values in: (M,), (BONE_COUNT, 3, 3), (BONE_COUNT, 3)."""
+        if muscle_activation is not None:
+            self.muscle_activation.assign(np.asarray(muscle_activation, dtype=np.float32))
+        if bone_rotation is not None:
+            self.bone_rotation.assign(np.asarray(bone_rotation, dtype=np.float32))
+        if bone_translation is not None:
+            self.bone_translation.assign(np.asarray(bone_translation, dtype=np.float32))

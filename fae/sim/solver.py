@@ -1,0 +1,72 @@
+"""The skin solver: explicit substeps with implicit drag, bone anchors and contact projection.
+
+Choice of scheme. The skin is a mass-spring-damper network whose per-particle stiffness
+is proportional to its mass (stiffness = kappa x mean mass of the two ends, kappa in
+1/s^2, see :mod:`fae.sim.build`), so the largest eigenvalue of M^-1 K is bounded by the
+Gershgorin row sums, computed once at build:
+
+    omega_max^2 <= max_i (sum_j 2 k_ij + k_anchor_i) / m_i,
+    dt_max = cfl * 2 / (omega_max + max_i sum_j 2 c_ij / m_i),   cfl = 0.9.
+
+A frame of length dt is split into n = ceil(dt / dt_max) equal substeps (a CFL-like
+bound, so every step is stable whatever the frame rate); each substep is
+
+    f = springs + bone anchors + muscles;  v' = (v + dt f/m) / (1 + dt c);  x' = x + dt v';
+    then particles inside the skull or mandible grid are projected onto their surface.
+
+The drag c (1/s) is implicit, hence unconditionally stable, and sized near critical
+damping of the slowest mode (the skin moving against its bone anchors) so that the skin
+settles within one or two frames. Contact is a projection (no stiff penalty springs).
+With the default parameters a 25 fps frame takes about 6 substeps.
+"""
+
+from __future__ import annotations
+
+import math
+
+import warp as wp
+
+from fae.sim.attachment import eval_anchor_forces
+from fae.sim.collision import collide
+from fae.sim.integrate import integrate
+from fae.sim.model import Control, SkinModel, State
+from fae.sim.muscles import eval_muscle_forces
+from fae.sim.springs import eval_spring_forces
+
+
+def substep_count(model: SkinModel, dt: float) -> int:
+    """Number of stable substeps for a step of dt seconds."""
+    if not (dt > 0.0) or not math.isfinite(dt):
+        raise ValueError(f"step: dt must be a positive number of seconds, got {dt!r}")
+    return max(1, int(math.ceil(dt / model.dt_max - 1e-9)))
+
+
+class SkinSolver:
+    """Advances a SkinModel's State under a Control; allocates its scratch arrays once."""
+
+    def __init__(self, model: SkinModel):
+        self.model = model
+        self.particle_f = wp.zeros(model.particle_count, dtype=wp.vec3, device=model.device)
+        self._scratch = model.state()
+
+    def step(self, model: SkinModel, state_in: State, control: Control, dt: float,
+             state_out: State | None = None) -> State:
+        """Advance dt seconds (split into stable substeps); returns state_out (new if None).
+
+        state_in is left unchanged unless it is also state_out.
+        """
+        if state_out is None:
+            state_out = model.state()
+        n = substep_count(model, dt)
+        h = dt / n
+        src = state_in
+        for k in range(n):
+            dst = state_out if (n - k) % 2 == 1 else self._scratch
+            self.particle_f.zero_()
+            eval_spring_forces(model, src, self.particle_f)
+            eval_anchor_forces(model, src, control, self.particle_f)
+            eval_muscle_forces(model, src, control, self.particle_f)
+            integrate(model, src, dst, self.particle_f, h)
+            collide(model, dst, control)
+            src = dst
+        return state_out
