@@ -26,9 +26,10 @@ What real files do, and what fae does with it:
 - CRLF line ends, tabs, blank lines, ``#`` comment lines anywhere and ``#`` comments after
   the tokens of a mask or values line; a UTF-8 byte-order mark; names that are not UTF-8
   (read as Latin-1, with a warning).
-- 69-token masks (writers that keep an unused slot 0 for 1-based FAP numbering, e.g. a
-  69-entry parameter array written whole): the leading slot is dropped when it is 0,
-  else a trailing 0 is dropped; one warning.
+- 69-token masks (writers that keep an unused slot 0 for 1-based FAP numbering and write
+  the whole 69-entry array): the leading slot is dropped when it is 0. The values line
+  cannot tell a leading from a trailing extra slot (both drop a 0), so a trailing 0 is
+  dropped only when the leading token is 1 (which no unused slot would be); one warning.
 - frame numbers from 0 or 1; gaps are allowed (one warning; the player holds the values
   over the missing frames); numbers must increase.
 - names with spaces (everything between the version and the last two header tokens);

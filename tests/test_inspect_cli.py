@@ -1,0 +1,57 @@
+"""`fae inspect`: summary of a .fap stream, exit 0 when understood, 2 when rejected."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+from fae.cli import main
+
+
+def test_json_summary_of_a_real_file(shared_data, capsys):
+    path = shared_data / "fap" / "xface_test.fap"
+    assert main(["inspect", str(path), "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["version"] == "2.1" and summary["fps"] == 25.0
+    assert summary["frame_count"] == summary["declared_frame_count"] == 43
+    assert summary["faps_used"][:3] == [3, 4, 5] and 48 in summary["faps_used"] and 1 not in summary["faps_used"]
+    assert summary["faps_used"] == sorted(summary["faps_used"])
+    assert summary["warnings"] == []
+
+
+def test_text_summary_names_faps_and_visemes(repo_root, capsys):
+    assert main(["inspect", str(repo_root / "fap_streams" / "visemes.fap")]) == 0
+    out = capsys.readouterr().out
+    assert "48 frames" in out and "1 viseme" in out and "PP" in out and "no warnings" in out
+
+
+def test_warnings_still_exit_0(tmp_path, capsys):
+    path = tmp_path / "w.fap"
+    path.write_text("2.0 old 25 5\n" + " ".join(["0", "0", "1"] + ["0"] * 65) + "\n0 120\n")
+    assert main(["inspect", str(path), "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["frame_count"] == 1 and summary["declared_frame_count"] == 5 and summary["faps_used"] == [3]
+    assert len(summary["warnings"]) == 2
+
+
+def test_rejected_and_missing_files_exit_2_naming_file_and_line(tmp_path, capsys):
+    path = tmp_path / "bad.fap"
+    path.write_text("2.1 bad 25 1\n" + " ".join(["0", "0", "1"] + ["0"] * 65) + "\n0 NaN\n")
+    assert main(["inspect", str(path), "--json"]) == 2
+    captured = capsys.readouterr()
+    assert captured.out == "" and f"{path}:3: token 'NaN'" in captured.err
+    assert main(["inspect", str(tmp_path / "missing.fap")]) == 2
+    assert "missing.fap: no such file" in capsys.readouterr().err
+
+
+def test_installed_console_script(repo_root):
+    script = Path(sys.executable).with_name("fae")
+    command = [str(script)] if script.exists() else [sys.executable, "-m", "fae"]
+    result = subprocess.run(command + ["inspect", "--json", str(repo_root / "fap_streams" / "eyes_head.fap")],
+                            capture_output=True, text=True, timeout=60, env={**os.environ, "PYTHONWARNINGS": "ignore"})
+    assert result.returncode == 0, result.stderr
+    summary = json.loads(result.stdout)
+    assert summary["faps_used"] == [19, 20, 23, 24, 25, 26, 48, 49, 50] and summary["frame_count"] == 250
