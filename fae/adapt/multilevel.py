@@ -1,0 +1,183 @@
+"""The fitting pipeline: template surface -> calibrated scan, level by level (paper 000 §4).
+
+Level 0 is a global RBF through the feature-point pairs. Each further level adds pairs
+(feature-mesh subdivision + ray casting, mean-curvature features; fae.adapt.correspondence)
+and fits either a new global RBF (below GLOBAL_LIMIT pairs) or a CSRBF offset with halved
+support on top of the previous function (eq. 17-21). Then optional local adaptation to a
+low-pass pyramid (paper 001). Errors (paper 000 §5) are measured after every level and the
+result with the smallest combined error is returned.
+
+Methods (all given the same feature points):
+  "multilevel"   paper 000 levels (biharmonic RBF, then CSRBF) + paper 001 local step
+  "rbf"          paper 000 approach 1 only: one biharmonic RBF through the feature points
+  "wendland"     paper 001: global Wendland RBF + local low-pass adaptation
+  "multiquadric" paper 002: Hardy multiquadric RBF, ridge by GCV
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from fae.adapt.correspondence import curvature_features, feature_mesh, feature_mesh_samples, ray_pairs
+from fae.adapt.csrbf import CSRBF, csrbf_interpolant, csrbf_weights
+from fae.adapt.errors import (Surface, combined_error, compatible_closest_points, distance_error,
+                              marker_error, surface, symmetric_rms)
+from fae.adapt.geometry import per_vertex_normals
+from fae.adapt.local import lowpass_pyramid, nearest_neighbor_adaptation
+from fae.adapt.rbf import RBF, rbf_interpolant, rbf_weights
+
+METHODS = ("multilevel", "rbf", "wendland", "multiquadric")
+GLOBAL_LIMIT = 500  # paper 000 §4.3: global RBF below this many pairs, CSRBF above
+
+
+@dataclass
+class Deformation:
+    """x -> x + sum of the level functions: a global RBF followed by CSRBF offsets, all
+    evaluated at template-frame points (metres)."""
+
+    base: RBF
+    offsets: list[CSRBF] = field(default_factory=list)
+
+    def displacement(self, X: np.ndarray) -> np.ndarray:
+        """(n, 3) metres at template points X (n, 3)."""
+        D = rbf_interpolant(self.base, X)
+        for o in self.offsets:
+            D += csrbf_interpolant(o, X)
+        return D
+
+    def __call__(self, X: np.ndarray) -> np.ndarray:
+        X = np.asarray(X, dtype=np.float64)
+        return X + self.displacement(X)
+
+
+@dataclass
+class Fit:
+    """Result of fit_template.
+
+    vertices (n, 3) metres: the fitted template skin; deformation: the level functions
+    (maps any template-frame point, e.g. bones, without the local step); levels: per-level
+    report dicts; final: final report dict; chosen_level: index into levels.
+    """
+
+    vertices: np.ndarray
+    deformation: Deformation
+    levels: list[dict]
+    final: dict
+    chosen_level: int
+
+
+def fit_template(P: np.ndarray, F: np.ndarray, P_landmarks: np.ndarray, scan_V: np.ndarray,
+                 scan_F: np.ndarray, Q_landmarks: np.ndarray, method: str = "multilevel",
+                 levels: int = 3, local_levels: int = 4, rho: float = 0.0,
+                 progress: Callable[[str], None] | None = None) -> Fit:
+    """Fit template surface P (n, 3), F (m, 3) to a scan already in the face frame.
+
+    P_landmarks (k, 3) and Q_landmarks (k, 3): the same feature points on template and scan,
+    metres. levels: refinement levels after the first (multilevel only); local_levels:
+    pyramid levels of the local step (multilevel, wendland; 0 disables it).
+    """
+    if method not in METHODS:
+        raise ValueError(f"unknown adaptation method {method!r}; expected one of {METHODS}")
+    t0 = time.perf_counter()
+    P = np.asarray(P, dtype=np.float64)
+    F = np.asarray(F, dtype=np.int64)
+    PL = np.asarray(P_landmarks, dtype=np.float64)
+    QL = np.asarray(Q_landmarks, dtype=np.float64)
+    scan = surface(scan_V, scan_F)
+    width = float(np.max(np.ptp(P, axis=0)))
+    max_distance = width / 10.0
+    NP = per_vertex_normals(P, F)
+    centre = 0.5 * (P.min(0) + P.max(0))
+    report: list[dict] = []
+    results: list[tuple[np.ndarray, Deformation]] = []
+
+    def evaluate(X: np.ndarray, deformation: Deformation, pairs: int, lm_now: np.ndarray) -> None:
+        NX = per_vertex_normals(X, F)
+        _, _, dist, ok = compatible_closest_points(X, NX, scan, max_distance)
+        de = distance_error(dist, ok.astype(float))
+        me = marker_error(lm_now, QL)
+        report.append({"level": len(report), "pairs": int(pairs), "distance_error": de, "marker_error": me,
+                       "combined_error": combined_error(de, me), "matched_fraction": float(ok.mean()),
+                       "seconds": time.perf_counter() - t0})
+        results.append((X, deformation))
+        if progress:
+            progress(f"level {len(report) - 1}: {pairs} pairs, combined error {report[-1]['combined_error']:.3g} m")
+
+    kernel = {"multilevel": "biharmonic", "rbf": "biharmonic", "wendland": "wendland",
+              "multiquadric": "multiquadric"}[method]
+    deformation = Deformation(rbf_weights(PL, QL - PL, kernel, rho=rho))
+    X = deformation(P)
+    evaluate(X, deformation, len(PL), deformation(PL))
+
+    if method == "multilevel" and levels > 0:
+        T = feature_mesh(PL, centre)
+        NL = NP[_nearest(P, PL)]
+        box_min, box_max = QL.min(0), QL.max(0)
+        spacing = width / 40.0
+        curv = curvature_features(scan, box_min, box_max, 200, spacing)
+        support = width / 2.0
+        for k in range(1, levels + 1):
+            XL = deformation(PL)
+            origins, dirs = feature_mesh_samples(XL, T, k)
+            model = surface(X, F)
+            fm, bm, qs, _ = ray_pairs(origins, dirs, model, scan, max_distance)
+            fc, bc, qc, _ = ray_pairs(scan.V[curv], scan.N[curv], model, scan, max_distance)
+            face = np.concatenate([fm, fc])
+            bary = np.concatenate([bm, bc])
+            p_new = np.einsum("nk,nkd->nd", bary, P[F[face]])
+            n_new = np.einsum("nk,nkd->nd", bary, NP[F[face]])
+            q_new = np.concatenate([qs, qc])
+            p_all = np.vstack([PL, p_new])
+            q_all = np.vstack([QL, q_new])
+            m = len(p_all)
+            if m < GLOBAL_LIMIT:
+                deformation = Deformation(rbf_weights(p_all, q_all - p_all, "biharmonic", rho=rho))
+            else:
+                n_all = np.vstack([NL, n_new])
+                resid = q_all - deformation(p_all)
+                from scipy.spatial import cKDTree
+                spacing_pairs = float(np.median(cKDTree(p_all).query(p_all, k=2)[0][:, 1]))
+                support = max(min(support / 2.0, 6.0 * spacing_pairs), 3.0 * spacing_pairs)
+                off = csrbf_weights(p_all, n_all, resid, support, rho=1e-2)
+                deformation = Deformation(deformation.base, deformation.offsets + [off])
+            X = deformation(P)
+            evaluate(X, deformation, m, deformation(PL))
+            if len(report) >= 3 and report[-1]["combined_error"] > report[-2]["combined_error"] > report[-3]["combined_error"]:
+                break
+
+    best = int(np.argmin([r["combined_error"] for r in report]))
+    X, deformation = results[best]
+    if method in ("multilevel", "wendland") and local_levels > 0:
+        lm_face, lm_bary = _landmark_anchors(X, F, deformation(PL))
+        for level_V in lowpass_pyramid(scan, levels=local_levels):
+            NX = per_vertex_normals(X, F)
+            X, moved = nearest_neighbor_adaptation(X, NX, scan, level_V, max_distance)
+            lm_now = np.einsum("nk,nkd->nd", lm_bary, X[F[lm_face]])
+            evaluate(X, deformation, int(moved.sum()), lm_now)
+        best = int(np.argmin([r["combined_error"] for r in report]))
+    X, deformation = results[best]
+    final = symmetric_rms(surface(X, F), scan, max_distance)
+    final["marker_error"] = report[best]["marker_error"]
+    final["distance_error"] = report[best]["distance_error"]
+    final["combined_error"] = report[best]["combined_error"]
+    final["seconds"] = time.perf_counter() - t0
+    final["method"] = method
+    return Fit(X, deformation, report, final, best)
+
+
+def _nearest(P: np.ndarray, L: np.ndarray) -> np.ndarray:
+    from scipy.spatial import cKDTree
+    return cKDTree(P).query(L)[1]
+
+
+
+def _landmark_anchors(X: np.ndarray, F: np.ndarray, L: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Faces (k,) and barycentric coordinates (k, 3) of the points of X's surface closest to L."""
+    s = surface(X, F)
+    _, _, face, bary = s.query.closest_points(L)
+    face = np.where(face < 0, 0, face)
+    return face, bary

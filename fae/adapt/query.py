@@ -1,0 +1,120 @@
+"""Ray casting and closest-point queries against triangle meshes (Warp BVH, CPU by default).
+
+trimesh's pure-Python ray intersector costs about 12 ms per ray on a 100k-triangle scan
+here (no Embree), so the queries run as Warp kernels over a `wp.Mesh` BVH instead.
+Points go in and come out as float64 numpy arrays; Warp works in float32 internally
+(about 1e-8 m at head scale).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+_initialized = False
+
+
+def _init() -> None:
+    global _initialized
+    if not _initialized:
+        wp.config.log_level = 30  # warnings and above
+        wp.init()
+        _initialized = True
+
+
+@wp.kernel
+def _ray_kernel(mesh: wp.uint64, origins: wp.array(dtype=wp.vec3), directions: wp.array(dtype=wp.vec3),
+                max_t: float, hit_t: wp.array(dtype=float), hit_face: wp.array(dtype=int),
+                hit_bary: wp.array(dtype=wp.vec3)):
+    i = wp.tid()
+    q = wp.mesh_query_ray(mesh, origins[i], directions[i], max_t)
+    if q.result:
+        hit_t[i] = q.t
+        hit_face[i] = q.face
+        hit_bary[i] = wp.vec3(q.u, q.v, 1.0 - q.u - q.v)
+    else:
+        hit_face[i] = -1
+
+
+@wp.kernel
+def _closest_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), max_dist: float,
+                    out_face: wp.array(dtype=int), out_bary: wp.array(dtype=wp.vec3)):
+    i = wp.tid()
+    q = wp.mesh_query_point_no_sign(mesh, points[i], max_dist)
+    if q.result:
+        out_face[i] = q.face
+        out_bary[i] = wp.vec3(q.u, q.v, 1.0 - q.u - q.v)
+    else:
+        out_face[i] = -1
+
+
+class MeshQuery:
+    """A BVH over one triangle mesh: V (n, 3) float64, F (m, 3) int, any consistent unit."""
+
+    def __init__(self, V: np.ndarray, F: np.ndarray):
+        _init()
+        self.V = np.asarray(V, dtype=np.float64)
+        self.F = np.asarray(F, dtype=np.int32)
+        self._points = wp.array(self.V.astype(np.float32), dtype=wp.vec3, device="cpu")
+        self._indices = wp.array(self.F.reshape(-1), dtype=wp.int32, device="cpu")
+        self._mesh = wp.Mesh(points=self._points, indices=self._indices)
+
+    def _bary_order(self, face: np.ndarray, bary: np.ndarray) -> np.ndarray:
+        # Warp reports (u, v, w) with point = u*p0 + v*p1 + w*p2.
+        return bary
+
+    def ray_hits(self, origins: np.ndarray, directions: np.ndarray, max_t: float
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """First hits of rays along `directions` (n, 3, unit) from `origins` (n, 3).
+
+        Returns hit (n,) bool, t (n,) distance along the ray, face (n,) int (-1: none),
+        bary (n, 3) barycentric coordinates of the hit in its face.
+        """
+        n = len(origins)
+        if n == 0:
+            return np.zeros(0, bool), np.zeros(0), np.zeros(0, int), np.zeros((0, 3))
+        o = wp.array(np.asarray(origins, np.float32), dtype=wp.vec3, device="cpu")
+        d = wp.array(np.asarray(directions, np.float32), dtype=wp.vec3, device="cpu")
+        t = wp.zeros(n, dtype=float, device="cpu")
+        f = wp.zeros(n, dtype=int, device="cpu")
+        b = wp.zeros(n, dtype=wp.vec3, device="cpu")
+        wp.launch(_ray_kernel, dim=n, inputs=[self._mesh.id, o, d, float(max_t), t, f, b], device="cpu")
+        face = f.numpy().astype(np.int64)
+        return face >= 0, t.numpy().astype(np.float64), face, b.numpy().astype(np.float64)
+
+    def closest_points(self, X: np.ndarray, max_dist: float = 1e6
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Closest surface points to X (n, 3).
+
+        Returns points (n, 3), distance (n,), face (n,) int (-1: none within max_dist),
+        bary (n, 3).
+        """
+        n = len(X)
+        p = wp.array(np.asarray(X, np.float32), dtype=wp.vec3, device="cpu")
+        f = wp.zeros(n, dtype=int, device="cpu")
+        b = wp.zeros(n, dtype=wp.vec3, device="cpu")
+        wp.launch(_closest_kernel, dim=n, inputs=[self._mesh.id, p, float(max_dist), f, b], device="cpu")
+        face = f.numpy().astype(np.int64)
+        bary = b.numpy().astype(np.float64)
+        pts = np.full((n, 3), np.nan)
+        ok = face >= 0
+        pts[ok] = np.einsum("nk,nkd->nd", bary[ok], self.V[self.F[face[ok]]])
+        dist = np.linalg.norm(pts - np.asarray(X, np.float64), axis=1)
+        dist[~ok] = np.inf
+        return pts, dist, face, bary
+
+    def bidirectional_hits(self, origins: np.ndarray, directions: np.ndarray, max_t: float
+                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The nearer of the hits along +direction and -direction.
+
+        Returns hit (n,) bool, points (n, 3), face (n,) int, bary (n, 3).
+        """
+        h1, t1, f1, b1 = self.ray_hits(origins, directions, max_t)
+        h2, t2, f2, b2 = self.ray_hits(origins, -np.asarray(directions), max_t)
+        use2 = h2 & (~h1 | (t2 < t1))
+        hit = h1 | h2
+        face = np.where(use2, f2, f1)
+        bary = np.where(use2[:, None], b2, b1)
+        pts = np.full((len(origins), 3), np.nan)
+        pts[hit] = np.einsum("nk,nkd->nd", bary[hit], self.V[self.F[face[hit]]])
+        return hit, pts, face, bary

@@ -1,0 +1,204 @@
+"""Synthetic heads with known ground truth, for tests and benchmarks of the fitting.
+
+A head is a star-shaped surface r(d) around the origin (an ellipsoid with a nose, brow
+ridge, chin and cheek bones), in the MPEG-4 face frame (metres, +z forward, +y up, the
+face's left is +x). Its feature points are the surface points in fixed directions, so
+they are exact. A "scan" of a different person is the same kind of surface, sampled by
+differently placed vertices, moved by a smooth random warp plus fine detail, optionally
+noisy, holed, cropped to the face and placed in another frame and unit.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import trimesh
+
+# Feature point directions as (azimuth about +y from +z towards +x, elevation), radians.
+_FDP_DIRECTIONS = {
+    "2.1": (0.0, -0.62),
+    "2.10": (0.0, -0.50),
+    "2.13": (0.95, -0.42),
+    "2.14": (-0.95, -0.42),
+    "3.7": (0.50, 0.12),
+    "3.11": (0.17, 0.12),
+    "3.8": (-0.17, 0.12),
+    "3.12": (-0.50, 0.12),
+    "4.3": (0.33, 0.27),
+    "4.4": (-0.33, 0.27),
+    "5.3": (0.55, -0.05),
+    "5.4": (-0.55, -0.05),
+    "8.1": (0.0, -0.22),
+    "8.2": (0.0, -0.34),
+    "8.3": (0.30, -0.28),
+    "8.4": (-0.30, -0.28),
+    "9.3": (0.0, -0.02),
+    "9.15": (0.0, -0.12),
+    "10.9": (1.45, 0.05),
+    "10.10": (-1.45, 0.05),
+    "11.1": (0.0, 0.62),
+    "11.4": (0.0, 1.45),
+    "11.6": (np.pi, 0.15),
+}
+
+_SEMI_AXES = np.array([0.078, 0.112, 0.098])  # metres: half width, half height, half depth
+
+
+def _unit_directions(azimuth_elevation: np.ndarray) -> np.ndarray:
+    az, el = azimuth_elevation[:, 0], azimuth_elevation[:, 1]
+    return np.column_stack([np.cos(el) * np.sin(az), np.sin(el), np.cos(el) * np.cos(az)])
+
+
+def _bump(d: np.ndarray, centre: tuple[float, float], width: float, height: float) -> np.ndarray:
+    c = _unit_directions(np.array([centre]))[0]
+    return height * np.exp(-np.sum((d - c) ** 2, axis=1) / (2.0 * width**2))
+
+
+def head_radius(d: np.ndarray, shape: np.ndarray | None = None) -> np.ndarray:
+    """(n,) metres: the head surface's distance from the origin along unit directions d (n, 3).
+
+    `shape` (6,) scales the features (nose, brows, chin, cheeks, width, height) around 1.
+    """
+    s = np.ones(6) if shape is None else np.asarray(shape, dtype=np.float64)
+    axes = _SEMI_AXES * np.array([s[4], s[5], 1.0])
+    r = 1.0 / np.sqrt(np.sum((d / axes) ** 2, axis=1))
+    r = r + _bump(d, (0.0, -0.03), 0.07, 0.026 * s[0])   # nose
+    r = r + _bump(d, (0.0, 0.06), 0.05, 0.006 * s[0])    # nose bridge
+    r = r + _bump(d, (0.33, 0.22), 0.09, 0.007 * s[1]) + _bump(d, (-0.33, 0.22), 0.09, 0.007 * s[1])
+    r = r - _bump(d, (0.33, 0.12), 0.07, 0.008) - _bump(d, (-0.33, 0.12), 0.07, 0.008)  # eye sockets
+    r = r + _bump(d, (0.0, -0.50), 0.10, 0.010 * s[2])  # chin
+    r = r + _bump(d, (0.55, -0.05), 0.10, 0.006 * s[3]) + _bump(d, (-0.55, -0.05), 0.10, 0.006 * s[3])
+    r = r + _bump(d, (0.0, -0.25), 0.06, 0.006)  # lips
+    return r
+
+
+def head_feature_points(shape: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """FDP name -> (3,) metres on the synthetic head surface."""
+    names = list(_FDP_DIRECTIONS)
+    d = _unit_directions(np.array([_FDP_DIRECTIONS[n] for n in names]))
+    p = d * head_radius(d, shape)[:, None]
+    return {n: p[i] for i, n in enumerate(names)}
+
+
+def synthetic_head(subdivisions: int = 4, shape: np.ndarray | None = None,
+                   rotation: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+    """A closed synthetic head: V (n, 3) metres, F (m, 3) int32, FDP name -> (3,) metres.
+
+    subdivisions: icosphere level (4: 2,562 vertices, 5: 10,242, 6: 40,962, 7: 163,842).
+    rotation (3, 3): turns the sampling sphere first, so two heads do not share vertices.
+    """
+    sphere = trimesh.creation.icosphere(subdivisions=subdivisions)
+    d = np.asarray(sphere.vertices, dtype=np.float64)
+    if rotation is not None:
+        d = d @ np.asarray(rotation).T
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    V = d * head_radius(d, shape)[:, None]
+    return V, np.asarray(sphere.faces, dtype=np.int32), head_feature_points(shape)
+
+
+@dataclass
+class Warp:
+    """A smooth random displacement field plus fine detail along the radial direction.
+
+    centres (k, 3), amplitudes (k, 3) metres, width metres; detail_amplitude metres,
+    detail_frequency radians per metre.
+    """
+
+    centres: np.ndarray
+    amplitudes: np.ndarray
+    width: float
+    detail_amplitude: float
+    detail_frequency: float
+    detail_phase: np.ndarray
+
+    def __call__(self, X: np.ndarray) -> np.ndarray:
+        """(n, 3) metres: the warped positions of points X (n, 3) metres."""
+        X = np.asarray(X, dtype=np.float64)
+        d2 = np.sum((X[:, None, :] - self.centres[None, :, :]) ** 2, axis=2)
+        out = X + np.exp(-d2 / (2.0 * self.width**2)) @ self.amplitudes
+        radial = X / np.maximum(np.linalg.norm(X, axis=1, keepdims=True), 1e-12)
+        f, ph = self.detail_frequency, self.detail_phase
+        detail = np.sin(f * X[:, 0] + ph[0]) * np.sin(f * X[:, 1] + ph[1]) * np.sin(f * X[:, 2] + ph[2])
+        return out + (self.detail_amplitude * detail)[:, None] * radial
+
+
+def random_warp(seed: int, amplitude: float = 0.008, detail: float = 0.0008) -> Warp:
+    """A Warp with 12 Gaussian centres of `amplitude` metres and detail of `detail` metres."""
+    rng = np.random.default_rng(seed)
+    centres = rng.normal(size=(12, 3)) * _SEMI_AXES
+    return Warp(centres=centres, amplitudes=rng.normal(size=(12, 3)) * amplitude, width=0.05,
+                detail_amplitude=detail, detail_frequency=2 * np.pi / 0.02,
+                detail_phase=rng.uniform(0, 2 * np.pi, 3))
+
+
+@dataclass
+class SyntheticScan:
+    """A scan with ground truth.
+
+    vertices (n, 3), faces (m, 3): the scan in its own frame and unit.
+    landmarks: FDP name -> (3,) in the scan's frame and unit.
+    truth_vertices (n, 3) metres: the clean scan surface in the face frame (before noise),
+    truth_faces; warp: face-frame point -> its ground-truth image; to_scan (4, 4): face
+    frame (metres) -> scan frame and unit.
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    landmarks: dict[str, np.ndarray]
+    truth_vertices: np.ndarray
+    truth_faces: np.ndarray
+    warp: Warp
+    to_scan: np.ndarray
+
+
+def _random_rotation(rng: np.random.Generator, max_angle: float) -> np.ndarray:
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    return trimesh.transformations.rotation_matrix(rng.uniform(-max_angle, max_angle), axis)[:3, :3]
+
+
+def synthetic_scan(seed: int = 0, subdivisions: int = 6, noise: float = 0.0, holes: int = 0,
+                   face_only: bool = False, unit: float = 1e-3, max_angle: float = 0.6,
+                   amplitude: float = 0.008, detail: float = 0.0008) -> SyntheticScan:
+    """A warped, resampled synthetic head placed in a random frame.
+
+    noise: standard deviation (metres) of displacement along vertex normals.
+    holes: number of round holes cut into the face (radius 8 mm), never at a feature point.
+    face_only: keep only the front (z > -0.01 m in the face frame).
+    unit: metres per scan unit (1e-3: the scan is in millimetres).
+    max_angle: radians of the random rotation of the scan frame.
+    """
+    rng = np.random.default_rng(seed)
+    shape = rng.uniform(0.7, 1.3, 6)
+    shape[4:] = rng.uniform(0.9, 1.1, 2)
+    V, F, fdp = synthetic_head(subdivisions, shape, rotation=_random_rotation(rng, np.pi))
+    warp = random_warp(seed + 1000, amplitude, detail)
+    W = warp(V)
+    mesh = trimesh.Trimesh(W, F, process=False)
+    keep = np.ones(len(F), dtype=bool)
+    centroids = mesh.triangles_center
+    if face_only:
+        keep &= V[F].mean(axis=1)[:, 2] > -0.01
+    landmark_points = warp(np.array(list(fdp.values())))
+    front = V[:, 2] > 0.02
+    for _ in range(holes):
+        for _attempt in range(50):
+            c = W[rng.choice(np.flatnonzero(front))]
+            if np.min(np.linalg.norm(landmark_points - c, axis=1)) > 0.014:
+                break
+        keep &= np.linalg.norm(centroids - c, axis=1) > 0.008
+    truth = trimesh.Trimesh(W, F[keep], process=False)
+    truth.remove_unreferenced_vertices()
+    Vt, Ft = np.asarray(truth.vertices), np.asarray(truth.faces, dtype=np.int32)
+    Vn = Vt.copy()
+    if noise > 0:
+        Vn = Vn + truth.vertex_normals * rng.normal(scale=noise, size=(len(Vt), 1))
+    R = _random_rotation(rng, max_angle)
+    t = rng.uniform(-0.2, 0.2, 3)
+    to_scan = np.eye(4)
+    to_scan[:3, :3] = R / unit
+    to_scan[:3, 3] = t / unit
+    scan_v = Vn @ to_scan[:3, :3].T + to_scan[:3, 3]
+    lm = {n: landmark_points[i] @ to_scan[:3, :3].T + to_scan[:3, 3] for i, n in enumerate(fdp)}
+    return SyntheticScan(scan_v, Ft, lm, Vt, Ft, warp, to_scan)
