@@ -116,3 +116,11 @@ def test_bad_rates_are_rejected():
         dense_frames([frame(0, {})])
     with pytest.raises(ValueError, match="output fps"):
         dense_frames([frame(0, {})], source_fps=25, fps=0)
+
+
+def test_dense_frames_can_be_stepped_with_next_or_looped_again(repo_root):
+    stream = read_fap(repo_root / "fap_streams" / "eyes_head.fap")
+    dense = dense_frames(stream, fps=50)
+    first, second = next(dense), next(dense)
+    assert (first.index, second.index) == (0, 1) and second.time == pytest.approx(0.02)
+    assert len(list(dense)) == len(list(dense)) == 500

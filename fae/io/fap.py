@@ -343,7 +343,8 @@ class FapStream:
     ``header`` is read when the stream is opened. Iterating reads the file from after the
     header, one line at a time (memory does not grow with the file), yielding
     :class:`FapFrame`; each iteration starts again from the first frame. ``warnings``
-    holds the header's warnings and, after an iteration, the body's.
+    holds the header's warnings and, as an iteration goes, the body's; ``frame_count`` is
+    None until an iteration has reached the end.
     """
 
     def __init__(self, path: str | os.PathLike):

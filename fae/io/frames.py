@@ -125,7 +125,9 @@ class FrameState:
 class DenseFrames:
     """Iterable of :class:`DenseFrame` built from a frame stream (see :func:`dense_frames`).
 
-    ``warnings`` collects the clamp warnings of the last iteration.
+    Each ``for`` loop starts again from the first frame (when the source can be iterated
+    again, as a :class:`fae.io.fap.FapStream` can); ``next()`` walks one shared pass.
+    ``warnings`` collects the clamp warnings of the latest pass.
     """
 
     def __init__(self, frames: Iterable[FapFrame], source_fps: float, fps: float | None, fill: bool,
@@ -141,6 +143,12 @@ class DenseFrames:
         self.clamp = clamp
         self.source_name = source_name
         self.warnings: list[str] = []
+        self._pass: Iterator[DenseFrame] | None = None
+
+    def __next__(self) -> DenseFrame:
+        if self._pass is None:
+            self._pass = iter(self)
+        return next(self._pass)
 
     def _source(self, state: FrameState) -> Iterator[DenseFrame]:
         first = None
