@@ -1,0 +1,49 @@
+"""`fae render [HEAD.glb] -o OUT.png`: a still of a head at rest (the shipped one by default).
+
+Exit status 0 on success, 2 for a bad head, output path or size.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from fae.commands.play import add_view_arguments, load_head, output_problem
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "render", help="render a still PNG of a head at rest",
+        description="Render a FaceModel .glb (the shipped generic head when omitted) at rest "
+        "into a PNG. The file appears only when complete.")
+    parser.add_argument("head", nargs="?", metavar="HEAD.glb", help="FaceModel .glb (default: the shipped generic head)")
+    parser.add_argument("-o", "--output", required=True, metavar="OUT.png", help="the image to write")
+    add_view_arguments(parser, "640x480")
+    parser.set_defaults(func=run)
+
+
+def _fail(message: str) -> int:
+    print(f"fae render: {message}", file=sys.stderr)
+    return 2
+
+
+def run(args: argparse.Namespace) -> int:
+    from fae.io.facemodel_gltf import FaceModelError
+
+    if args.supersample < 1 or args.supersample > 8:
+        return _fail(f"--supersample {args.supersample}: expected 1..8")
+    problem = output_problem(args.output, ".png")
+    if problem:
+        return _fail(problem)
+    try:
+        model, head = load_head(args.head)
+    except FaceModelError as exc:
+        return _fail(str(exc))
+    from fae.render.png import write_png
+    from fae.render.renderer import FaceRenderer
+
+    with FaceRenderer(model, size=args.size, view=args.view, supersample=args.supersample) as renderer:
+        image = renderer.render()
+    write_png(args.output, image)
+    print(f"{args.output}: {head.name}, {args.view} view, {args.size[0]}x{args.size[1]}", file=sys.stderr)
+    return 0

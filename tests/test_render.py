@@ -1,0 +1,163 @@
+"""FaceRenderer: framing, colours, motion, inputs, and the OSMesa shader-cache leak fix."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fae.render.renderer import BACKGROUND, FaceRenderer
+from test_render_support import EYE_RADIUS, jaw_frames, synthetic_head
+
+SIZE = (320, 240)
+BG = np.round(np.asarray(BACKGROUND) * 255)
+
+
+@pytest.fixture(scope="module")
+def head():
+    return synthetic_head()
+
+
+@pytest.fixture(scope="module")
+def renderer(head):
+    with FaceRenderer(head, size=SIZE) as r:
+        yield r
+
+
+def foreground(image: np.ndarray) -> np.ndarray:
+    return np.abs(image.astype(np.int16) - BG).max(axis=2) > 12
+
+
+def box_around(renderer, point, half: int) -> tuple[slice, slice]:
+    x, y = renderer.camera.project(point, renderer.size)[0]
+    return slice(int(y) - half, int(y) + half + 1), slice(int(x) - half, int(x) + half + 1)
+
+
+def test_front_view_frames_the_whole_head_in_the_centre(renderer):
+    image = renderer.render()
+    assert image.shape == (SIZE[1], SIZE[0], 3) and image.dtype == np.uint8
+    mask = foreground(image)
+    assert 0.15 < mask.mean() < 0.6, "the head should fill a good part of the frame"
+    assert not (mask[0].any() or mask[-1].any() or mask[:, 0].any() or mask[:, -1].any()), "head is cut off"
+    ys, xs = np.nonzero(mask)
+    assert abs(xs.mean() - SIZE[0] / 2) < 0.04 * SIZE[0]
+    assert abs(ys.mean() - SIZE[1] / 2) < 0.06 * SIZE[1]
+    # Skin colour, lit: warm (red > green > blue) in the middle of the face.
+    cheek = image[SIZE[1] // 2 - 5:SIZE[1] // 2 + 5, SIZE[0] // 2 - 5:SIZE[0] // 2 + 5].reshape(-1, 3).mean(axis=0)
+    assert cheek[0] > cheek[1] > cheek[2] and cheek[0] > 120
+
+
+@pytest.mark.parametrize("view", ["three-quarter", "profile"])
+def test_other_views_keep_the_head_in_frame_and_differ_from_front(head, renderer, view):
+    front = renderer.render()
+    with FaceRenderer(head, size=SIZE, view=view) as r:
+        image = r.render()
+    mask = foreground(image)
+    assert mask.mean() > 0.15
+    assert not (mask[0].any() or mask[-1].any() or mask[:, 0].any() or mask[:, -1].any())
+    assert np.abs(image.astype(int) - front).mean() > 1.5
+    # Turned towards the face's left (+x): the face's front moves to the image's left.
+    eyes = 0.5 * (head.eye_centers["eye_l"] + head.eye_centers["eye_r"])
+    assert r.camera.project(eyes, SIZE)[0, 0] < SIZE[0] / 2 - 0.05 * SIZE[0]
+
+
+def test_three_quarter_view_shows_the_left_pupil_where_the_camera_projects_it(head):
+    with FaceRenderer(head, size=SIZE, view="three-quarter") as r:
+        image = r.render().astype(int)
+        pupil = image[box_around(r, head.eye_centers["eye_l"] + [0.0, 0.0, EYE_RADIUS], 1)]
+    assert pupil.reshape(-1, 3).mean(axis=0).max() < 70
+
+
+def test_eyes_show_a_dark_pupil_inside_a_blue_iris_on_white(head, renderer):
+    image = renderer.render().astype(int)
+    centre = head.eye_centers["eye_l"] + [0.0, 0.0, EYE_RADIUS]
+    pupil = image[box_around(renderer, centre, 1)].reshape(-1, 3).mean(axis=0)
+    assert pupil.max() < 60, f"pupil should be near black, got {pupil}"
+    ring = head.eye_centers["eye_l"] + EYE_RADIUS * np.array([np.sin(np.radians(27)), 0.0, np.cos(np.radians(27))])
+    iris = image[box_around(renderer, ring, 0)].reshape(-1, 3).mean(axis=0)
+    assert iris[2] > iris[0] + 20, f"iris should be blue, got {iris}"
+    white = head.eye_centers["eye_l"] + EYE_RADIUS * np.array([np.sin(np.radians(60)), 0.0, np.cos(np.radians(60))])
+    sclera = image[box_around(renderer, white, 0)].reshape(-1, 3).mean(axis=0)
+    assert sclera.min() > 120, f"sclera should be light, got {sclera}"
+
+
+def test_opening_the_jaw_changes_the_mouth_and_nothing_above(head, renderer):
+    rest, opened = (renderer.render(f.skin_vertices, f.bone_transforms) for f in jaw_frames(head, [0.0, 0.3]))
+    mouth = 0.5 * (head.feature_point_positions()["2.2"] + head.feature_point_positions()["2.3"])
+    region = box_around(renderer, mouth + [0.0, -0.003, 0.0], 8)
+    change = np.abs(opened[region].astype(int) - rest[region]).mean()
+    assert change > 25, f"mouth pixels barely changed ({change:.1f})"
+    # The open mouth shows a dark cavity (and teeth): some mouth pixels get much darker.
+    assert (opened[region].sum(axis=2) < 200).sum() > 10
+    forehead = box_around(renderer, head.feature_point_positions()["11.4"] * [1, 0.5, 1] + [0, 0, 0.09], 10)
+    assert np.array_equal(opened[forehead], rest[forehead])
+
+
+def test_rest_is_restored_and_frames_are_deterministic(head, renderer):
+    first = renderer.render()
+    frame = next(jaw_frames(head, [0.3]))
+    skin_before = frame.skin_vertices.copy()
+    jaw_before = frame.bone_transforms["jaw"].copy()
+    a = renderer.render(frame.skin_vertices, frame.bone_transforms)
+    b = renderer.render(frame.skin_vertices, frame.bone_transforms)
+    assert np.array_equal(a, b)
+    assert np.array_equal(frame.skin_vertices, skin_before) and np.array_equal(frame.bone_transforms["jaw"], jaw_before)
+    assert np.array_equal(renderer.render(), first)
+    assert np.array_equal(renderer.render(head.skin_vertices), first)
+
+
+def test_shader_programs_are_compiled_once_not_per_frame(head, renderer):
+    """pyrender's cache keyed on a fresh OSMesa pointer object recompiled (and leaked) every frame."""
+    cache = renderer._renderer._program_cache
+    for f in jaw_frames(head, np.linspace(0, 0.3, 3)):
+        renderer.render(f.skin_vertices, f.bone_transforms)
+    before = len(cache._program_cache)
+    for f in jaw_frames(head, np.linspace(0, 0.3, 10)):
+        renderer.render(f.skin_vertices, f.bone_transforms)
+    assert len(cache._program_cache) == before
+
+
+def test_supersampling_averages_a_k_times_larger_render(head, renderer):
+    plain = renderer.render()
+    with FaceRenderer(head, size=SIZE, supersample=2) as r:
+        smooth = r.render()
+    with FaceRenderer(head, size=(2 * SIZE[0], 2 * SIZE[1])) as r:
+        big = r.render().astype(int)
+    assert smooth.shape == plain.shape
+    expected = big.reshape(SIZE[1], 2, SIZE[0], 2, 3).mean(axis=(1, 3))
+    assert np.abs(smooth - expected).max() <= 1
+    assert np.abs(smooth.astype(int) - plain).mean() < 4  # same framing
+    # Edges get in-between shades: many more distinct colours than the aliased render.
+    def colours(img):
+        return len(np.unique(img.reshape(-1, 3), axis=0))
+    assert colours(smooth) > 1.1 * colours(plain)
+
+
+def test_bad_input_is_rejected_with_a_clear_error(head, renderer):
+    with pytest.raises(ValueError, match="skin_vertices"):
+        renderer.render(np.zeros((10, 3)))
+    with pytest.raises(ValueError, match="bone_transforms"):
+        renderer.render(bone_transforms={"jaw": np.eye(3)})
+    with pytest.raises(ValueError, match="view"):
+        FaceRenderer(head, view="top")
+    with pytest.raises(ValueError, match="size"):
+        FaceRenderer(head, size=(0, 10))
+
+
+@pytest.mark.slow
+def test_memory_stays_flat_over_1000_frames():
+    """The leak pyrender has under OSMesa (~3 MB per frame) must stay fixed."""
+    def rss_mb() -> float:
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * 4096 / 1e6
+
+    head = synthetic_head(subdivisions=4)
+    frames = list(jaw_frames(head, 0.3 * np.abs(np.sin(np.linspace(0, 6, 50)))))
+    with FaceRenderer(head, size=(160, 120)) as r:
+        for f in frames:
+            r.render(f.skin_vertices, f.bone_transforms)
+        start = rss_mb()
+        for i in range(1000):
+            f = frames[i % len(frames)]
+            r.render(f.skin_vertices, f.bone_transforms)
+        growth = rss_mb() - start
+    assert growth < 50, f"RSS grew {growth:.0f} MB over 1,000 frames"
