@@ -117,7 +117,10 @@ def rbf_weights(P: np.ndarray, D: np.ndarray, kernel: str = "biharmonic", rho: f
     A[:m, m:] = Q
     A[m:, :m] = Q.T
     B = np.vstack([D, np.zeros((4, 3))])
-    X = np.linalg.lstsq(A, B, rcond=None)[0] if m < 8 else np.linalg.solve(A, B)
+    try:
+        X = np.linalg.solve(A, B)
+    except np.linalg.LinAlgError:  # coincident centres or coplanar ones: least-squares solution
+        X = np.linalg.lstsq(A, B, rcond=None)[0]
     return RBF(kernel, P, X[:m], X[m:], np.full(m, scale), float(rho))
 
 

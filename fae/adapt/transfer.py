@@ -1,0 +1,173 @@
+"""Personalize a FaceModel: fit its skin to a scan and carry the anatomy over (paper 000 §6.2).
+
+- skin: the fitted surface (same topology, so regions, mirror, uv, FDPs and muscle ends,
+  all stored as triangle + barycentric coordinates, carry over unchanged);
+- cranium, mandible: through the fitted deformation (global RBF + CSRBF levels, without the
+  per-vertex local step), then pushed back under the skin where they would poke through;
+- eyes, teeth, tongue: rigid (eq. 25-28): moved with the deformation of their centre and
+  scaled uniformly by the ratio of feature-point distances (eye: |3.7-3.11| for the left,
+  |3.8-3.12| for the right; teeth and tongue: mouth width |8.3-8.4|), no rotation (the scan
+  is already calibrated into the face frame);
+- jaw pivot, eye centres: through the deformation; jaw axis unchanged;
+- sphincter semi-axes and linear-muscle fall-off distances: scaled by the mouth-width ratio
+  (sphincters near the mouth) or the eye-width ratio (near an eye);
+- skin_thickness: recomputed as the distance to the nearest bone, capped at the template's
+  largest thickness;
+- FaceDefTables: displacements (metres per FAP unit) scaled by the ratio of the mean FAPU
+  distance (ES, ENS, MNS, MW) of the new face to the template's, since a FAP moves a point
+  by value x FAPU;
+- fap_mapping cleared (the runtime re-derives it); scan_transform maps the face frame back
+  to the scan's frame and unit.
+"""
+
+from __future__ import annotations
+
+import copy
+import time
+from typing import Callable
+
+import numpy as np
+
+from fae.adapt.calibration import apply_transform, calibration_transform, outlier_landmarks
+from fae.adapt.geometry import per_vertex_normals
+from fae.adapt.multilevel import fit_template
+from fae.adapt.query import MeshQuery
+from fae.io.facemodel import FaceModel
+
+MIN_BONE_DEPTH = 0.002  # metres of soft tissue kept between skin and bone
+
+
+def scan_landmarks_in_face_frame(template_points: dict[str, np.ndarray], scan_landmarks: dict[str, np.ndarray],
+                                 scan_V: np.ndarray, scan_F: np.ndarray
+                                 ) -> tuple[np.ndarray, str, list[str], dict[str, str]]:
+    """Calibrate: (4, 4) scan -> face frame, unit name, names used, ignored name -> reason."""
+    ignored: dict[str, str] = {}
+    for n in scan_landmarks:
+        if n not in template_points:
+            ignored[n] = "not a feature point of the template"
+    names = [n for n in template_points if n in scan_landmarks]
+    if len(names) < 4:
+        raise ValueError(f"adapt: need at least 4 feature points shared by scan and template, got {len(names)} "
+                         f"({', '.join(names) or 'none'})")
+    A = np.array([scan_landmarks[n] for n in names])
+    B = np.array([template_points[n] for n in names])
+    for n in outlier_landmarks(A, B, names):
+        ignored[n] = "disagrees with the other feature points (wrong placement?)"
+    names = [n for n in names if n not in ignored]
+    T, unit = calibration_transform(np.array([scan_landmarks[n] for n in names]),
+                                    np.array([template_points[n] for n in names]))
+    width = float(np.max(np.ptp(B, axis=0)))
+    q = MeshQuery(apply_transform(T, scan_V), scan_F)
+    _, dist, _, _ = q.closest_points(apply_transform(T, np.array([scan_landmarks[n] for n in names])))
+    for n, d in zip(list(names), dist):
+        if d > max(0.1 * width, 0.01):
+            ignored[n] = f"{d * 1000:.1f} mm from the scan surface"
+    names = [n for n in names if n not in ignored]
+    return T, unit, names, ignored
+
+
+def _ratio(a: dict, b: dict, p: str, q: str) -> float | None:
+    if p in a and q in a and p in b and q in b:
+        d0 = np.linalg.norm(a[p] - a[q])
+        if d0 > 0:
+            return float(np.linalg.norm(b[p] - b[q]) / d0)
+    return None
+
+
+def adapt_facemodel(template: FaceModel, scan_V: np.ndarray, scan_F: np.ndarray,
+                    scan_landmarks: dict[str, np.ndarray], method: str = "multilevel", levels: int = 3,
+                    progress: Callable[[str], None] | None = None) -> tuple[FaceModel, dict]:
+    """A personalized copy of `template` fitted to the scan (V (n, 3), F (m, 3) in the scan's
+    frame and unit; landmarks FDP name -> (3,) in the same). Returns (model, report dict)."""
+    t0 = time.perf_counter()
+    fdp_old = template.feature_point_positions()
+    skin_fdp = {n: p for n, p in fdp_old.items() if template.feature_points[n].part == "skin"}
+    T, unit, names, ignored = scan_landmarks_in_face_frame(skin_fdp, scan_landmarks, scan_V, scan_F)
+    SV = apply_transform(T, scan_V)
+    PL = np.array([skin_fdp[n] for n in names])
+    QL = apply_transform(T, np.array([scan_landmarks[n] for n in names]))
+    fit = fit_template(template.skin_vertices, template.skin_faces, PL, SV, scan_F, QL, method=method,
+                       levels=levels, progress=progress)
+    model = copy.deepcopy(template)
+    model.skin_vertices = fit.vertices.copy()
+    fdp_new = model.feature_point_positions()
+    mouth = _ratio(fdp_old, fdp_new, "8.3", "8.4") or 1.0
+    eye_l = _ratio(fdp_old, fdp_new, "3.7", "3.11") or mouth
+    eye_r = _ratio(fdp_old, fdp_new, "3.8", "3.12") or mouth
+    rigid_scale = {"eye_l": eye_l, "eye_r": eye_r, "upper_teeth": mouth, "lower_teeth": mouth, "tongue": mouth}
+    deform = fit.deformation
+    for name, part in model.parts.items():
+        if name in rigid_scale:
+            c_old = template.eye_centers[name] if name in template.eye_centers else part.vertices.mean(axis=0)
+            c_new = deform(c_old[None])[0]
+            part.vertices = (part.vertices - c_old) * rigid_scale[name] + c_new
+        else:
+            part.vertices = deform(part.vertices)
+    model.eye_centers = {k: deform(np.asarray(v)[None])[0] for k, v in template.eye_centers.items()}
+    model.jaw_pivot = deform(np.asarray(template.jaw_pivot)[None])[0]
+    # bones stay under the skin
+    skin_q = MeshQuery(model.skin_vertices, model.skin_faces)
+    skin_n = per_vertex_normals(model.skin_vertices, model.skin_faces)
+    pushed = 0
+    for name in ("cranium", "mandible"):
+        if name not in model.parts:
+            continue
+        part = model.parts[name]
+        pts, dist, face, bary = skin_q.closest_points(part.vertices)
+        ok = face >= 0
+        n = np.einsum("nk,nkd->nd", bary[ok], skin_n[model.skin_faces[face[ok]]])
+        depth = np.sum((pts[ok] - part.vertices[ok]) * n, axis=1)  # > 0: below the skin
+        bad = depth < MIN_BONE_DEPTH
+        idx = np.flatnonzero(ok)[bad]
+        part.vertices[idx] = pts[ok][bad] - n[bad] * MIN_BONE_DEPTH
+        pushed += int(bad.sum())
+    # soft-tissue depth
+    bones = [model.parts[n] for n in ("cranium", "mandible") if n in model.parts]
+    if bones:
+        d = np.min([MeshQuery(b.vertices, b.faces).closest_points(model.skin_vertices)[1] for b in bones], axis=0)
+        cap = float(np.max(template.skin_thickness)) if len(template.skin_thickness) else float(np.max(d))
+        model.skin_thickness = np.minimum(d, cap)
+    for m in model.muscles:
+        near_eye = m.kind == "sphincter" and ("oculi" in m.name or "eye" in m.name)
+        s = (eye_l + eye_r) / 2 if near_eye else mouth
+        if m.semi_axes is not None:
+            m.semi_axes = np.asarray(m.semi_axes) * s
+        m.fall_start *= s
+        m.fall_end *= s
+    fapu_ratio = _fapu_ratio(fdp_old, fdp_new)
+    for t in model.face_def_tables:
+        t.displacements = np.asarray(t.displacements) * fapu_ratio
+    model.fap_mapping = {}
+    model.scan_transform = np.linalg.inv(T)
+    model.meta = dict(template.meta)
+    model.meta.update({"generator": "fae adapt", "adapt_method": method, "scan_unit": unit})
+    report = {"method": method, "scan_unit": unit, "landmarks_used": names, "ignored_landmarks": ignored,
+              "bone_vertices_pushed_under_skin": pushed, "fapu_ratio": fapu_ratio,
+              "levels": fit.levels, "chosen_level": fit.chosen_level, "final": dict(fit.final)}
+    report["final"]["seconds"] = time.perf_counter() - t0
+    return model, report
+
+
+def _fapu_ratio(old: dict, new: dict) -> float:
+    from fae.mpeg4.fapu import fapu0_from_positions
+
+    try:
+        a, b = fapu0_from_positions(old), fapu0_from_positions(new)
+    except (KeyError, ValueError):
+        return 1.0
+    keys = ("ES0", "ENS0", "MNS0", "MW0")
+    return float(np.mean([b[k] / a[k] for k in keys]))
+
+
+def adapt_surface(template_V: np.ndarray, template_F: np.ndarray, template_landmarks: dict[str, np.ndarray],
+                  scan_V: np.ndarray, scan_F: np.ndarray, scan_landmarks: dict[str, np.ndarray],
+                  method: str = "multilevel", levels: int = 3) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Fit a bare template surface (V (n, 3) metres, F, FDP name -> (3,)) to a scan in any
+    frame and unit. Returns fitted V (n, 3) in the face frame (metres), the (4, 4) scan ->
+    face frame transform, and the report dict."""
+    T, unit, names, ignored = scan_landmarks_in_face_frame(template_landmarks, scan_landmarks, scan_V, scan_F)
+    fit = fit_template(template_V, template_F, np.array([template_landmarks[n] for n in names]),
+                       apply_transform(T, scan_V), scan_F,
+                       apply_transform(T, np.array([scan_landmarks[n] for n in names])), method=method, levels=levels)
+    return fit.vertices, T, {"method": method, "scan_unit": unit, "landmarks_used": names,
+                             "ignored_landmarks": ignored, "levels": fit.levels, "final": fit.final}

@@ -1,0 +1,182 @@
+"""Scan meshes and their landmarks.
+
+read_scan: any mesh trimesh reads (OBJ, PLY, STL, OFF, GLB/glTF); scenes and several
+components are merged into one triangle mesh, units and orientation are left as they are
+(calibration handles them).
+
+read_landmarks: MPEG-4 feature point name -> scan coordinates, from
+- JSON `{"9.3": [x, y, z], ...}` or `{"9.3": 1234, ...}` (vertex index into the scan), also
+  under a top-level "landmarks" key;
+- menpo `.ljson` with 68 iBUG points (groups -> LJSON -> landmarks -> points);
+- CSV: rows `name,x,y,z` (MPEG-4 names), or 68 rows `x,y,z` in iBUG order.
+iBUG-68 points are turned into FDPs by IBUG68_TO_FDP (below).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import re
+
+import numpy as np
+
+# iBUG 300-W 68-point markup (0-based) -> MPEG-4 FDP. Values are the iBUG indices whose
+# mean is the FDP. iBUG's "right" is the subject's right; MPEG-4 "left" is the face's own
+# left (+x). Points without a clear MPEG-4 counterpart (jaw contour 0-2, 4-6, 10-12, 14-16,
+# nose bridge 27-29) are not used.
+IBUG68_TO_FDP: dict[str, tuple[int, ...]] = {
+    "2.1": (8,),            # bottom of the chin
+    "2.11": (9,),           # chin left corner
+    "2.12": (7,),           # chin right corner
+    "2.13": (13,),          # left corner of jaw bone
+    "2.14": (3,),           # right corner of jaw bone
+    "4.1": (22,),           # right (inner) corner of left eyebrow
+    "4.3": (24,),           # uppermost point of left eyebrow
+    "4.5": (26,),           # left (outer) corner of left eyebrow
+    "4.2": (21,),           # left (inner) corner of right eyebrow
+    "4.4": (19,),           # uppermost point of right eyebrow
+    "4.6": (17,),           # right (outer) corner of right eyebrow
+    "9.3": (30,),           # nose tip
+    "9.15": (33,),          # bottom middle edge of nose
+    "9.1": (35,),           # left nostril border
+    "9.2": (31,),           # right nostril border
+    "9.5": (34,),           # bottom left edge of nose
+    "9.4": (32,),           # bottom right edge of nose
+    "3.12": (36,),          # right corner of right eye (outer)
+    "3.14": (37, 38),       # upper outer right eyelid
+    "3.8": (39,),           # left corner of right eye (inner)
+    "3.10": (40, 41),       # lower outer right eyelid
+    "3.11": (42,),          # right corner of left eye (inner)
+    "3.13": (43, 44),       # upper outer left eyelid
+    "3.7": (45,),           # left corner of left eye (outer)
+    "3.9": (46, 47),        # lower outer left eyelid
+    "8.4": (48,),           # right corner of outer lip contour
+    "8.6": (49, 50),        # between 8.4 and 8.1, outer upper lip
+    "8.9": (50,),           # right high point of Cupid's bow
+    "8.1": (51,),           # middle of outer upper lip
+    "8.10": (52,),          # left high point of Cupid's bow
+    "8.5": (52, 53),        # between 8.3 and 8.1, outer upper lip
+    "8.3": (54,),           # left corner of outer lip contour
+    "8.7": (55, 56),        # between 8.3 and 8.2, outer lower lip
+    "8.2": (57,),           # middle of outer lower lip
+    "8.8": (58, 59),        # between 8.4 and 8.2, outer lower lip
+    "2.5": (60,),           # right corner of inner lip contour
+    "2.7": (61,),           # inner upper lip, between 2.2 and 2.5
+    "2.2": (62,),           # middle of inner upper lip
+    "2.6": (63,),           # inner upper lip, between 2.2 and 2.4
+    "2.4": (64,),           # left corner of inner lip contour
+    "2.8": (65,),           # inner lower lip, between 2.3 and 2.4
+    "2.3": (66,),           # middle of inner lower lip
+    "2.9": (67,),           # inner lower lip, between 2.3 and 2.5
+}
+
+_FDP_NAME = re.compile(r"^(\d{1,2})\.(\d{1,2})$")
+
+
+class LandmarkError(ValueError):
+    """A landmark file that cannot be read; the message names the file and field."""
+
+
+def read_scan(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """V (n, 3) float64 in the file's unit and frame, F (m, 3) int64, all components merged."""
+    import trimesh
+
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"{path}: scan file not found")
+    try:
+        loaded = trimesh.load(path, force="mesh", process=False)
+    except Exception as exc:  # trimesh raises many kinds
+        raise ValueError(f"{path}: cannot read a mesh ({exc})") from exc
+    V = np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))), dtype=np.float64)
+    F = np.asarray(getattr(loaded, "faces", np.zeros((0, 3))), dtype=np.int64)
+    if len(V) == 0 or len(F) == 0:
+        raise ValueError(f"{path}: the file holds no triangles (point clouds are not supported)")
+    if not np.all(np.isfinite(V)):
+        raise ValueError(f"{path}: vertex coordinates contain NaN or infinity")
+    return V, F
+
+
+def ibug68_to_fdp(points: np.ndarray, source: str = "landmarks") -> dict[str, np.ndarray]:
+    """FDP name -> (3,) from 68 iBUG points (68, 3), by IBUG68_TO_FDP."""
+    points = np.asarray(points, dtype=np.float64)
+    if points.shape != (68, 3):
+        raise LandmarkError(f"{source}: expected 68 iBUG points with x, y, z, got shape {points.shape}")
+    return {name: points[list(idx)].mean(axis=0) for name, idx in IBUG68_TO_FDP.items()
+            if np.all(np.isfinite(points[list(idx)]))}
+
+
+def _check_name(name: str, source: str) -> str:
+    name = str(name).strip()
+    m = _FDP_NAME.match(name)
+    if not m or not 2 <= int(m.group(1)) <= 11:
+        raise LandmarkError(f"{source}: {name!r} is not an MPEG-4 feature point name (expected group.index, e.g. \"9.3\")")
+    return f"{int(m.group(1))}.{int(m.group(2))}"
+
+
+def _point(value, name: str, source: str, vertices: np.ndarray | None) -> np.ndarray:
+    if isinstance(value, (int, np.integer)) and not isinstance(value, bool):
+        if vertices is None:
+            raise LandmarkError(f"{source}: field {name!r} is a vertex index but no scan vertices were given")
+        if not 0 <= value < len(vertices):
+            raise LandmarkError(f"{source}: field {name!r}: vertex index {value} outside 0..{len(vertices) - 1}")
+        return np.asarray(vertices[value], dtype=np.float64)
+    arr = np.asarray(value, dtype=np.float64) if isinstance(value, (list, tuple)) else None
+    if arr is None or arr.shape != (3,) or not np.all(np.isfinite(arr)):
+        raise LandmarkError(f"{source}: field {name!r}: expected [x, y, z] (3 finite numbers) or a vertex index, got {value!r}")
+    return arr
+
+
+def read_landmarks(path: str | os.PathLike, vertices: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """FDP name -> (3,) float64 in the scan's frame and unit (see module docstring).
+
+    vertices (n, 3): the scan's vertices, needed when the file gives vertex indices.
+    """
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"{path}: landmark file not found")
+    ext = os.path.splitext(path)[1].lower()
+    if ext in (".json", ".ljson"):
+        try:
+            with open(path, encoding="utf-8") as fh:
+                data = json.load(fh)
+        except json.JSONDecodeError as exc:
+            raise LandmarkError(f"{path}: line {exc.lineno}: not valid JSON ({exc.msg})") from exc
+        if isinstance(data, dict) and "groups" in data:  # menpo ljson
+            try:
+                group = next(iter(data["groups"].values()))
+                pts = np.array([[np.nan if c is None else c for c in p] for p in group["landmarks"]["points"]], dtype=np.float64)
+            except (KeyError, TypeError, StopIteration, ValueError) as exc:
+                raise LandmarkError(f"{path}: ljson field groups.<name>.landmarks.points missing or malformed") from exc
+            return ibug68_to_fdp(pts, path)
+        if isinstance(data, dict) and isinstance(data.get("landmarks"), dict):
+            data = data["landmarks"]
+        if not isinstance(data, dict) or not data:
+            raise LandmarkError(f"{path}: expected a JSON object mapping feature point names to [x, y, z] or vertex indices")
+        return {_check_name(k, path): _point(v, k, path, vertices) for k, v in data.items()}
+    if ext in (".csv", ".txt"):
+        with open(path, encoding="utf-8", newline="") as fh:
+            rows = [r for r in csv.reader(fh) if r and not r[0].lstrip().startswith("#")]
+        if rows and all(len(r) == 3 for r in rows):
+            try:
+                pts = np.array(rows, dtype=np.float64)
+            except ValueError as exc:
+                raise LandmarkError(f"{path}: expected numbers in every x, y, z row ({exc})") from exc
+            if len(pts) != 68:
+                raise LandmarkError(f"{path}: {len(pts)} unnamed x, y, z rows; unnamed rows must be the 68 iBUG points (use name,x,y,z rows for MPEG-4 names)")
+            return ibug68_to_fdp(pts, path)
+        out = {}
+        for line, r in enumerate(rows, start=1):
+            if line == 1 and r[0].strip().lower() in ("name", "fdp", "point"):
+                continue
+            if len(r) != 4:
+                raise LandmarkError(f"{path}: line {line}: expected name,x,y,z, got {len(r)} fields")
+            try:
+                out[_check_name(r[0], f"{path}: line {line}")] = np.array(r[1:], dtype=np.float64)
+            except ValueError as exc:
+                if isinstance(exc, LandmarkError):
+                    raise
+                raise LandmarkError(f"{path}: line {line}: x, y, z must be numbers") from exc
+        return out
+    raise LandmarkError(f"{path}: unknown landmark format {ext!r} (expected .json, .ljson or .csv)")
