@@ -17,6 +17,7 @@ from fae import __version__
 # Module names under fae.commands, in the order `fae --help` lists them.
 COMMANDS = (
     "inspect",
+    "adapt",
     "serve",
     "send",
     "render",
