@@ -61,7 +61,7 @@ def synthetic_face_model(subdivisions: int = 5) -> FaceModel:
     inner_semi = SEMI - THICKNESS - 0.0015
     dense = trimesh.creation.icosphere(subdivisions=4).vertices * inner_semi
     chin = (dense[:, 1] < -0.035) & (dense[:, 2] > 0.0)
-    cranium = trimesh.convex.convex_hull(dense[~chin])
+    cranium = trimesh.convex.convex_hull(dense[dense[:, 1] > -0.02])
     mandible = trimesh.convex.convex_hull(dense[chin])
     mouth_y = _on_ellipsoid(_dir(0.0, -0.28), SEMI)
     upper_teeth = _box(mouth_y + [0, 0.007, -0.022], [0.035, 0.012, 0.012])

@@ -1,0 +1,304 @@
+"""Calibration: derive each head's FAP -> control mapping by probing its own simulation.
+
+Choice per FAP group (every low-level FAP 3-68 drives something):
+- jaw (3, 14, 15): mandible pose. open_jaw combines the hinge rotation with a forward slide
+  of the condyles (least squares, the slide penalized) so that the chin 2.1 moves straight
+  down; thrust_jaw slides it forward (+z), shift_jaw sideways (x). The skin follows
+  through its bone anchors.
+- lips, chin, cheeks, brows, nose (4-13, 16-18, 31-42, 51-64): a least-squares combination of
+  the head's muscles (contractions >= 0) plus one directional pull field of the FAP's own
+  (centred on its feature point, along the standard direction, Wendland fall-off over the
+  skin's geodesic distance, radius a fraction of ES0), the field's use penalized so that
+  muscles do what they can; the field supplies what no muscle can (lip protrusion 16/17,
+  lip lowering, nostrils, the off-axis remainder).
+- eyelids (19-22) and ears (65-68): the pull field only (no muscle in the model moves them).
+- eyeballs, pupils, tongue, head (23-30, 43-50): rigid poses, see fae.animate.rigid.
+
+Procedure: (1) linear response: the skin's stiffness matrix at rest (springs k n n^T plus
+bone anchors) is factorized once (scipy splu); each control's rest force field gives the
+feature points' displacement per unit control. (2) per FAP and side, bounded least squares
+(scipy lsq_linear) for the controls moving its feature point by one metre along the
+standard direction. (3) nonlinear correction: the real solver is run at +-half range for
+FAPs in batches whose footprints do not overlap, the settled displacement along the
+direction is measured and the scale at +-half and full range set so it matches (two
+passes). The result, arrays only, goes into `FaceModel.fap_mapping`:
+
+    layout       (4,) int: muscle count, field count, jaw controls (3), format version
+    field_faps   (K,) int: FAP of each pull field, in control order
+    field_radius (K,) float metres
+    gain_pos     (68, C) float: controls per FAP unit for positive values
+    gain_neg     (68, C) float: controls per FAP unit of |v| for negative values
+    table_values (68, 5) float FAPU: -R, -R/2, 0, R/2, R (R: the positive translation limit)
+    table_scale  (68, 5) float: multiplier of the linear controls at those values
+Controls C: the head's muscles, then the pull fields, then jaw (angle rad, thrust m, shift m).
+"""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.optimize import lsq_linear
+from scipy.sparse.csgraph import dijkstra
+from scipy.sparse.linalg import splu
+
+from fae.animate.faptables import (FAP_DIRECTION, FAP_FEATURE_POINT, FAP_LIMITS, JAW_FAPS,
+                                   SKIN_TRANSLATION_FAPS, fap_unit_scale, fapu_of)
+from fae.mpeg4.faps import FAP_COUNT
+from fae.sim.build import PullField, mesh_edges, skin_model, skin_positions
+from fae.sim.reference import ReferenceSolver
+
+FORMAT_VERSION = 1
+JAW_CONTROLS = 3
+FIELD_ONLY_FAPS = (19, 20, 21, 22, 65, 66, 67, 68)
+# pull-field radius per FAP, in units of ES0
+_FIELD_RADIUS_ES = {**{k: 0.16 for k in (4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 16, 17)},
+                    **{k: 0.18 for k in range(51, 61)}, 18: 0.3,
+                    **{k: 0.15 for k in (19, 20, 21, 22)}, **{k: 0.3 for k in range(31, 39)},
+                    **{k: 0.45 for k in (39, 40, 41, 42)}, **{k: 0.2 for k in (61, 62, 63, 64)},
+                    **{k: 0.5 for k in (65, 66, 67, 68)}}
+MUSCLE_COST = 0.05
+FIELD_COST = 0.2
+CONTROL_SCALE = 0.01  # metres
+
+
+def field_faps(face) -> list[int]:
+    """FAPs that get a pull field on this head: skin-bound translations except the jaw's."""
+    return [k for k in SKIN_TRANSLATION_FAPS
+            if k not in JAW_FAPS and FAP_FEATURE_POINT[k - 1] in face.feature_points
+            and face.feature_points[FAP_FEATURE_POINT[k - 1]].part == "skin"]
+
+
+def geodesic_distance(face, point, limit: float) -> np.ndarray:
+    """(V,) metres along skin edges from a surface point (inf beyond `limit`)."""
+    V = np.asarray(face.skin_vertices, dtype=np.float64)
+    e = mesh_edges(np.asarray(face.skin_faces))
+    w = np.linalg.norm(V[e[:, 0]] - V[e[:, 1]], axis=1)
+    G = sp.coo_matrix((w, (e[:, 0], e[:, 1])), shape=(len(V), len(V))).tocsr()
+    tri = np.asarray(face.skin_faces)[point.triangle]
+    p = face.surface_point_position(point)
+    d = dijkstra(G, directed=False, indices=tri, limit=limit)
+    return np.min(d + np.linalg.norm(V[tri] - p, axis=1)[:, None], axis=0)
+
+
+def pull_fields(face, fapu: dict[str, float]) -> list[PullField]:
+    """The pull fields of `face`, one per FAP of `field_faps`, in that order."""
+    es0 = fapu["ES"] * 1024.0
+    names = list(face.region_names)
+    region = np.asarray(face.skin_region)
+    faces = np.asarray(face.skin_faces)
+    out = []
+    for k in field_faps(face):
+        point = face.feature_points[FAP_FEATURE_POINT[k - 1]]
+        radius = _FIELD_RADIUS_ES.get(k, 0.2) * es0
+        r = geodesic_distance(face, point, radius) / radius
+        r = np.minimum(r, 1.0)
+        w = (1.0 - r) ** 4 * (4.0 * r + 1.0)
+        # upper-lip points never pull the lower lip and vice versa
+        own = {names[i] for i in region[faces[point.triangle]]}
+        for word, other in (("upper", "lower"), ("lower", "upper")):
+            if own and all(word in n for n in own):
+                w[np.isin(region, [i for i, n in enumerate(names) if other in n])] = 0.0
+        out.append(PullField(f"fap{k}", FAP_DIRECTION[k - 1], w))
+    return out
+
+
+def _stiffness(ref: ReferenceSolver) -> tuple[sp.csc_matrix, np.ndarray]:
+    a, P = ref.a, ref.model.particle_count
+    q = a["particle_q"].astype(np.float64)
+    n = q[ref.j] - q[ref.i]
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    blocks = a["spring_stiffness"][:, None, None] * n[:, :, None] * n[:, None, :]
+    rows, cols, vals = [], [], []
+    ii, jj = ref.i, ref.j
+    for r in range(3):
+        for c in range(3):
+            for (x, y, s) in ((ii, ii, 1.0), (jj, jj, 1.0), (ii, jj, -1.0), (jj, ii, -1.0)):
+                rows.append(3 * x + r)
+                cols.append(3 * y + c)
+                vals.append(s * blocks[:, r, c])
+    ap = a["anchor_particle"].astype(np.int64)
+    for r in range(3):
+        rows.append(3 * ap + r)
+        cols.append(3 * ap + r)
+        vals.append(a["anchor_stiffness"].astype(np.float64))
+    K = sp.coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(3 * P, 3 * P)).tocsc()
+    free = np.repeat(a["particle_inv_mass"] > 0, 3)
+    return K[free][:, free].tocsc(), free
+
+
+class _Probe:
+    """Linear response and settled measurements of a head's simulation."""
+
+    def __init__(self, face, model):
+        self.face, self.model = face, model
+        self.ref = ReferenceSolver(model)
+        K, self.free = _stiffness(self.ref)
+        self.lu = splu(K)
+        self.q0 = self.ref.a["particle_q"].astype(np.float64)
+        P = model.particle_count
+        self.zero_v = np.zeros((P, 3))
+        self.eye = np.tile(np.eye(3), (2, 1, 1))
+        # feature point -> (particles (3,), bary (3,)) on the epidermis
+        self.fdp = {}
+        for name, sp_ in face.feature_points.items():
+            if sp_.part != "skin":
+                continue
+            tri = np.asarray(face.skin_faces)[sp_.triangle]
+            self.fdp[name] = (model.skin_particle[tri], np.asarray(sp_.bary, dtype=np.float64))
+
+    def displacement(self, force: np.ndarray) -> np.ndarray:
+        u = np.zeros(3 * self.model.particle_count)
+        u[self.free] = self.lu.solve(force.reshape(-1)[self.free])
+        return u.reshape(-1, 3)
+
+    def fdp_motion(self, u: np.ndarray, name: str) -> np.ndarray:
+        parts, bary = self.fdp[name]
+        return sum(b * u[p] for p, b in zip(parts, bary) if p >= 0) if np.any(parts >= 0) else np.zeros(3)
+
+    def muscle_response(self, m: int) -> np.ndarray:
+        act = np.zeros(self.model.muscle_count)
+        act[m] = 1.0
+        return self.displacement(self.ref.forces(self.q0, self.zero_v, act, self.eye, np.zeros((2, 3))))
+
+    def jaw_response(self, rig, which: int, eps: float) -> np.ndarray:
+        T = rig.jaw(*(eps if i == which else 0.0 for i in range(3)))
+        R, t = self.eye.copy(), np.zeros((2, 3))
+        R[1], t[1] = T[:3, :3], T[:3, 3]
+        f = self.ref.forces(self.q0, self.zero_v, np.zeros(self.model.muscle_count), R, t)
+        return self.displacement(f) / eps
+
+
+def _solve(J: np.ndarray, target: np.ndarray, cost: np.ndarray, lower: np.ndarray) -> np.ndarray:
+    norms = np.linalg.norm(J, axis=0)
+    ok = norms > 1e-9
+    out = np.zeros(J.shape[1])
+    if not np.any(ok):
+        return out
+    # the penalty counts each unit of control as CONTROL_SCALE metres of error times its cost,
+    # so weak muscles (tiny response) are not driven to huge contractions
+    A = np.vstack([J[:, ok], np.diag(cost[ok] * CONTROL_SCALE)])
+    b = np.concatenate([target, np.zeros(ok.sum())])
+    lo = np.where(lower[ok] == 0.0, 0.0, -np.inf)
+    res = lsq_linear(A, b, bounds=(lo, np.full(ok.sum(), np.inf)))
+    out[ok] = res.x
+    return out
+
+
+def calibrate(face, device: str = "cpu", passes: int = 2, settle_frames: int = 40):
+    """A copy of FaceModel `face` with `fap_mapping` filled (see module docstring)."""
+    from fae.animate.controls import FapControls  # controls read the mapping this builds
+    from fae.animate.rigid import RigidRig
+    from fae.sim.solver import SkinSolver
+
+    fapu = fapu_of(face)
+    unit = fap_unit_scale(face)
+    fields = pull_fields(face, fapu)
+    model = skin_model(face, device=device, fields=fields)
+    probe = _Probe(face, model)
+    rig = RigidRig(face, fapu)
+    nm, nf = len(face.muscles), len(fields)
+    C = nm + nf + JAW_CONTROLS
+    field_of = {k: nm + i for i, k in enumerate(field_faps(face))}
+
+    responses = [probe.muscle_response(m) for m in range(nm + nf)]
+    responses += [probe.jaw_response(rig, 0, 1e-3), probe.jaw_response(rig, 1, 1e-4), probe.jaw_response(rig, 2, 1e-4)]
+
+    gain_pos, gain_neg = np.zeros((FAP_COUNT, C)), np.zeros((FAP_COUNT, C))
+    for k in SKIN_TRANSLATION_FAPS:
+        fdp = FAP_FEATURE_POINT[k - 1]
+        if fdp not in probe.fdp or (k not in JAW_FAPS and k not in field_of):
+            continue
+        if k in JAW_FAPS:
+            cols = {3: [nm + nf, nm + nf + 1], 14: [nm + nf + 1], 15: [nm + nf + 2]}[k]
+            cost = np.array({3: [0.001, 0.3], 14: [0.001], 15: [0.001]}[k])
+            lower_pos = np.array({3: [0.0, -np.inf], 14: [0.0], 15: [-np.inf]}[k])
+        elif k in FIELD_ONLY_FAPS:
+            cols, cost, lower_pos = [field_of[k]], np.array([FIELD_COST]), np.array([-np.inf])
+        else:
+            cols = list(range(nm)) + [field_of[k]]
+            cost = np.array([MUSCLE_COST] * nm + [FIELD_COST])
+            lower_pos = np.array([0.0] * nm + [-np.inf])
+        J = np.column_stack([probe.fdp_motion(responses[c], fdp) for c in cols])
+        d = FAP_DIRECTION[k - 1]
+        gain_pos[k - 1, cols] = _solve(J, d, cost, lower_pos) * unit[k - 1]
+        if FAP_LIMITS[k - 1, 0] < 0:
+            gain_neg[k - 1, cols] = _solve(J, -d, cost, lower_pos) * unit[k - 1]
+
+    half = FAP_LIMITS[:, 1] / 2.0
+    table_values = np.column_stack([-2 * half, -half, np.zeros(FAP_COUNT), half, 2 * half])
+    table_scale = np.ones((FAP_COUNT, 5))
+    mapping = {
+        "layout": np.array([nm, nf, JAW_CONTROLS, FORMAT_VERSION], dtype=np.int64),
+        "field_faps": np.array(field_faps(face), dtype=np.int64),
+        "field_radius": np.array([_FIELD_RADIUS_ES.get(k, 0.2) * fapu["ES"] * 1024 for k in field_faps(face)]),
+        "gain_pos": gain_pos, "gain_neg": gain_neg, "table_values": table_values, "table_scale": table_scale,
+    }
+
+    # Nonlinear correction with the real solver, batched by disjoint footprints.
+    faps = [k for k in SKIN_TRANSLATION_FAPS if np.any(gain_pos[k - 1])]
+    V = len(face.skin_vertices)
+    footprint = {}
+    for k in faps:
+        u = sum(abs(g) * responses[c] for c, g in enumerate(gain_pos[k - 1] / np.maximum(unit[k - 1], 1e-12)) if g)
+        mag = np.linalg.norm(u, axis=1)
+        verts = np.zeros(V, dtype=bool)
+        sim = model.skin_particle >= 0
+        verts[sim] = mag[model.skin_particle[sim]] > 0.03 * mag.max()
+        footprint[k] = verts
+    batches: list[list[int]] = []
+    for k in faps:
+        for b in batches:
+            if not any(np.any(footprint[k] & footprint[o]) for o in b):
+                b.append(k)
+                break
+        else:
+            batches.append([k])
+
+    controls_face = copy.copy(face)
+    solver = SkinSolver(model)
+    fdp_pos = face.feature_point_positions()
+    for _ in range(passes):
+        controls_face.fap_mapping = mapping
+        ctl = FapControls(controls_face, model)
+        for side in (1.0, -1.0):
+            for batch in batches:
+                todo = [k for k in batch if side > 0 or FAP_LIMITS[k - 1, 0] < 0]
+                if not todo:
+                    continue
+                values = np.zeros(FAP_COUNT)
+                for k in todo:
+                    values[k - 1] = side * half[k - 1]
+                skin = settle(model, solver, ctl, values, rig, frames=settle_frames)
+                for k in todo:
+                    fdp = FAP_FEATURE_POINT[k - 1]
+                    moved = face.surface_point_position(face.feature_points[fdp], skin) - fdp_pos[fdp]
+                    along = float(moved @ FAP_DIRECTION[k - 1]) * side
+                    expected = half[k - 1] * unit[k - 1]
+                    g = float(np.clip(expected / along, 0.25, 4.0)) if along > 1e-6 else 1.0
+                    cols = [3, 4] if side > 0 else [1, 0]
+                    table_scale[k - 1, cols] *= g
+    mapping["table_scale"] = table_scale
+    out = copy.copy(face)
+    out.fap_mapping = mapping
+    return out
+
+
+def settle(model, solver, controls, values: np.ndarray, rig, frames: int = 40, fps: float = 25.0,
+           tolerance: float = 2e-6) -> np.ndarray:
+    """(V, 3) skin in the head frame after holding FAP `values` until it stops moving."""
+    state, control = model.state(), model.control()
+    activation, jaw = controls.controls(values)
+    R, t = np.tile(np.eye(3), (2, 1, 1)), np.zeros((2, 3))
+    T = rig.jaw(*jaw)
+    R[1], t[1] = T[:3, :3], T[:3, 3]
+    control.set(muscle_activation=activation, bone_rotation=R, bone_translation=t)
+    prev = state.particle_q.numpy()
+    for i in range(frames):
+        solver.step(model, state, control, 1.0 / fps, state)
+        q = state.particle_q.numpy()
+        if i > 3 and np.abs(q - prev).max() < tolerance:
+            break
+        prev = q
+    return skin_positions(model, state.particle_q.numpy().astype(np.float64))

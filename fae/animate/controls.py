@@ -1,0 +1,72 @@
+"""FAP values -> simulation controls, through a head's calibrated `fap_mapping` (one matmul).
+
+controls(v) = sum_k max(v_k, 0) s_k(v_k) gain_pos[k] + max(-v_k, 0) s_k(v_k) gain_neg[k],
+s_k piecewise linear over table_values[k] (see fae.animate.calibrate). Muscle contractions
+are kept >= 0 and every control is bounded, whatever the input.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from fae.animate.calibrate import FORMAT_VERSION, JAW_CONTROLS
+from fae.mpeg4.faps import FAP_COUNT
+
+ACTIVATION_LIMIT = 50.0
+
+
+class MappingMismatch(ValueError):
+    """The head's fap_mapping does not fit its muscles and fields (recalibrate)."""
+
+
+class FapControls:
+    """Precomputed mapping of one head; `controls(values)` per frame."""
+
+    def __init__(self, face, model=None):
+        m = face.fap_mapping or {}
+        need = ("layout", "gain_pos", "gain_neg", "table_values", "table_scale", "field_faps")
+        missing = [k for k in need if k not in m]
+        if missing:
+            raise MappingMismatch(f"fap_mapping: missing {', '.join(missing)} (the head is not calibrated)")
+        layout = np.asarray(m["layout"]).astype(int)
+        nm, nf, nj, version = (int(x) for x in layout[:4])
+        C = nm + nf + nj
+        if version != FORMAT_VERSION or nj != JAW_CONTROLS or nm != len(face.muscles):
+            raise MappingMismatch(f"fap_mapping: layout {layout.tolist()} does not match this head "
+                                  f"({len(face.muscles)} muscles, format {FORMAT_VERSION})")
+        if model is not None and model.muscle_count != nm + nf:
+            raise MappingMismatch(f"fap_mapping: {nm + nf} muscles and fields, the simulation has {model.muscle_count}")
+        self.gain_pos = np.asarray(m["gain_pos"], dtype=np.float64)
+        self.gain_neg = np.asarray(m["gain_neg"], dtype=np.float64)
+        self.table_values = np.asarray(m["table_values"], dtype=np.float64)
+        self.table_scale = np.asarray(m["table_scale"], dtype=np.float64)
+        for name, a, shape in (("gain_pos", self.gain_pos, (FAP_COUNT, C)), ("gain_neg", self.gain_neg, (FAP_COUNT, C)),
+                               ("table_values", self.table_values, (FAP_COUNT, 5)),
+                               ("table_scale", self.table_scale, (FAP_COUNT, 5))):
+            if a.shape != shape or not np.all(np.isfinite(a)):
+                raise MappingMismatch(f"fap_mapping.{name}: expected finite {shape}, got {a.shape}")
+        self.muscle_count = nm + nf
+        self.model_muscles = nm
+        tv, ts = self.table_values, self.table_scale
+        # per-FAP slopes of the scale tables, for a vectorized interpolation
+        self._x = tv
+        self._slope = np.divide(np.diff(ts, axis=1), np.diff(tv, axis=1), out=np.zeros((FAP_COUNT, 4)),
+                                where=np.diff(tv, axis=1) > 0)
+
+    def scale(self, values: np.ndarray) -> np.ndarray:
+        """(68,) table multiplier at `values` (clamped to the table's ends)."""
+        v = np.clip(values, self._x[:, 0], self._x[:, -1])
+        seg = np.clip((v[:, None] >= self._x[:, 1:4]).sum(axis=1), 0, 3)
+        r = np.arange(FAP_COUNT)
+        return self.table_scale[r, seg] + self._slope[r, seg] * (v - self._x[r, seg])
+
+    def controls(self, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(activation (M,) for muscles then fields, jaw (3,) angle rad, thrust m, shift m)."""
+        v = np.asarray(values, dtype=np.float64)
+        s = self.scale(v) * v
+        c = np.maximum(s, 0.0) @ self.gain_pos + np.maximum(-s, 0.0) @ self.gain_neg
+        act = np.clip(c[: self.muscle_count], -ACTIVATION_LIMIT, ACTIVATION_LIMIT)
+        act[: self.model_muscles] = np.maximum(act[: self.model_muscles], 0.0)
+        jaw = c[self.muscle_count:]
+        jaw = np.array([np.clip(jaw[0], -0.05, 0.6), np.clip(jaw[1], -0.02, 0.03), np.clip(jaw[2], -0.03, 0.03)])
+        return act, jaw

@@ -1,0 +1,102 @@
+"""FAP 1 (visemes) and FAP 2 (expressions) as low-level FAP values, and their blending.
+
+The standard leaves a viseme's or expression's face to the decoder; fae's tables below
+give each as low-level FAP values (FAPU units), authored from the standard's phoneme and
+expression descriptions (fae.mpeg4.highlevel): open jaw and lip shapes for visemes; brow,
+lid, cheek and lip-corner motion for expressions. Blending follows the standard:
+
+    viseme:     v1 * blend/63 + v2 * (1 - blend/63)
+    expression: e1 * intensity1/63 + e2 * intensity2/63
+
+and the result is added to the frame's low-level FAPs.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from fae.mpeg4.faps import FAP_COUNT
+from fae.mpeg4.highlevel import BLEND_MAX
+
+
+def _table(rows: dict[int, dict[int, float]], count: int) -> np.ndarray:
+    out = np.zeros((count, FAP_COUNT))
+    for code, faps in rows.items():
+        for fap, value in faps.items():
+            out[code, fap - 1] = value
+    return out
+
+
+def _sym(**pairs) -> dict[int, float]:
+    """Expand symmetric entries: key 'f6_7' -> FAPs 6 and 7 with the same value."""
+    out = {}
+    for key, value in pairs.items():
+        for n in key[1:].split("_"):
+            out[int(n)] = float(value)
+    return out
+
+
+# (15, 68) viseme code -> low-level FAP values (FAPU units)
+VISEME_FAPS = _table({
+    0: {},                                                                              # sil
+    1: _sym(f4=60, f5=120, f51=40, f52=80, f16_17=40, f3=0),                          # PP: lips pressed
+    2: _sym(f3=60, f5=200, f52=160, f16=-120, f4=-40, f51=-30),                       # FF: lower lip to teeth
+    3: _sym(f3=160, f4=-60, f51=-60, f6_7=20, f53_54=20, f44=300, f45=250),           # TH: tongue between teeth
+    4: _sym(f3=140, f4=-40, f51=-40, f6_7=30, f53_54=30, f44=350),                    # DD
+    5: _sym(f3=200, f4=-60, f5=-80, f51=-50, f52=-60, f46=250),                       # kk
+    6: _sym(f3=120, f4=-80, f5=-80, f51=-80, f52=-80, f6_7=-120, f53_54=-120, f16_17=180),  # CH: rounded, protruded
+    7: _sym(f3=60, f4=-50, f5=-40, f51=-50, f52=-40, f6_7=80, f53_54=80),             # SS: teeth close, spread
+    8: _sym(f3=140, f4=-40, f51=-40, f44=300),                                        # nn
+    9: _sym(f3=120, f6_7=-150, f53_54=-150, f16_17=140, f4=-40, f51=-40),             # RR: rounded
+    10: _sym(f3=500, f4=-100, f51=-100, f6_7=40, f53_54=40),                          # aa: wide open
+    11: _sym(f3=280, f4=-80, f51=-80, f6_7=120, f53_54=120, f12_13=40, f59_60=40),     # E
+    12: _sym(f3=180, f4=-60, f51=-60, f6_7=160, f53_54=160, f12_13=60, f59_60=60),     # ih: spread
+    13: _sym(f3=380, f6_7=-200, f53_54=-200, f16_17=160, f4=-80, f51=-80),            # oh: round, open
+    14: _sym(f3=200, f6_7=-260, f53_54=-260, f16_17=240, f4=-40, f51=-40),            # ou: small round
+}, 15)
+
+# (7, 68) expression code -> low-level FAP values (FAPU units), full intensity (63)
+EXPRESSION_FAPS = _table({
+    0: {},
+    1: _sym(f3=160, f6_7=200, f53_54=200, f12_13=220, f59_60=220, f41_42=300, f21_22=120,   # joy
+            f33_34=40, f4=-60, f51=-60),
+    2: _sym(f31_32=300, f33_34=60, f35_36=-150, f19_20=250, f12_13=-160, f59_60=-160,     # sadness
+            f5=-60, f52=-60, f18=80),
+    3: _sym(f31_32=-300, f33_34=-200, f35_36=-60, f37_38=180, f19_20=-200, f21_22=100,     # anger
+            f4=60, f5=120, f51=40, f52=80, f61_62=120),
+    4: _sym(f31_32=400, f33_34=300, f35_36=200, f37_38=150, f19_20=-300, f21_22=-100,      # fear
+            f3=150, f6_7=120, f53_54=120, f12_13=-80, f59_60=-80),
+    5: _sym(f31_32=-120, f33_34=-80, f19_20=120, f21_22=120, f4=-160, f51=-200,            # disgust
+            f55=-220, f56=-160, f59=100, f12=60, f61_62=150, f63=120, f5=60, f52=60),
+    6: _sym(f31_32=450, f33_34=500, f35_36=400, f19_20=-350, f3=450, f4=-80, f51=-80,       # surprise
+            f6_7=-60, f53_54=-60),
+}, 7)
+
+
+def _pair(record, kind: str) -> tuple[tuple[int, float], tuple[int, float]]:
+    weights = getattr(record, "weights", None)
+    if callable(weights):
+        return weights()
+    r = [int(x) for x in record]
+    if kind == "viseme":
+        w = r[2] / BLEND_MAX
+        return (r[0], w), (r[1], 1.0 - w)
+    return (r[0], r[1] / BLEND_MAX), (r[2], r[3] / BLEND_MAX)
+
+
+def highlevel_values(viseme=None, expression=None) -> np.ndarray:
+    """(68,) low-level FAP values (FAPU units) of a FAP 1 and a FAP 2 record (either may be None).
+
+    viseme      fae.mpeg4.highlevel.Viseme or (select1, select2, blend[, def])
+    expression  fae.mpeg4.highlevel.Expression or (select1, intensity1, select2, intensity2[, ...])
+    Codes out of range raise ValueError naming the record.
+    """
+    out = np.zeros(FAP_COUNT)
+    for record, table, kind in ((viseme, VISEME_FAPS, "viseme"), (expression, EXPRESSION_FAPS, "expression")):
+        if record is None:
+            continue
+        for code, weight in _pair(record, kind):
+            if not 0 <= code < len(table):
+                raise ValueError(f"{kind}: code {code} is outside 0..{len(table) - 1}")
+            out += table[code] * float(np.clip(weight, 0.0, 1.0))
+    return out

@@ -1,0 +1,144 @@
+"""The Player: FAP frames in, skin positions and bone poses out, one frame at a time.
+
+Per frame (only precomputed arrays are used): FAP 1/2 records -> low-level values, added to
+the frame's own; clamp (fae.animate.faptables); one matmul to muscle/field activations and
+the jaw pose (fae.animate.controls); one solver step of the skin in the head's frame
+(fae.sim); FaceDefTable offsets added; then the head pose (rotation about 7.1) carries
+skin and parts. On load, a head without a calibrated `fap_mapping` is calibrated
+(fae.animate.calibrate, tens of seconds); shipped heads carry theirs.
+
+    player = Player(model, device="cpu")
+    positions = player.step(values_or_denseframe, dt=None)   # (V, 3) float64 metres
+    for f in player.play(stream, fps=None): f.index, f.time, f.skin_vertices, f.bone_transforms
+    player.reset()
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from fae.animate.calibrate import calibrate, pull_fields
+from fae.animate.controls import FapControls, MappingMismatch
+from fae.animate.facedef import FaceDefOffsets
+from fae.animate.faptables import FAP_COUNT, clamp_values, fapu_of
+from fae.animate.highlevel import highlevel_values
+from fae.animate.rigid import RigidRig
+from fae.sim.build import skin_model, skin_positions
+from fae.sim.solver import SkinSolver
+
+DEFAULT_FPS = 25.0
+
+
+@dataclass
+class PlayedFrame:
+    """One played frame.
+
+    index            0-based frame index
+    time             seconds
+    skin_vertices    (V, 3) float64 metres, in the face frame (head pose applied)
+    bone_transforms  bone name ("head", "jaw", "eye_l", "eye_r", "tongue") -> (4, 4) float64 rest -> now
+    pupil_scale      {"eye_l", "eye_r"} -> pupil diameter / rest diameter (FAPs 29, 30)
+    values           (68,) float64 the low-level FAP values applied (FAPU units)
+    """
+
+    index: int
+    time: float
+    skin_vertices: np.ndarray
+    bone_transforms: dict[str, np.ndarray]
+    pupil_scale: dict[str, float] = field(default_factory=dict)
+    values: np.ndarray | None = None
+
+
+class Player:
+    """Plays FAP frames on a FaceModel (see module docstring)."""
+
+    def __init__(self, model, device: str = "cpu"):
+        face = model
+        try:
+            fields = pull_fields(face, fapu_of(face))
+            self.sim = skin_model(face, device=device, fields=fields)
+            self.controls = FapControls(face, self.sim)
+        except MappingMismatch:
+            face = calibrate(face, device=device)
+            fields = pull_fields(face, fapu_of(face))
+            self.sim = skin_model(face, device=device, fields=fields)
+            self.controls = FapControls(face, self.sim)
+        self.face = face
+        self.fapu = fapu_of(face)
+        self.rig = RigidRig(face, self.fapu)
+        self.facedef = FaceDefOffsets(face.face_def_tables, face.skin_vertex_count)
+        self.solver = SkinSolver(self.sim)
+        self._R = np.tile(np.eye(3), (2, 1, 1))
+        self._t = np.zeros((2, 3))
+        self.fps = DEFAULT_FPS
+        self.reset()
+
+    @property
+    def fap_mapping(self) -> dict[str, np.ndarray]:
+        """The calibrated mapping in use (store it in the head's .glb to skip calibration)."""
+        return self.face.fap_mapping
+
+    def reset(self) -> None:
+        """Back to the neutral face at rest."""
+        self.state = self.sim.state()
+        self.control = self.sim.control()
+        self.bone_transforms = {b: np.eye(4) for b in ("head", "jaw", "eye_l", "eye_r", "tongue")}
+        self.pupil_scale = {"eye_l": 1.0, "eye_r": 1.0}
+        self.values = np.zeros(FAP_COUNT)
+        self.frame_index = 0
+
+    def frame_values(self, frame) -> np.ndarray:
+        """(68,) clamped low-level values of a DenseFrame or a (68,) array (FAPU units)."""
+        if hasattr(frame, "values"):
+            v = np.asarray(frame.values, dtype=np.float64)
+            extra = highlevel_values(getattr(frame, "viseme", None), getattr(frame, "expression", None))
+        else:
+            v = np.asarray(frame, dtype=np.float64)
+            extra = 0.0
+        if v.shape != (FAP_COUNT,):
+            raise ValueError(f"FAP values: expected shape ({FAP_COUNT},) indexed by FAP number - 1, got {v.shape}")
+        v = v.copy()
+        v[:2] = 0.0
+        return clamp_values(v + extra)
+
+    def step(self, frame, dt: float | None = None) -> np.ndarray:
+        """Advance one frame of `dt` seconds (None: 1/fps) with FAP `frame`; (V, 3) float64 metres."""
+        v = self.frame_values(frame)
+        dt = 1.0 / self.fps if dt is None else float(dt)
+        activation, jaw = self.controls.controls(v)
+        J = self.rig.jaw(*jaw)
+        self._R[1], self._t[1] = J[:3, :3], J[:3, 3]
+        self.control.set(muscle_activation=activation, bone_rotation=self._R, bone_translation=self._t)
+        self.solver.step(self.sim, self.state, self.control, dt, self.state)
+        skin = skin_positions(self.sim, self.state.particle_q.numpy().astype(np.float64))
+        offsets = self.facedef.offsets(v)
+        if offsets is not None:
+            skin += offsets
+        bones = self.rig.poses(v, J)
+        H = bones["head"]
+        skin = skin @ H[:3, :3].T + H[:3, 3]
+        self.bone_transforms = bones
+        self.pupil_scale = self.rig.pupil_scale(v)
+        self.values = v
+        self.frame_index += 1
+        return skin
+
+    def play(self, stream, fps: float | None = None) -> Iterator[PlayedFrame]:
+        """Play a FapStream (resampled to `fps`, None: its own) or an iterable of DenseFrames."""
+        if hasattr(stream, "header"):
+            from fae.io.frames import dense_frames
+
+            rate = float(fps or stream.header.fps)
+            frames: Iterable = dense_frames(stream, fps=fps)
+        else:
+            rate = float(fps or self.fps)
+            frames = stream
+        self.fps = rate
+        for i, frame in enumerate(frames):
+            skin = self.step(frame, dt=1.0 / rate)
+            yield PlayedFrame(index=int(getattr(frame, "index", i)), time=float(getattr(frame, "time", i / rate)),
+                              skin_vertices=skin, bone_transforms={k: v.copy() for k, v in self.bone_transforms.items()},
+                              pupil_scale=dict(self.pupil_scale), values=self.values.copy())

@@ -1,0 +1,52 @@
+"""Player invariants on a small calibrated head."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fae.animate.calibrate import calibrate
+from fae.animate.faptables import FAP_LIMITS
+from fae.animate.player import Player
+from test_sim_facemodel import synthetic_face_model
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module")
+def player():
+    return Player(calibrate(synthetic_face_model(subdivisions=4), passes=0))
+
+
+def test_zero_faps_keep_the_face_at_rest(player):
+    player.reset()
+    for _ in range(100):
+        skin = player.step(np.zeros(68), dt=1 / 25)
+    assert np.abs(skin - player.face.skin_vertices).max() < 1e-5
+
+
+def test_random_and_out_of_range_faps_stay_finite_and_return_to_rest(player):
+    player.reset()
+    rng = np.random.default_rng(0)
+    for i in range(300):
+        v = rng.uniform(FAP_LIMITS[:, 0], FAP_LIMITS[:, 1]) * (10.0 if i % 50 == 0 else rng.uniform(0, 1))
+        skin = player.step(v, dt=1 / 25)
+        assert np.all(np.isfinite(skin))
+        H = player.bone_transforms["head"]
+        in_head = (skin - H[:3, 3]) @ H[:3, :3]  # the head's own rotation is free
+        assert np.abs(in_head - player.face.skin_vertices).max() < 0.05
+    for _ in range(50):
+        skin = player.step(np.zeros(68), dt=1 / 25)
+    assert np.abs(skin - player.face.skin_vertices).max() < 1e-4
+
+
+def test_a_left_fap_moves_the_left_side_only(player):
+    player.reset()
+    v = np.zeros(68)
+    v[52] = FAP_LIMITS[52, 1] / 2  # stretch_l_cornerlip_o
+    for _ in range(30):
+        skin = player.step(v, dt=1 / 25)
+    d = np.linalg.norm(skin - player.face.skin_vertices, axis=1)
+    x = player.face.skin_vertices[:, 0]
+    assert d[x > 0].max() > 1e-3
+    assert d[x < -0.01].max() < 0.15 * d[x > 0].max()
