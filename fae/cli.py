@@ -22,6 +22,7 @@ COMMANDS = (
     "send",
     "render",
     "play",
+    "template",
 )
 
 

@@ -23,8 +23,8 @@ MM = 1e-3
 
 # name: (bone, attachment target mm, insertion target mm, zone half-angle deg, regions (l side))
 _LINEAR = {
-    "frontalis_inner": ("cranium", (16.0, 82.0, 62.0), (16.0, 24.0, 94.0), 22.0, ["forehead"]),
-    "frontalis_outer": ("cranium", (40.0, 80.0, 48.0), (40.0, 22.0, 84.0), 22.0, ["forehead"]),
+    "frontalis_inner": ("cranium", (16.0, 68.0, 76.0), (16.0, 31.0, 93.0), 22.0, ["forehead"]),
+    "frontalis_outer": ("cranium", (34.0, 64.0, 70.0), (36.0, 31.0, 86.0), 22.0, ["forehead"]),
     "corrugator": ("cranium", (6.0, 10.0, 86.0), (24.0, 22.0, 92.0), 25.0, ["forehead", "eyelid_upper"]),
     "levator_labii_superioris": ("cranium", (22.0, -20.0, 82.0), (12.0, -68.0, 97.0), 20.0, ["cheek", "lip_upper", "nose"]),
     "levator_labii_superioris_alaeque_nasi": ("cranium", (9.0, -2.0, 88.0), (9.0, -60.0, 100.0), 18.0, ["nose", "lip_upper", "cheek"]),

@@ -1,0 +1,100 @@
+"""`fae template build [-o FILE]` and `fae template check FILE [--json]`.
+
+build  writes the generic head (default: the package's templates/generic_head.glb, the
+       file `fae` plays when no head is given); the same builder tools/build_template.py runs.
+check  validates any FaceModel file: structure (fae.io.facemodel_gltf) and geometry
+       (fae.anatomy.checks). Exit 0 when valid, 1 when it has problems, 2 when the file
+       cannot be read.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser("template", help="build the generic head or check a FaceModel file",
+                                   description=__doc__.split("\n\n", 1)[1] if __doc__ else None)
+    sub = parser.add_subparsers(dest="template_command", metavar="ACTION")
+    build = sub.add_parser("build", help="build the generic head (.glb)")
+    build.add_argument("-o", "--output", default=None,
+                       help="output .glb (default: the package's templates/generic_head.glb)")
+    build.set_defaults(func=run)
+    check = sub.add_parser("check", help="validate a FaceModel .glb")
+    check.add_argument("file", help="FaceModel .glb to check")
+    check.add_argument("--json", action="store_true", help="print a JSON report on stdout")
+    check.set_defaults(func=run)
+    parser.set_defaults(func=run)
+
+
+def run(args) -> int:
+    action = getattr(args, "template_command", None)
+    if action == "build":
+        return _build(args.output)
+    if action == "check":
+        return _check(args.file, args.json)
+    print("fae template: expected an action: build or check (see fae template --help)", file=sys.stderr)
+    return 2
+
+
+def _build(output: str | None) -> int:
+    from fae.anatomy.template import TEMPLATE_PATH, build_template
+    from fae.io.facemodel_gltf import write_facemodel
+
+    path = output or str(TEMPLATE_PATH)
+    model = build_template()
+    write_facemodel(model, path)
+    print(f"wrote {path}: {model.skin_vertex_count} skin vertices, {len(model.muscles)} muscles, "
+          f"{len(model.feature_points)} feature points")
+    return 0
+
+
+def check_report(model) -> dict:
+    """The JSON report of `fae template check` for a loaded FaceModel."""
+    from fae.anatomy.checks import facemodel_problems
+    from fae.io.facemodel_gltf import structural_problems
+    from fae.mpeg4 import fapu0_from_positions
+
+    problems = list(structural_problems(model))
+    if not problems:
+        problems += facemodel_problems(model)
+    positions = {}
+    fapu0 = {}
+    try:
+        positions = {name: [float(v) for v in p] for name, p in model.feature_point_positions().items()}
+        fapu0 = fapu0_from_positions(model.feature_point_positions())
+    except (KeyError, ValueError, IndexError) as exc:
+        problems.append(f"feature_points: cannot measure FAPU: {exc}")
+    return {
+        "skin_vertex_count": model.skin_vertex_count,
+        "feature_points": positions,
+        "fapu0": fapu0,
+        "muscles": [{"name": m.name, "kind": m.kind} for m in model.muscles],
+        "parts": sorted(model.parts),
+        "regions": list(model.region_names),
+        "problems": problems,
+    }
+
+
+def _check(path: str, as_json: bool) -> int:
+    from fae.io.facemodel_gltf import read_facemodel
+
+    try:
+        model = read_facemodel(path, check=False)
+    except (OSError, ValueError, KeyError) as exc:
+        print(f"fae template check: cannot read {path}: {exc}", file=sys.stderr)
+        return 2
+    report = check_report(model)
+    if as_json:
+        print(json.dumps(report, indent=1))
+    else:
+        f = report["fapu0"]
+        print(f"{path}: {report['skin_vertex_count']} skin vertices, {len(report['muscles'])} muscles, "
+              f"parts {', '.join(report['parts'])}")
+        if f:
+            print("FAPU0 (mm): " + ", ".join(f"{k} {v * 1e3:.2f}" for k, v in f.items()))
+        for problem in report["problems"]:
+            print(f"problem: {problem}")
+        print("valid" if not report["problems"] else f"{len(report['problems'])} problems")
+    return 0 if not report["problems"] else 1

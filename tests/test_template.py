@@ -1,0 +1,190 @@
+"""The shipped generic head: valid, symmetric, MPEG-4 feature points where the standard puts them."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from fae.anatomy import template_shapes as S
+from fae.anatomy.checks import edge_counts, facemodel_problems, points_inside, self_intersections
+from fae.anatomy.template import TEMPLATE_PATH, build_template
+from fae.cli import main
+from fae.io.facemodel_gltf import facemodel_to_glb, read_facemodel, structural_problems
+from fae.mpeg4 import FEATURE_POINTS, fapu0_from_positions
+
+MM = 1e-3
+
+
+@pytest.fixture(scope="module")
+def head():
+    if not TEMPLATE_PATH.exists():
+        pytest.fail(f"{TEMPLATE_PATH} is missing: run python tools/build_template.py")
+    return read_facemodel(TEMPLATE_PATH)
+
+
+@pytest.fixture(scope="module")
+def fdp(head):
+    return head.feature_point_positions()
+
+
+def region_mask(head, *names):
+    return np.isin(np.asarray(head.region_names)[head.skin_region], names)
+
+
+def test_head_has_no_structural_or_geometric_problems(head):
+    assert structural_problems(head) == []
+    assert facemodel_problems(head) == []
+
+
+def test_skin_is_a_closed_oriented_manifold_of_the_right_size(head):
+    assert 6000 <= head.skin_vertex_count <= 12000
+    _, counts, same_direction = edge_counts(head.skin_faces.astype(np.int64))
+    assert np.all(counts == 2)
+    assert not np.any(same_direction)
+    assert len(self_intersections(head.skin_vertices, head.skin_faces.astype(np.int64))) == 0
+
+
+def test_every_part_is_closed_and_rides_on_its_bone(head):
+    bones = {"cranium": "head", "upper_teeth": "head", "mandible": "jaw", "lower_teeth": "jaw",
+             "tongue": "tongue", "eye_l": "eye_l", "eye_r": "eye_r"}
+    assert set(head.parts) == set(bones)
+    for name, part in head.parts.items():
+        assert part.bone == bones[name]
+        _, counts, _ = edge_counts(part.faces.astype(np.int64))
+        assert np.all(counts == 2), name
+
+
+def test_skin_is_mirror_symmetric(head):
+    V = head.skin_vertices
+    reflected = V[head.skin_mirror] * np.array([-1.0, 1.0, 1.0])
+    assert np.abs(reflected - V).max() < 1e-9
+    assert np.array_equal(head.skin_mirror[head.skin_mirror], np.arange(len(V)))
+
+
+def test_lips_are_separate_surfaces_over_a_mouth_pouch(head):
+    V, F = head.skin_vertices, head.skin_faces
+    upper = region_mask(head, "lip_upper")
+    lower = region_mask(head, "lip_lower")
+    inner = np.abs(V[:, 0]) < (S.MOUTH_HALF_WIDTH - 4.0) * MM
+    # no face joins the upper lip to the lower lip away from the corners
+    joined = (upper[F] & inner[F]).any(axis=1) & (lower[F] & inner[F]).any(axis=1)
+    assert not joined.any()
+    # behind the closed lips lies skin of the mouth cavity, well behind the face
+    cavity = V[region_mask(head, "mouth_cavity")]
+    assert len(cavity) > 100
+    assert cavity[:, 2].min() < (S.ARCH_CENTER_Z - 10.0) * MM
+
+
+def test_bone_lies_under_soft_tissue_of_realistic_thickness(head, fdp):
+    t = head.skin_thickness
+    V = head.skin_vertices
+    for bone in ("cranium", "mandible"):
+        BV, BF = head.mesh(bone)
+        assert not points_inside(BV, BF.astype(np.int64), V, expected=False).any()
+    by_vertex = lambda name: t[head.skin_faces[head.feature_points[name].triangle][np.argmax(head.feature_points[name].bary)]]  # noqa: E731
+    assert 2e-3 <= by_vertex("11.1") <= 9e-3  # forehead
+    assert 2e-3 <= by_vertex("9.12") <= 8e-3  # nose bridge
+    assert by_vertex("9.3") > 12e-3  # nose tip: cartilage only
+    assert 8e-3 <= by_vertex("5.1") <= 30e-3  # cheek
+    assert by_vertex("8.1") >= 8e-3  # lips
+
+
+def test_every_feature_point_is_on_its_mesh(head, fdp):
+    assert [p.name for p in FEATURE_POINTS] == list(head.feature_points)
+    on = {name: p.part for name, p in head.feature_points.items()}
+    assert on["3.5"] == "eye_l" and on["3.6"] == "eye_r"
+    assert {on[n] for n in ("9.8", "9.10")} == {"upper_teeth"}
+    assert {on[n] for n in ("9.9", "9.11")} == {"lower_teeth"}
+    assert {on[n] for n in ("6.1", "6.2", "6.3", "6.4")} == {"tongue"}
+    assert on["7.1"] == "cranium"
+    others = set(on) - {"3.5", "3.6", "9.8", "9.9", "9.10", "9.11", "6.1", "6.2", "6.3", "6.4", "7.1"}
+    assert {on[n] for n in others} == {"skin"}
+
+
+def test_feature_points_sit_where_the_standard_puts_them(head, fdp):
+    V = head.skin_vertices
+    side = {p.name: p.side for p in FEATURE_POINTS}
+    for name, p in fdp.items():
+        if side[name] == 0:
+            assert abs(p[0]) < 1e-9, name
+        else:
+            assert np.sign(p[0]) == side[name], name
+    nose = V[region_mask(head, "nose")]
+    assert fdp["9.3"][2] >= nose[:, 2].max() - 1e-3  # nose tip: most forward point of the nose
+    chin = V[region_mask(head, "chin") & (V[:, 0] == 0.0)]
+    assert fdp["2.1"][1] == pytest.approx(chin[:, 1].min())  # bottom of the chin
+    for eye, name in (("eye_l", "3.5"), ("eye_r", "3.6")):
+        pupil = head.eye_centers[eye] + np.array([0.0, 0.0, S.EYE_RADIUS * MM])
+        assert np.linalg.norm(fdp[name] - pupil) < 1e-9
+    for name, sign in (("8.3", 1), ("8.4", -1)):  # outer lip corners
+        assert fdp[name][0] == pytest.approx(sign * S.MOUTH_HALF_WIDTH * MM, abs=3e-3)
+        assert fdp[name][1] == pytest.approx(S.STOMION_Y * MM, abs=2e-3)
+    # inner lip contour: 2.2 just above the lip line, 2.3 just below, touching (closed mouth)
+    assert 0 < fdp["2.2"][1] - S.STOMION_Y * MM < 1.5e-3
+    assert 0 < S.STOMION_Y * MM - fdp["2.3"][1] < 1.5e-3
+    assert abs(fdp["2.4"][0]) < abs(fdp["8.3"][0]) + 1e-3
+    # the lid margins touch the iris: IRISD0 = iris diameter
+    assert fdp["3.1"][1] - fdp["3.3"][1] == pytest.approx(2 * S.IRIS_RADIUS * MM, abs=1.5e-3)
+    # 7.1, the top of the spine, lies inside the neck, below the eyes and behind the face
+    assert points_inside(V, head.skin_faces.astype(np.int64), fdp["7.1"][None], expected=True)[0]
+    assert fdp["7.1"][1] < fdp["3.5"][1] - 0.03 and fdp["7.1"][2] < 0.0
+    # teeth meet: the bottom of the upper teeth is the top of the lower teeth
+    assert abs(fdp["9.10"][1] - fdp["9.11"][1]) < 1e-3
+    assert fdp["11.4"][1] == pytest.approx(V[:, 1].max(), abs=2e-3)  # top of the skull
+
+
+def test_fapu_are_those_of_an_adult(fdp):
+    f = fapu0_from_positions(fdp)
+    assert 0.060 <= f["ES0"] <= 0.070
+    assert 0.045 <= f["MW0"] <= 0.055
+    assert 0.010 <= f["IRISD0"] <= 0.013
+    assert 0.040 <= f["ENS0"] <= 0.065
+    assert 0.015 <= f["MNS0"] <= 0.030
+
+
+def test_regions_cover_the_face_and_muscles_are_anatomical(head):
+    used = set(np.asarray(head.region_names)[head.skin_region])
+    assert used == set(head.region_names)
+    for name in ("lip_upper", "lip_lower", "mouth_cavity", "chin", "nose", "forehead", "scalp", "neck",
+                 "eyelid_upper_l", "eyelid_lower_r", "ear_l", "ear_r", "cheek_l", "cheek_r"):
+        assert name in used
+    names = {m.name: m for m in head.muscles}
+    for base in ("frontalis_inner", "frontalis_outer", "corrugator", "levator_labii_superioris",
+                 "levator_labii_superioris_alaeque_nasi", "zygomaticus_major", "zygomaticus_minor", "risorius",
+                 "depressor_anguli_oris", "depressor_labii_inferioris", "mentalis", "buccinator"):
+        for side in "lr":
+            m = names[f"{base}_{side}"]
+            assert m.kind == "linear" and m.attachment.part in ("cranium", "mandible") and m.insertion.part == "skin"
+            assert 0 < m.fall_start < m.fall_end
+    for name in ("orbicularis_oris", "orbicularis_oculi_l", "orbicularis_oculi_r"):
+        assert names[name].kind == "sphincter"
+    # the lip raisers never reach the lower lip; none of the muscles works inside the mouth
+    assert "lip_lower" not in names["levator_labii_superioris_l"].regions
+    assert all("mouth_cavity" not in m.regions for m in head.muscles)
+
+
+def test_committed_file_round_trips_exactly(head):
+    assert facemodel_to_glb(head) == TEMPLATE_PATH.read_bytes()
+
+
+@pytest.mark.slow
+def test_committed_file_equals_a_fresh_build():
+    """Nobody hand-edits the template, and the builder is deterministic across processes."""
+    assert facemodel_to_glb(build_template()) == TEMPLATE_PATH.read_bytes()
+
+
+def test_check_command_reports_json_and_exit_status(tmp_path, capsys):
+    assert main(["template", "check", str(TEMPLATE_PATH), "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["problems"] == []
+    assert report["skin_vertex_count"] >= 6000
+    assert len(report["feature_points"]) == 84
+    assert set(report["fapu0"]) == {"IRISD0", "ES0", "ENS0", "MNS0", "MW0"}
+    assert {"name": "orbicularis_oris", "kind": "sphincter"} in report["muscles"]
+    assert "mandible" in report["parts"]
+    broken = tmp_path / "broken.glb"
+    broken.write_bytes(b"glTF not really")
+    assert main(["template", "check", str(broken)]) == 2
+    assert "broken.glb" in capsys.readouterr().err
