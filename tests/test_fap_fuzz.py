@@ -4,6 +4,8 @@ other exception escapes (reading, dense frames, inspect summary)."""
 
 from __future__ import annotations
 
+import atexit
+import shutil
 import tempfile
 from pathlib import Path
 
@@ -75,6 +77,7 @@ def _mutate(data: bytes, edit) -> bytes:
 
 # Memory-backed when the machine has it: a disk write per example would dominate the run.
 _TMP = Path(tempfile.mkdtemp(prefix="fae-fap-fuzz-", dir="/dev/shm" if Path("/dev/shm").is_dir() else None))
+atexit.register(shutil.rmtree, _TMP, ignore_errors=True)
 
 
 @given(seed=st.integers(0, len(SEEDS) - 1),
