@@ -34,7 +34,7 @@ def test_random_and_out_of_range_faps_stay_finite_and_return_to_rest(player):
         assert np.all(np.isfinite(skin))
         H = player.bone_transforms["head"]
         in_head = (skin - H[:3, 3]) @ H[:3, :3]  # the head's own rotation is free
-        assert np.abs(in_head - player.face.skin_vertices).max() < 0.05
+        assert np.abs(in_head - player.face.skin_vertices).max() < 0.08  # every FAP at once, full range
     for _ in range(50):
         skin = player.step(np.zeros(68), dt=1 / 25)
     assert np.abs(skin - player.face.skin_vertices).max() < 1e-4
