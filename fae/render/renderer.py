@@ -103,6 +103,7 @@ def _patch_pyrender() -> None:
         self.__dict__.pop("_programs_by_address", None)
 
     get_program.__doc__ = original_get_program.__doc__
+    ShaderProgramCache.unpatched_get_program = original_get_program  # kept for tools/bench_play.py's baseline
     ShaderProgramCache.get_program = get_program
     ShaderProgramCache.clear = clear
     _patched = True
