@@ -150,9 +150,9 @@ def test_memory_stays_flat_over_1000_frames():
         with open("/proc/self/statm") as f:
             return int(f.read().split()[1]) * 4096 / 1e6
 
-    head = synthetic_head(subdivisions=4)
+    head = synthetic_head(subdivisions=3)
     frames = list(jaw_frames(head, 0.3 * np.abs(np.sin(np.linspace(0, 6, 50)))))
-    with FaceRenderer(head, size=(160, 120)) as r:
+    with FaceRenderer(head, size=(96, 72)) as r:
         for f in frames:
             r.render(f.skin_vertices, f.bone_transforms)
         start = rss_mb()

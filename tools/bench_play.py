@@ -79,23 +79,18 @@ def naive_render_seconds(model, frames, size) -> float:
     try:
         with FaceRenderer(model, size=size) as r:
             scene = r._scene
-            node = next(iter(scene.get_nodes(name="skin")))
-            faces = model.skin_faces
-            from fae.render.normals import per_vertex_normals
+            node = next(iter(scene.get_nodes(name="head")))
+            template = r._primitive
 
             def run():
                 nonlocal node
                 for f in frames:
                     r._platform.make_current()
                     scene.remove_node(node)
-                    normals = per_vertex_normals(f[0], faces)
-                    outer = pyrender.Primitive(positions=f[0], normals=normals, indices=faces,
-                                               material=r._skin_outer.material)
-                    inner = pyrender.Primitive(positions=f[0], normals=-normals, indices=faces[:, ::-1].copy(),
-                                               material=r._skin_inner.material)
-                    node = scene.add(pyrender.Mesh([outer, inner]), name="skin")
-                    for part_node, bone in r._part_nodes:
-                        scene.set_pose(part_node, f[1].get(bone, np.eye(4)))
+                    P, Q = r.frame_geometry(*f)
+                    prim = pyrender.Primitive(positions=P, normals=Q, color_0=template.color_0,
+                                              indices=template.indices, material=template.material)
+                    node = scene.add(pyrender.Mesh([prim]), name="head")
                     r._renderer.render(scene, r._flags)
                     r._renderer.read_color_buf()
                     r._renderer.read_depth_buf()

@@ -2,10 +2,11 @@
 
 `FaceRenderer(model, size, view, supersample).render(skin_vertices, bone_transforms)`
 returns an (H, W, 3) uint8 RGB image. Everything the frame loop needs (scene, GL buffers,
-shader programs, index arrays) is made once in the constructor; a frame only writes the
-new skin positions and normals into the existing vertex buffers (`glBufferSubData`, no GL
-objects created per frame), sets the rigid parts' poses and reads the colour buffer back
-(no depth readback).
+shader programs, index arrays) is made once in the constructor. Skin, its dark inward copy
+(the mouth cavity) and the rigid parts are one primitive with vertex colours: a frame
+poses the parts on the CPU, writes positions and normals into the existing vertex buffer
+(`glBufferSubData`, no GL objects created per frame), draws once and reads the colour
+buffer back (no depth readback).
 
 pyrender 0.1.45 under OSMesa and numpy 2 needs three fixes, applied once on import by
 `_patch_pyrender()` and documented there: its `Mesh.bounds` uses `np.infty` (gone in
@@ -39,7 +40,7 @@ AMBIENT = 0.22
 # Parts that are anatomy inside the head: drawn in the cavity colour so that the mouth
 # opening shows a dark interior instead of bone.
 INTERIOR_PARTS = ("cranium", "mandible")
-_ROUGHNESS = {"skin": 0.62, "eye_l": 0.18, "eye_r": 0.18, "upper_teeth": 0.35, "lower_teeth": 0.35, "tongue": 0.45}
+_ROUGHNESS = {"skin": 0.6}
 
 # Light rig in camera coordinates (x right, y up, +z towards the viewer): direction the
 # light comes FROM and intensity. A warm key from the upper left, a cool softer fill from
@@ -175,45 +176,56 @@ class FaceRenderer:
         self._scene.add(cam, pose=self.camera.pose)
         self._add_lights()
 
-        # Skin: the outside, and a dark copy facing inwards (reversed triangles) that shows
-        # only through openings (mouth, and the back of a face-only mesh).
+        # Everything is one primitive (one draw call, one buffer upload per frame; pyrender
+        # spends about 1 ms of Python per primitive per frame): the skin, a dark copy of it
+        # facing inwards (reversed triangles; it shows only through openings such as the
+        # mouth or the back of a face-only mesh), then every rigid part, posed on the CPU.
+        # Colours are per vertex, so the material is white.
         rest = np.asarray(model.skin_vertices, dtype=np.float64)
         faces = np.asarray(model.skin_faces, dtype=np.int64)
         if rest.ndim != 2 or rest.shape[1] != 3 or faces.ndim != 2 or faces.shape[1] != 3:
             raise ValueError(f"skin: expected vertices (V, 3) and faces (F, 3), got {rest.shape} and {faces.shape}")
+        nv = rest.shape[0]
         self._skin_rest = rest
         self._skin_faces = faces
         self._corner_index = faces.ravel()
-        normals = per_vertex_normals(rest, faces, self._corner_index)
-        skin_color = np.asarray(model.skin_color, dtype=np.float64).reshape(4)
-        self._skin_outer = pyrender.Primitive(positions=rest, normals=normals, indices=faces,
-                                              material=_material(skin_color, _ROUGHNESS["skin"]))
-        self._skin_inner = pyrender.Primitive(positions=rest, normals=-normals, indices=faces[:, ::-1].copy(),
-                                              material=_material(CAVITY_COLOR, 1.0))
-        self._scene.add(pyrender.Mesh([self._skin_outer, self._skin_inner]), name="skin")
-        # Interleaved float32 staging arrays, rewritten in place every frame.
-        self._outer_data = np.empty((rest.shape[0], 6), dtype=np.float32)
-        self._inner_data = np.empty((rest.shape[0], 6), dtype=np.float32)
-        self._skin_is_rest = True
-
-        self._part_nodes = []
+        self._skin_rest_normals = per_vertex_normals(rest, faces, self._corner_index)
+        skin_color = np.asarray(model.skin_color, dtype=np.float32).reshape(4)
+        positions = [rest, rest]
+        normals = [self._skin_rest_normals, -self._skin_rest_normals]
+        colors = [np.tile(skin_color, (nv, 1)), np.tile(np.asarray(CAVITY_COLOR, dtype=np.float32), (nv, 1))]
+        tris = [faces, faces[:, ::-1] + nv]
+        offset = 2 * nv
+        self._parts = []  # (bone, slice into the vertex arrays, rest vertices, rest normals)
         for name, part in model.parts.items():
             pv = np.asarray(part.vertices, dtype=np.float64)
             pf = np.asarray(part.faces, dtype=np.int64)
             if pv.size == 0 or pf.size == 0:
                 continue
+            pn = per_vertex_normals(pv, pf)
             if name in INTERIOR_PARTS:
-                material, colors = _material(CAVITY_COLOR, 1.0), None
+                pc = np.tile(np.asarray(CAVITY_COLOR, dtype=np.float32), (len(pv), 1))
             elif part.vertex_colors is not None:
-                material = _material((1.0, 1.0, 1.0, 1.0), _ROUGHNESS.get(name, 0.5))
-                colors = np.asarray(part.vertex_colors, dtype=np.float32).reshape(-1, 4).copy()
-                colors[:, 3] = 1.0
+                pc = np.asarray(part.vertex_colors, dtype=np.float32).reshape(-1, 4)
             else:
-                material, colors = _material(part.color, _ROUGHNESS.get(name, 0.5)), None
-            prim = pyrender.Primitive(positions=pv, normals=per_vertex_normals(pv, pf), indices=pf,
-                                      color_0=colors, material=material)
-            node = self._scene.add(pyrender.Mesh([prim]), name=name, pose=np.eye(4))
-            self._part_nodes.append((node, part.bone))
+                pc = np.tile(np.asarray(part.color, dtype=np.float32).reshape(4), (len(pv), 1))
+            positions.append(pv)
+            normals.append(pn)
+            colors.append(pc)
+            tris.append(pf + offset)
+            self._parts.append((part.bone, slice(offset, offset + len(pv)), pv, pn))
+            offset += len(pv)
+        colors = np.concatenate(colors).astype(np.float32)
+        colors[:, 3] = 1.0  # opaque: pyrender would otherwise sort and blend
+        self._vertex_count = offset
+        self._primitive = pyrender.Primitive(
+            positions=np.concatenate(positions), normals=np.concatenate(normals), color_0=colors,
+            indices=np.concatenate(tris), material=_material((1.0, 1.0, 1.0, 1.0), _ROUGHNESS["skin"]))
+        self._scene.add(pyrender.Mesh([self._primitive]), name="head")
+        # Interleaved float32 staging array in the primitive's buffer layout (position,
+        # normal, colour); positions and normals are rewritten in place every frame.
+        self._staging = np.empty((offset, 10), dtype=np.float32)
+        self._staging[:, 6:] = colors
 
         self._platform = _make_platform(self._vw, self._vh)
         self._renderer = pyrender.Renderer(self._vw, self._vh)
@@ -235,16 +247,32 @@ class FaceRenderer:
             pose[:3, 0], pose[:3, 1], pose[:3, 2] = x, np.cross(z, x), z
             self._scene.add(pyrender.DirectionalLight(color=np.asarray(color), intensity=intensity), pose=pose)
 
-    def _upload_skin(self, V: np.ndarray) -> None:
-        N = per_vertex_normals(V, self._skin_faces, self._corner_index)
-        self._outer_data[:, :3] = V
-        self._outer_data[:, 3:] = N
-        self._inner_data[:, :3] = self._outer_data[:, :3]
-        np.negative(self._outer_data[:, 3:], out=self._inner_data[:, 3:])
-        for prim, data in ((self._skin_outer, self._outer_data), (self._skin_inner, self._inner_data)):
-            GL.glBindBuffer(GL.GL_ARRAY_BUFFER, prim._buffers[0])  # the interleaved position+normal buffer
-            GL.glBufferSubData(GL.GL_ARRAY_BUFFER, 0, data.nbytes, data)
-        GL.glBindBuffer(GL.GL_ARRAY_BUFFER, 0)
+    def frame_geometry(self, skin_vertices=None, bone_transforms=None) -> tuple[np.ndarray, np.ndarray]:
+        """(positions, normals), each (n, 3) float64, of everything drawn in one frame: skin,
+        its inward copy, then the rigid parts posed by their bones (see `render`)."""
+        if skin_vertices is None:
+            V, N = self._skin_rest, self._skin_rest_normals
+        else:
+            V = np.asarray(skin_vertices, dtype=np.float64)
+            if V.shape != self._skin_rest.shape:
+                raise ValueError(f"skin_vertices: expected shape {self._skin_rest.shape}, got {V.shape}")
+            N = per_vertex_normals(V, self._skin_faces, self._corner_index)
+        P = np.empty((self._vertex_count, 3))
+        Q = np.empty((self._vertex_count, 3))
+        nv = V.shape[0]
+        P[:nv], P[nv:2 * nv], Q[:nv], Q[nv:2 * nv] = V, V, N, -N
+        bones = bone_transforms or {}
+        for bone, where, pv, pn in self._parts:
+            T = bones.get(bone)
+            if T is None:
+                P[where], Q[where] = pv, pn
+                continue
+            T = np.asarray(T, dtype=np.float64)
+            if T.shape != (4, 4):
+                raise ValueError(f"bone_transforms[{bone!r}]: expected a (4, 4) matrix, got shape {T.shape}")
+            P[where] = pv @ T[:3, :3].T + T[:3, 3]
+            Q[where] = pn @ T[:3, :3].T  # rigid: rotation only
+        return P, Q
 
     def render(self, skin_vertices: np.ndarray | None = None,
                bone_transforms: dict[str, np.ndarray] | None = None) -> np.ndarray:
@@ -257,26 +285,13 @@ class FaceRenderer:
         """
         if self._closed:
             raise RuntimeError("FaceRenderer is closed")
+        P, Q = self.frame_geometry(skin_vertices, bone_transforms)
+        self._staging[:, :3] = P
+        self._staging[:, 3:6] = Q
         self._platform.make_current()
-        if skin_vertices is not None:
-            V = np.asarray(skin_vertices, dtype=np.float64)
-            if V.shape != self._skin_rest.shape:
-                raise ValueError(f"skin_vertices: expected shape {self._skin_rest.shape}, got {V.shape}")
-            self._upload_skin(V)
-            self._skin_is_rest = False
-        elif not self._skin_is_rest:
-            self._upload_skin(self._skin_rest)
-            self._skin_is_rest = True
-        bones = bone_transforms or {}
-        for node, bone in self._part_nodes:
-            T = bones.get(bone)
-            if T is None:
-                T = np.eye(4)
-            else:
-                T = np.array(T, dtype=np.float64)
-                if T.shape != (4, 4):
-                    raise ValueError(f"bone_transforms[{bone!r}]: expected a (4, 4) matrix, got shape {T.shape}")
-            self._scene.set_pose(node, T)
+        GL.glBindBuffer(GL.GL_ARRAY_BUFFER, self._primitive._buffers[0])  # the interleaved vertex buffer
+        GL.glBufferSubData(GL.GL_ARRAY_BUFFER, 0, self._staging.nbytes, self._staging)
+        GL.glBindBuffer(GL.GL_ARRAY_BUFFER, 0)
         self._renderer.render(self._scene, self._flags)
         image = self._renderer.read_color_buf()
         k = self.supersample
