@@ -23,6 +23,7 @@ COMMANDS = (
     "render",
     "play",
     "template",
+    "verify_faps",
 )
 
 

@@ -25,8 +25,6 @@ def test_zero_faps_keep_the_face_at_rest(player):
     assert np.abs(skin - player.face.skin_vertices).max() < 1e-5
 
 
-@pytest.mark.xfail(strict=True, reason="known bug: after extreme poses some skin stays caught on a bone "
-                   "(contact projection), about 1 cm off rest after 2 s of zero FAPs")
 def test_random_and_out_of_range_faps_stay_finite_and_return_to_rest(player):
     player.reset()
     rng = np.random.default_rng(0)

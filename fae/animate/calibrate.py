@@ -18,10 +18,11 @@ Procedure: (1) linear response: the skin's stiffness matrix at rest (springs k n
 bone anchors) is factorized once (scipy splu); each control's rest force field gives the
 feature points' displacement per unit control. (2) per FAP and side, bounded least squares
 (scipy lsq_linear) for the controls moving its feature point by one metre along the
-standard direction. (3) nonlinear correction: the real solver is run at +-half range for
-FAPs in batches whose footprints do not overlap, the settled displacement along the
-direction is measured and the scale at +-half and full range set so it matches (two
-passes). The result, arrays only, goes into `FaceModel.fap_mapping`:
+standard direction. (3) nonlinear correction: the real solver is run at +-half range (the
+operating amplitude verify-faps checks) for FAPs in batches whose footprints, grown by two
+edge rings, do not overlap (the jaw FAPs alone); the settled displacement along the
+direction is measured and the table scale at +-half and full range multiplied by
+expected / measured (clipped to [0.5, 2] per pass; `passes` 3 by default). The result, arrays only, goes into `FaceModel.fap_mapping`:
 
     layout       (4,) int: muscle count, field count, jaw controls (3), format version
     field_faps   (K,) int: FAP of each pull field, in control order
@@ -70,12 +71,20 @@ def field_faps(face) -> list[int]:
             and face.feature_points[FAP_FEATURE_POINT[k - 1]].part == "skin"]
 
 
-def geodesic_distance(face, point, limit: float) -> np.ndarray:
-    """(V,) metres along skin edges from a surface point (inf beyond `limit`)."""
+def edge_length_graph(face) -> sp.csr_matrix:
+    """(V, V) sparse: skin edge lengths (metres) between adjacent vertices (upper triangle)."""
     V = np.asarray(face.skin_vertices, dtype=np.float64)
     e = mesh_edges(np.asarray(face.skin_faces))
     w = np.linalg.norm(V[e[:, 0]] - V[e[:, 1]], axis=1)
-    G = sp.coo_matrix((w, (e[:, 0], e[:, 1])), shape=(len(V), len(V))).tocsr()
+    return sp.coo_matrix((w, (e[:, 0], e[:, 1])), shape=(len(V), len(V))).tocsr()
+
+
+def geodesic_distance(face, point, limit: float, graph: sp.csr_matrix | None = None) -> np.ndarray:
+    """(V,) metres along skin edges from a surface point (inf beyond `limit`).
+
+    graph: `edge_length_graph(face)`, when already at hand."""
+    V = np.asarray(face.skin_vertices, dtype=np.float64)
+    G = edge_length_graph(face) if graph is None else graph
     tri = np.asarray(face.skin_faces)[point.triangle]
     p = face.surface_point_position(point)
     d = dijkstra(G, directed=False, indices=tri, limit=limit)
@@ -88,11 +97,12 @@ def pull_fields(face, fapu: dict[str, float]) -> list[PullField]:
     names = list(face.region_names)
     region = np.asarray(face.skin_region)
     faces = np.asarray(face.skin_faces)
+    graph = edge_length_graph(face)
     out = []
     for k in field_faps(face):
         point = face.feature_points[FAP_FEATURE_POINT[k - 1]]
         radius = _FIELD_RADIUS_ES.get(k, 0.2) * es0
-        r = geodesic_distance(face, point, radius) / radius
+        r = geodesic_distance(face, point, radius, graph) / radius
         r = np.minimum(r, 1.0)
         w = (1.0 - r) ** 4 * (4.0 * r + 1.0)
         # upper-lip points never pull the lower lip and vice versa
@@ -186,7 +196,7 @@ def _solve(J: np.ndarray, target: np.ndarray, cost: np.ndarray, lower: np.ndarra
     return out
 
 
-def calibrate(face, device: str = "cpu", passes: int = 2, settle_frames: int = 40):
+def calibrate(face, device: str = "cpu", passes: int = 3, settle_frames: int = 30):
     """A copy of FaceModel `face` with `fap_mapping` filled (see module docstring)."""
     from fae.animate.controls import FapControls  # controls read the mapping this builds
     from fae.animate.rigid import RigidRig
@@ -236,26 +246,12 @@ def calibrate(face, device: str = "cpu", passes: int = 2, settle_frames: int = 4
         "gain_pos": gain_pos, "gain_neg": gain_neg, "table_values": table_values, "table_scale": table_scale,
     }
 
-    # Nonlinear correction with the real solver, batched by disjoint footprints.
-    faps = [k for k in SKIN_TRANSLATION_FAPS if np.any(gain_pos[k - 1])]
-    V = len(face.skin_vertices)
-    footprint = {}
-    for k in faps:
-        u = sum(abs(g) * responses[c] for c, g in enumerate(gain_pos[k - 1] / np.maximum(unit[k - 1], 1e-12)) if g)
-        mag = np.linalg.norm(u, axis=1)
-        verts = np.zeros(V, dtype=bool)
-        sim = model.skin_particle >= 0
-        verts[sim] = mag[model.skin_particle[sim]] > 0.03 * mag.max()
-        footprint[k] = verts
-    batches: list[list[int]] = []
-    for k in faps:
-        for b in batches:
-            if not any(np.any(footprint[k] & footprint[o]) for o in b):
-                b.append(k)
-                break
-        else:
-            batches.append([k])
-
+    # Nonlinear correction with the real solver: each FAP is probed at its operating
+    # amplitudes (+-half range, the value verify-faps checks) and its table scaled so the
+    # settled motion of its feature point along the standard direction is the expected one.
+    # FAPs whose footprints (with a margin ring) do not overlap are probed together.
+    faps = [k for k in SKIN_TRANSLATION_FAPS if np.any(gain_pos[k - 1]) or np.any(gain_neg[k - 1])]
+    batches = _disjoint_batches(face, model, faps, responses, gain_pos, gain_neg, unit)
     controls_face = copy.copy(face)
     solver = SkinSolver(model)
     fdp_pos = face.feature_point_positions()
@@ -264,7 +260,8 @@ def calibrate(face, device: str = "cpu", passes: int = 2, settle_frames: int = 4
         ctl = FapControls(controls_face, model)
         for side in (1.0, -1.0):
             for batch in batches:
-                todo = [k for k in batch if side > 0 or FAP_LIMITS[k - 1, 0] < 0]
+                todo = [k for k in batch if (side > 0 and np.any(gain_pos[k - 1]))
+                        or (side < 0 and FAP_LIMITS[k - 1, 0] < 0 and np.any(gain_neg[k - 1]))]
                 if not todo:
                     continue
                 values = np.zeros(FAP_COUNT)
@@ -276,13 +273,40 @@ def calibrate(face, device: str = "cpu", passes: int = 2, settle_frames: int = 4
                     moved = face.surface_point_position(face.feature_points[fdp], skin) - fdp_pos[fdp]
                     along = float(moved @ FAP_DIRECTION[k - 1]) * side
                     expected = half[k - 1] * unit[k - 1]
-                    g = float(np.clip(expected / along, 0.25, 4.0)) if along > 1e-6 else 1.0
+                    g = float(np.clip(expected / along, 0.5, 2.0)) if along > 1e-3 * expected else 2.0
                     cols = [3, 4] if side > 0 else [1, 0]
                     table_scale[k - 1, cols] *= g
     mapping["table_scale"] = table_scale
     out = copy.copy(face)
     out.fap_mapping = mapping
     return out
+
+
+def _disjoint_batches(face, model, faps, responses, gain_pos, gain_neg, unit) -> list[list[int]]:
+    """FAPs grouped so that no two in a group move the same skin (footprint + 2 rings)."""
+    from fae.sim.build import adjacency, dilate
+
+    V = len(face.skin_vertices)
+    A = adjacency(V, mesh_edges(np.asarray(face.skin_faces)))
+    sim = model.skin_particle >= 0
+    footprint = {}
+    for k in faps:
+        g = (np.abs(gain_pos[k - 1]) + np.abs(gain_neg[k - 1])) / np.maximum(unit[k - 1], 1e-12)
+        u = sum(g[c] * np.abs(responses[c]) for c in np.flatnonzero(g))
+        mag = np.linalg.norm(u, axis=1)
+        verts = np.zeros(V, dtype=bool)
+        verts[sim] = mag[model.skin_particle[sim]] > 0.02 * mag.max()
+        footprint[k] = dilate(verts, A, 2)
+    batches: list[list[int]] = []
+    for k in faps:
+        for b in batches:
+            if k not in JAW_FAPS and not any(o in JAW_FAPS for o in b) \
+                    and not any(np.any(footprint[k] & footprint[o]) for o in b):
+                b.append(k)
+                break
+        else:
+            batches.append([k])
+    return batches
 
 
 def settle(model, solver, controls, values: np.ndarray, rig, frames: int = 40, fps: float = 25.0,

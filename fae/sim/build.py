@@ -11,10 +11,13 @@ its teeth) is nearer. Muscles act on the middle layer; pull fields on the two up
 
 Parameters (keys of `layer_params`, else these defaults): stiffness per unit mass kappa
 (1/s^2) `kappa_epidermis` 2500, `kappa_middle` 1250, `kappa_deep` 1250, `kappa_vertical`
-2500, `kappa_cross` 800, `kappa_anchor` 10000; `spring_damping_ratio` 0.0005 s (damping =
+2500, `kappa_cross` 800, `kappa_anchor` 10000 (deepest layer to its bone), `kappa_tether`
+500 (upper layers to their rest place on the bone); `spring_damping_ratio` 0.0005 s (damping =
 ratio x stiffness); `drag` 110 1/s; `density` 1100 kg/m^3; `muscle_acceleration` 50 m/s^2
 (force per unit activation and weight, per kg). Only skin near a muscle, a pull field or
 the jaw is simulated (`active_rings` 3 edge rings around it, plus one fixed ring).
+Contact: penetrations deeper than `contact_depth` 4 mm are left to the springs (see
+fae.sim.collision).
 """
 
 from __future__ import annotations
@@ -39,6 +42,7 @@ DEFAULTS = {
     "kappa_vertical": 2500.0,
     "kappa_cross": 800.0,
     "kappa_anchor": 10000.0,
+    "kappa_tether": 500.0,
     "spring_damping_ratio": 0.0005,
     "drag": 110.0,
     "density": 1100.0,
@@ -46,6 +50,7 @@ DEFAULTS = {
     "active_rings": 3,
     "cfl": 0.9,
     "sdf_cell": 0.003,
+    "contact_depth": 0.004,
 }
 
 
@@ -260,13 +265,20 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
     spr, kap = spr[keep], kap[keep]
     q32 = q.astype(np.float32)
     rest_len = np.linalg.norm(q32[spr[:, 0]].astype(np.float64) - q32[spr[:, 1]], axis=1)
-    ks = kap * 0.5 * (mass[spr[:, 0]] + mass[spr[:, 1]])
+    # stiffness per unit of the lighter end's mass: a light particle (a sliver triangle's
+    # vertex) next to a heavy one is not made stiffer than kappa, so the stable substep
+    # depends on kappa and the valence only (see fae.sim.solver)
+    ks = kap * np.minimum(mass[spr[:, 0]], mass[spr[:, 1]])
     kd = ks * float(p["spring_damping_ratio"])
 
-    # Anchors: every movable deepest-layer particle.
-    deep = np.flatnonzero(movable & (layer_of == LAYER_COUNT - 1))
-    anchor_bone = vertex_bone[sim_vertices[deep - (LAYER_COUNT - 1) * nsv]]
-    anchor_k = float(p["kappa_anchor"]) * mass[deep]
+    # Anchors: every movable deepest-layer particle, stiffly; the upper layers weakly
+    # (tethers: the tissue's hold on what lies beneath, which gives the skin a single rest
+    # shape to return to after any pose; without them, skin folded by extreme poses stayed
+    # folded).
+    anchored = np.flatnonzero(movable)
+    anchor_bone = vertex_bone[sim_vertices[anchored % nsv]]
+    anchor_k = np.where(layer_of[anchored] == LAYER_COUNT - 1, float(p["kappa_anchor"]), float(p["kappa_tether"]))
+    anchor_k = anchor_k * mass[anchored]
 
     # Muscle influences on the particles.
     inf_m, inf_p, inf_w = [], [], []
@@ -284,7 +296,7 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
 
     # Bone distance grids and which particles must stay outside them.
     sdf_values, sdf_origin, sdf_spacing = [], np.zeros((BONE_COUNT, 3)), np.ones(BONE_COUNT)
-    phi_rest = np.full(P, np.inf)
+    phi_rest = np.full((BONE_COUNT, P), np.inf)
     for b, (bv, bf) in enumerate(bone_meshes):
         if len(bf) == 0:
             sdf_values.append(None)
@@ -292,12 +304,13 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
         vals, origin, spacing = signed_distance_grid(bv, bf, cell=float(p["sdf_cell"]), device=device)
         sdf_values.append(wp.array(vals, dtype=float, device=device))
         sdf_origin[b], sdf_spacing[b] = origin, spacing
-        phi_rest = np.minimum(phi_rest, sample_grid(vals, origin, spacing, q)[0])
-    collide = movable & (layer_of < LAYER_COUNT - 1) & (phi_rest > 0.0005)
+        phi_rest[b] = sample_grid(vals, origin, spacing, q)[0]
+    collide = movable & (layer_of < LAYER_COUNT - 1) & (phi_rest.min(axis=0) > 0.0005)
+
 
     # Stable substep (Gershgorin bound on M^-1 K, see fae.sim.solver).
     row_k = np.bincount(spr.reshape(-1), weights=np.repeat(2.0 * ks, 2), minlength=P)
-    row_k[deep] += anchor_k
+    row_k[anchored] += anchor_k
     row_c = np.bincount(spr.reshape(-1), weights=np.repeat(2.0 * kd, 2), minlength=P)
     rate_k = np.max(np.where(movable, row_k / mass, 0.0)) if P else 1.0
     rate_c = np.max(np.where(movable, row_c / mass, 0.0)) if P else 0.0
@@ -322,10 +335,10 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
         spring_rest_length=arr(rest_len.astype(np.float32), float),
         spring_stiffness=arr(ks.astype(np.float32), float),
         spring_damping=arr(kd.astype(np.float32), float),
-        anchor_count=len(deep),
-        anchor_particle=arr(deep.astype(np.int32), int),
+        anchor_count=len(anchored),
+        anchor_particle=arr(anchored.astype(np.int32), int),
         anchor_bone=arr(anchor_bone.astype(np.int32), int),
-        anchor_rest=arr(q32[deep], wp.vec3),
+        anchor_rest=arr(q32[anchored], wp.vec3),
         anchor_stiffness=arr(anchor_k.astype(np.float32), float),
         muscle_count=len(ma),
         muscle_names=muscle_names,
@@ -339,6 +352,7 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
         influence_muscle=arr(inf_m.astype(np.int32), int),
         influence_particle=arr(inf_p.astype(np.int32), int),
         influence_weight=arr(inf_w.astype(np.float32), float),
+        contact_depth=float(p["contact_depth"]),
         sdf_values=sdf_values,
         sdf_origin=sdf_origin,
         sdf_spacing=sdf_spacing,

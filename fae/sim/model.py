@@ -46,11 +46,12 @@ class SkinModel:
     particle_inv_mass   (P,) float 1/kg; 0 for particles held fixed (the border ring)
     particle_layer      (P,) int   0 epidermis, 1 middle, 2 deepest
     collider_particle   (C,) int   particles that must stay outside the bones
+    contact_depth       metres: deeper penetrations are left to the springs (fae.sim.collision)
     spring_indices      (S*2,) int particle pairs
     spring_rest_length  (S,) float metres
     spring_stiffness    (S,) float N/m
     spring_damping      (S,) float N s/m, along the spring
-    anchor_particle     (A,) int   deepest-layer particles held to a bone
+    anchor_particle     (A,) int   particles held to a bone (deepest layer stiffly, the others weakly)
     anchor_bone         (A,) int   0 head, 1 jaw
     anchor_rest         (A,) vec3  metres, anchor position at rest (= particle rest)
     anchor_stiffness    (A,) float N/m
@@ -104,6 +105,7 @@ class SkinModel:
     influence_muscle: wp.array
     influence_particle: wp.array
     influence_weight: wp.array
+    contact_depth: float
     sdf_values: list
     sdf_origin: np.ndarray
     sdf_spacing: np.ndarray
@@ -134,7 +136,7 @@ class SkinModel:
         for name, value in vars(self).items():
             if isinstance(value, wp.array):
                 out[name] = value.numpy()
-        out["sdf_values"] = [v.numpy() for v in self.sdf_values]
+        out["sdf_values"] = [None if v is None else v.numpy() for v in self.sdf_values]
         return out
 
 

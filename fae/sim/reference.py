@@ -61,14 +61,14 @@ class ReferenceSolver:
 
     def collide(self, q: np.ndarray, qd: np.ndarray, bone_rotation: np.ndarray, bone_translation: np.ndarray) -> None:
         """Project particles inside a bone grid onto its surface, in place."""
-        col = self.a["collider_particle"].astype(np.int64)
         for b, values in enumerate(self.a["sdf_values"]):
-            if values is None:
+            col = self.a["collider_particle"].astype(np.int64)
+            if values is None or len(col) == 0:
                 continue
             R, t = bone_rotation[b], bone_translation[b]
             local = (q[col] - t) @ R
             phi, grad = sample_grid(values, self.model.sdf_origin[b], self.model.sdf_spacing[b], local)
-            hit = np.flatnonzero(phi < 0.0)
+            hit = np.flatnonzero((phi < 0.0) & (phi >= -self.model.contact_depth))
             if len(hit) == 0:
                 continue
             loc, ph, gr = local[hit], phi[hit], grad[hit]
