@@ -85,6 +85,21 @@ async def native_exchange(port: int, payload: bytes) -> list[str]:
     return data.decode().splitlines()
 
 
+def replies_by_kind(lines: list[str]) -> tuple[list[str], list[str], list[str]]:
+    """(frame numbers acknowledged in order, error lines in order, other lines)."""
+    oks, errors, other = [], [], []
+    for line in lines:
+        if line.startswith("ok ") and not line.startswith("ok header"):
+            number, step = line.split()[1:]
+            assert int(step) >= 1, line
+            oks.append(number)
+        elif line.startswith("error "):
+            errors.append(line)
+        else:
+            other.append(line)
+    return oks, errors, other
+
+
 async def well_behaved(port: int) -> None:
     report = await send_fap(fap_text(), port=port)
     assert report.complete, report.summary()
@@ -108,9 +123,14 @@ def test_native_stream_acks_every_frame_and_publishes_its_pose():
 
     replies, events = run(main())
     numbers = [values.split()[0] for _, values in frames]
-    assert replies == ["ok header 25"] + [f"ok {n}" for n in numbers]
+    oks, errors, other = replies_by_kind(replies)
+    assert replies[0] == "ok header 25" and oks == numbers and errors == []
+    steps = sorted({int(line.split()[2]) for line in replies[1:-1]})
+    assert steps == list(range(1, len(steps) + 1))
+    assert replies[-1] == f"done 43 frames {len(steps)} steps 0 errors"
     poses = [e for e in events if isinstance(e, FrameEvent)]
     assert [str(e.index) for e in poses] == numbers
+    assert [e.step for e in poses] == [int(line.split()[2]) for line in replies[1:-1]]
     assert isinstance(events[-1], StreamEnd)
     # The pose of the last frame is the face at the held values of the whole stream.
     held = np.zeros(68)
@@ -151,7 +171,8 @@ def test_several_clients_each_get_their_own_stream_and_face():
 
     reports, faces = run(main())
     assert all(r.complete and r.frames_ok == 43 for r in reports)
-    assert len(faces) == 6 and all(f.steps == 43 for f in faces)
+    assert len(faces) == 6 and all(1 <= f.steps <= 43 for f in faces)
+    assert sorted(f.steps for f in faces) == sorted(r.steps for r in reports)
 
 
 def test_silent_native_client_gets_the_greeting_and_can_still_stream():
@@ -170,7 +191,9 @@ def test_silent_native_client_gets_the_greeting_and_can_still_stream():
 
     greeting, lines = run(main())
     assert greeting == b'<notify name="CONNECTION_OK" ownerId="1" taskId="0" status="0"/>\0\0'
-    assert lines[0] == "ok header 25" and len(lines) == 44 and all(ln.startswith("ok ") for ln in lines)
+    oks, errors, other = replies_by_kind(lines)
+    assert lines[0] == "ok header 25" and len(oks) == 43 and not errors
+    assert other[-1].startswith("done 43 frames")
 
 
 # -- bad input -----------------------------------------------------------------------
@@ -197,12 +220,13 @@ def test_malformed_lines_get_an_error_naming_the_line_and_the_stream_goes_on():
         return replies
 
     replies = run(main())
+    oks, errors, other = replies_by_kind(replies)
     assert replies[0] == "ok header 25"
-    assert replies[1] == f"ok {v0.split()[0]}"
-    assert replies[2].startswith("error 4: ") and "mask bit 0 or 1" in replies[2]
-    assert replies[3].startswith("error 7: ") and "values after the frame number" in replies[3]
-    assert replies[4] == f"ok {frames[3][1].split()[0]}"
-    assert len(replies) == 5
+    assert oks == [v0.split()[0], frames[3][1].split()[0]]
+    assert len(errors) == 2
+    assert errors[0].startswith("error 4: ") and "mask bit 0 or 1" in errors[0]
+    assert errors[1].startswith("error 7: ") and "values after the frame number" in errors[1]
+    assert other[-1].startswith("done 2 frames") and other[-1].endswith(" 2 errors")
 
 
 def test_bad_header_binary_garbage_and_oversized_lines_are_answered_and_others_still_served():
@@ -220,14 +244,14 @@ def test_bad_header_binary_garbage_and_oversized_lines_are_answered_and_others_s
         return bad_header, garbage, oversized
 
     bad_header, garbage, oversized = run(main())
+    number = values.split()[0]
     assert bad_header[0].startswith("error 1: ") and "version" in bad_header[0]
-    assert bad_header[1:] == ["ok header 25", f"ok {values.split()[0]}"]
-    assert garbage[0] == "ok header 25"
-    assert garbage[1].startswith("error ") and "expected" in garbage[1]
-    assert garbage[-1] == f"ok {values.split()[0]}"
-    assert oversized[0] == "ok header 25"
-    assert oversized[1] == "error 2: expected a line of at most 2048 bytes"
-    assert oversized[2:] == [f"ok {values.split()[0]}"]
+    assert bad_header[1:] == ["ok header 25", f"ok {number} 1", "done 1 frames 1 steps 1 errors"]
+    oks, errors, other = replies_by_kind(garbage)
+    assert garbage[0] == "ok header 25" and oks == [number]
+    assert errors and all("expected" in e for e in errors)
+    assert oversized == ["ok header 25", "error 2: expected a line of at most 2048 bytes", f"ok {number} 1",
+                         "done 1 frames 1 steps 1 errors"]
 
 
 def test_partial_frame_at_disconnect_is_reported():
@@ -242,8 +266,10 @@ def test_partial_frame_at_disconnect_is_reported():
         return cut_after_mask, cut_mid_line
 
     cut_after_mask, cut_mid_line = run(main())
-    assert cut_after_mask == ["ok header 25", "error 3: stream ended inside a frame; expected the rest of the frame"]
-    assert cut_mid_line[-1] == "error 3: stream ended inside a frame; expected the rest of the frame"
+    assert cut_after_mask == ["ok header 25", "error 3: stream ended inside a frame; expected the rest of the frame",
+                              "done 0 frames 0 steps 1 errors"]
+    assert cut_mid_line[-2:] == ["error 3: stream ended inside a frame; expected the rest of the frame",
+                                 "done 0 frames 0 steps 1 errors"]
 
 
 def test_a_client_that_keeps_sending_garbage_is_closed_after_max_errors():
@@ -516,6 +542,6 @@ def test_fae_send_reports_and_exits_nonzero_when_frames_are_rejected(tmp_path, c
     ok, rejected, refused = run(main())
     out, err = capsys.readouterr()
     assert (ok, rejected, refused) == (0, 1, 2)
-    assert "43/43 frames ok, 0 errors" in out and "latency p50" in out
-    assert "1/2 frames ok, 1 errors" in out
+    assert "43/43 frames ok in " in out and ", 0 errors" in out and "latency p50" in out
+    assert "1/2 frames ok in 1 face steps, 1 errors" in out
     assert "server: error 3:" in err

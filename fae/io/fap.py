@@ -324,6 +324,21 @@ class FapParser:
                         f"kept as a value, no {kind} shown")
         return value, None
 
+    @property
+    def in_frame(self) -> bool:
+        """True between a frame's mask line and its values line."""
+        return self._mask_tokens is not None
+
+    def discard_partial_frame(self) -> bool:
+        """Forget a mask line still waiting for its values line (e.g. the values line was
+        lost: unreadable bytes, an overlong line). The next content line is read as a mask.
+
+        Returns True when a pending mask was dropped, False when none was pending.
+        """
+        pending = self._mask_tokens is not None
+        self._mask_tokens = None
+        return pending
+
     def finish(self) -> None:
         """Call at the end of the stream: checks what only the end can tell (raises or warns)."""
         if self.header is None:

@@ -17,6 +17,8 @@ class SendReport:
 
     frames_sent   frames (mask/values pairs) sent
     frames_ok     frames acknowledged with `ok`
+    steps         face simulation steps those frames took (the server's count; fewer than
+                  frames_ok when the face fell behind and held frames were coalesced)
     errors        the server's `error ...` lines, in order
     latencies     (frames_ok,) float64 seconds from sending a frame's values line to
                   reading its `ok`
@@ -26,6 +28,7 @@ class SendReport:
 
     frames_sent: int = 0
     frames_ok: int = 0
+    steps: int = 0
     errors: list[str] = field(default_factory=list)
     latencies: np.ndarray = field(default_factory=lambda: np.zeros(0))
     elapsed: float = 0.0
@@ -46,8 +49,8 @@ class SendReport:
         return self.header_ok and not self.errors and self.frames_ok == self.frames_sent
 
     def summary(self) -> str:
-        return (f"{self.frames_ok}/{self.frames_sent} frames ok, {len(self.errors)} errors, "
-                f"{self.frames_per_second:.0f} frames/s, latency p50 {self.latency_ms(50):.2f} ms, "
+        return (f"{self.frames_ok}/{self.frames_sent} frames ok in {self.steps} face steps, "
+                f"{len(self.errors)} errors, {self.frames_per_second:.0f} frames/s, latency p50 {self.latency_ms(50):.2f} ms, "
                 f"p99 {self.latency_ms(99):.2f} ms")
 
 
@@ -106,10 +109,13 @@ async def send_fap(text: str, host: str = "127.0.0.1", port: int = 50011, *, rat
                     report.fps = float(parts[2]) if len(parts) > 2 else 0.0
                     header_seen.set()
                 elif line.startswith("ok "):
-                    times = sent_at.get(line[3:])
+                    parts = line.split()
+                    times = sent_at.get(parts[1])
                     if times:
                         latencies.append(now - times.pop(0))
                     report.frames_ok += 1
+                    if len(parts) > 2 and parts[2].isdigit():
+                        report.steps = max(report.steps, int(parts[2]))
                 elif line.startswith("error"):
                     report.errors.append(line)
                     header_seen.set()

@@ -49,7 +49,6 @@ class StreamDecoder:
         self.source_name = source_name
         self._parser = FapParser(source_name)
         self._state: FrameState | None = None
-        self._in_frame = False
         self._skip_values = False
         self._first_number: int | None = None
         self._last_index = -1
@@ -72,27 +71,22 @@ class StreamDecoder:
     @property
     def in_frame(self) -> bool:
         """True between a frame's mask line and its values line."""
-        return self._in_frame
+        return self._parser.in_frame
 
     def skip_line(self, number: int) -> None:
         """A line that could not be read at all (not text, too long): its frame is lost.
 
-        The reader is given the line as an unreadable token, so it drops a pending mask
-        exactly as it does for any bad values line.
+        If it came after a mask line it was that frame's values line: the pending mask is
+        dropped. Otherwise it was (or cut) a mask line: the next line is taken as its values
+        line and skipped unless it is itself a well-formed mask.
         """
         if self.header is None:
             return
-        if self._in_frame:
-            self._in_frame = False
-            try:
-                self._parser.feed_line("\ufffd", number)
-            except FapFormatError:
-                pass
-        else:
+        if not self._parser.discard_partial_frame():
             self._skip_values = True
 
     def feed(self, text: str, number: int):
-        """Returns HeaderRead, a DenseFrame, or None (line consumed, frame incomplete).
+        """Returns HeaderRead, a StreamFrame, or None (line consumed, frame incomplete).
 
         Raises FapFormatError; the frame it belongs to is dropped and the stream goes on.
         """
@@ -111,18 +105,15 @@ class StreamDecoder:
             tokens = stripped.split("#", 1)[0].split()
             if not (len(tokens) in (FAP_COUNT, FAP_COUNT + 1) and all(t in ("0", "1") for t in tokens)):
                 return None
-        was_mask = not self._in_frame
+        was_mask = not self._parser.in_frame
         try:
             frame = self._parser.feed_line(text, number)
         except FapFormatError:
             if was_mask:
                 self._skip_values = True
-            self._in_frame = False
             raise
         if frame is None:
-            self._in_frame = True
             return None
-        self._in_frame = False
         values = self._state.update(frame)
         if self._first_number is None:
             self._first_number = frame.number

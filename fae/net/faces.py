@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import asyncio
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from typing import Callable, Protocol
 
 import numpy as np
@@ -25,10 +25,12 @@ class Pose:
     skin_vertices    (V, 3) float64, metres: deformed epidermis
     bone_transforms  bone name ("head", "jaw", "eye_l", "eye_r", "tongue") -> (4, 4)
                      float64 rigid transform in the face frame (metres), or empty
+    pupil_scale      eye bone ("eye_l", "eye_r") -> pupil diameter / rest diameter, or empty
     """
 
     skin_vertices: np.ndarray
     bone_transforms: dict
+    pupil_scale: dict = field(default_factory=dict)
 
 
 class FrameConsumer(Protocol):
@@ -88,22 +90,39 @@ class FaceWorker:
 class PlayerFace:
     """A FaceModel animated by fae's Player (fae.animate.player), as a FrameConsumer.
 
-    model   the head (shared read-only between faces)
+    model   the head (shared read-only between faces); give it a calibrated fap_mapping
+            (see :func:`playable_model`), or every face calibrates it again on build
     device  Warp device ("cpu" or "cuda:0")
     """
 
     def __init__(self, model, device: str = "cpu") -> None:
-        from fae.animate.player import Player  # the animation layer, above fae.net's inputs
+        from fae.animate.player import Player
 
         self.player = Player(model, device=device)
 
     def step(self, frame: DenseFrame, dt: float) -> Pose:
         skin = self.player.step(frame, dt=dt)
-        bones = getattr(self.player, "bone_transforms", None)
-        return Pose(np.asarray(skin), dict(bones() if callable(bones) else bones or {}))
+        return Pose(np.asarray(skin, dtype=np.float64),
+                    {name: np.array(T, dtype=np.float64) for name, T in self.player.bone_transforms.items()},
+                    dict(self.player.pupil_scale))
 
     def reset(self) -> None:
         self.player.reset()
+
+
+def playable_model(model, device: str = "cpu"):
+    """`model` with the FAP mapping its Players use: itself when it carries one that fits,
+    else a copy holding the mapping calibrated now (tens of seconds, once).
+
+    Building one Player here also compiles (or loads) the simulation kernels, so the
+    first client does not wait for them.
+    """
+    from fae.animate.player import Player
+
+    player = Player(model, device=device)
+    if player.fap_mapping is model.fap_mapping:
+        return model
+    return replace(model, fap_mapping=player.fap_mapping)
 
 
 def player_face_factory(model, device: str = "cpu") -> FaceFactory:

@@ -24,6 +24,8 @@ class FrameEvent:
     time    seconds on the stream's own clock (index / fps for .fap streams)
     fps     the stream's frame rate
     pose    the face's Pose after this frame
+    step    the face's simulation step that produced `pose` (1, 2, ...): frames that
+            arrived while the face was busy share one step, and one Pose object
     """
 
     stream: str
@@ -31,6 +33,7 @@ class FrameEvent:
     time: float
     fps: float
     pose: Pose
+    step: int = 0
 
 
 @dataclass(frozen=True)

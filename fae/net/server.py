@@ -38,7 +38,8 @@ class ServerLimits:
     greeting_delay  seconds of silence after which a client gets the Xface greeting
     max_line        bytes per native line
     max_task        bytes per Xface task (an UPLOAD_FAP carries a whole file)
-    window          native frames in flight per client before reading pauses
+    window          native frames decoded but not yet acknowledged per client before
+                    reading from it pauses
     max_errors      error replies after which a native connection is closed
     max_output      bytes waiting unsent to a client before it is dropped as dead
     max_clients     connections at once; more are closed on accept
@@ -47,7 +48,7 @@ class ServerLimits:
     greeting_delay: float = 0.25
     max_line: int = 8192
     max_task: int = 8 << 20
-    window: int = 32
+    window: int = 1024
     max_errors: int = 32
     max_output: int = 1 << 20
     max_clients: int = 64
@@ -73,6 +74,8 @@ class FapServer:
         self.stage = XfaceStage(face_factory, self.hub, self.clients,
                                 fap_dir=Path(fap_dir) if fap_dir is not None else None, max_task=limits.max_task)
         self.connections_total = 0
+        self.native_frames = 0
+        self.native_steps = 0
         self._next_id = 1
         self._server: asyncio.Server | None = None
         self._handlers: set[asyncio.Task] = set()
@@ -93,6 +96,19 @@ class FapServer:
     def subscribe(self, maxsize: int = 8, lossless: bool = False) -> Subscription:
         """Receive every FrameEvent/StreamEnd the server produces (see fae.net.hub)."""
         return self.hub.subscribe(maxsize=maxsize, lossless=lossless)
+
+    def stats(self) -> dict[str, int]:
+        """Totals so far: connections, frames acknowledged and simulation steps taken.
+
+        connections      clients accepted
+        native_frames    native frames acknowledged (streams that have ended)
+        native_steps     face steps those frames took (fewer when faces fell behind)
+        xface_frames     frames played by Xface playback / ADVANCE_FRAME
+        xface_steps      face steps those took
+        """
+        return {"connections": self.connections_total, "native_frames": self.native_frames,
+                "native_steps": self.native_steps, "xface_frames": self.stage.frames_applied,
+                "xface_steps": self.stage.steps}
 
     async def serve_until(self, stop: asyncio.Event) -> None:
         """Serve until `stop` is set, then close gracefully."""
@@ -135,8 +151,13 @@ class FapServer:
             if first.lstrip()[:1] == b"<":
                 await self.stage.session(conn, first)
             else:
-                await NativeSession(conn, self.face_factory, self.hub, window=self.limits.window,
-                                    max_line=self.limits.max_line, max_errors=self.limits.max_errors).run(first)
+                session = NativeSession(conn, self.face_factory, self.hub, window=self.limits.window,
+                                        max_line=self.limits.max_line, max_errors=self.limits.max_errors)
+                try:
+                    await session.run(first)
+                finally:
+                    self.native_frames += session.frames_done
+                    self.native_steps += session.steps
         except (ConnectionError, asyncio.CancelledError):
             pass
         except Exception:

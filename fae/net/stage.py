@@ -4,6 +4,11 @@ As in the Xface player, every Xface client drives the same face: tasks from all 
 them go through one queue, in arrival order; a RESUME plays the current stream at its
 own frame rate in the background, and later tasks (STOP, REWIND, uploads) act on it
 while it plays. Replies follow the Xface byte format exactly (fae.net.xface).
+
+Playback keeps the stream's clock: when a step takes longer than a frame period, the
+next step plays the frame due by then (its held values include every frame skipped), so
+a slow face plays the stream in its own duration with fewer steps rather than slower.
+Every frame is still published, skipped ones with the pose of the step that covered them.
 """
 
 from __future__ import annotations
@@ -69,6 +74,9 @@ class XfaceStage:
         self.last_index = 0
         self.worker: FaceWorker | None = None
         self.playback: asyncio.Task | None = None
+        self.frames_applied = 0
+        self.steps = 0
+        self._epoch = 0  # bumped when the stream or its position changes outside playback
         self._queue: asyncio.Queue = asyncio.Queue(queue_size)
         self._dispatcher: asyncio.Task | None = None
 
@@ -139,6 +147,7 @@ class XfaceStage:
             self._route(task, xface.STATUS_ERROR)
         else:
             self.frames, self.fps, self.pos = frames, fps, 0
+            self._epoch += 1
         self._route(task, xface.STATUS_FINISHED)
 
     async def _task_upload_fap(self, task: xface.XfaceTask) -> None:
@@ -163,6 +172,7 @@ class XfaceStage:
     async def _task_stop_playback(self, task: xface.XfaceTask) -> None:
         self._cancel_playback()
         self.pos = 0
+        self._epoch += 1
         if self.frames:
             await self._face().reset()
             await self._apply(self.frames[0])
@@ -171,13 +181,15 @@ class XfaceStage:
 
     async def _task_rewind_playback(self, task: xface.XfaceTask) -> None:
         self.pos = 0
+        self._epoch += 1
         if self.worker is not None:
             await self.worker.reset()
         self._route(task, xface.STATUS_FINISHED)
 
     async def _task_render_frame(self, task: xface.XfaceTask) -> None:
         if self.last_pose is not None:
-            await self.hub.publish(FrameEvent(STREAM, self.last_index, self.last_index / self.fps, self.fps, self.last_pose))
+            await self.hub.publish(FrameEvent(STREAM, self.last_index, self.last_index / self.fps, self.fps,
+                                              self.last_pose, self.steps))
 
     async def _task_advance_frame(self, task: xface.XfaceTask) -> None:
         if self.pos < len(self.frames):
@@ -190,23 +202,32 @@ class XfaceStage:
             self.worker = FaceWorker(self.face_factory, name="fae-xface")
         return self.worker
 
-    async def _apply(self, frame) -> None:
+    async def _apply(self, frame, skipped: list = ()) -> None:
+        """One step of one frame period towards `frame`; publish it and the `skipped` frames
+        before it (their held values are in `frame`'s) with the resulting pose."""
         pose = await self._face().submit(frame, 1.0 / self.fps)
+        self.steps += 1
+        self.frames_applied += len(skipped) + 1
         self.last_pose, self.last_index = pose, frame.index
-        await self.hub.publish(FrameEvent(STREAM, frame.index, frame.time, self.fps, pose))
+        for f in (*skipped, frame):
+            await self.hub.publish(FrameEvent(STREAM, f.index, f.time, self.fps, pose, self.steps))
 
     async def _play(self, task: xface.XfaceTask) -> None:
         self._route(task, xface.STATUS_STARTED)
         loop = asyncio.get_running_loop()
-        due = loop.time()
+        epoch = None
         while self.pos < len(self.frames):
-            frame = self.frames[self.pos]
-            self.pos += 1
-            await self._apply(frame)
-            due += 1.0 / self.fps
-            delay = due - loop.time()
-            if delay > 0:
-                await asyncio.sleep(delay)
+            if epoch != self._epoch:  # started, rewound, or a new stream: restart the clock
+                epoch, start, first, period = self._epoch, loop.time(), self.pos, 1.0 / self.fps
+            due = first + int((loop.time() - start) / period)
+            target = min(max(self.pos, due), len(self.frames) - 1)
+            skipped = self.frames[self.pos:target]
+            self.pos = target + 1
+            await self._apply(self.frames[target], skipped)
+            if epoch == self._epoch:
+                delay = start + (self.pos - first) * period - loop.time()
+                if delay > 0:
+                    await asyncio.sleep(delay)
         await self.hub.publish(StreamEnd(STREAM))
         self._route(task, xface.STATUS_FINISHED)
 
