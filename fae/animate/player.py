@@ -3,7 +3,8 @@
 Per frame (only precomputed arrays are used): FAP 1/2 records -> low-level values, added to
 the frame's own; clamp (fae.animate.faptables); one matmul to muscle/field activations and
 the jaw pose (fae.animate.controls); one solver step of the skin in the head's frame
-(fae.sim); FaceDefTable offsets added; then the head pose (rotation about 7.1) carries
+(fae.sim); FaceDefTable offsets added (a frame that repeats the previous one on skin that has
+settled skips the solver); then the head pose (rotation about 7.1) carries
 skin and parts. On load, a head without a calibrated `fap_mapping` is calibrated
 (fae.animate.calibrate, tens of seconds); shipped heads carry theirs.
 
@@ -30,6 +31,7 @@ from fae.sim.build import skin_model, skin_positions
 from fae.sim.solver import SkinSolver
 
 DEFAULT_FPS = 25.0
+SETTLED_MOTION = 1e-8  # metres: a frame moving no particle more than this has settled
 
 
 @dataclass
@@ -89,6 +91,9 @@ class Player:
         self.pupil_scale = {"eye_l": 1.0, "eye_r": 1.0}
         self.values = np.zeros(FAP_COUNT)
         self.frame_index = 0
+        self._q = self.sim.particle_q.numpy().astype(np.float64)
+        self._settled = True
+        self._last_dt = None
 
     def frame_values(self, frame) -> np.ndarray:
         """(68,) clamped low-level values of a DenseFrame or a (68,) array (FAPU units)."""
@@ -111,9 +116,15 @@ class Player:
         activation, jaw = self.controls.controls(v)
         J = self.rig.jaw(*jaw)
         self._R[1], self._t[1] = J[:3, :3], J[:3, 3]
-        self.control.set(muscle_activation=activation, bone_rotation=self._R, bone_translation=self._t)
-        self.solver.step(self.sim, self.state, self.control, dt, self.state)
-        skin = skin_positions(self.sim, self.state.particle_q.numpy().astype(np.float64))
+        if not (self._settled and dt == self._last_dt and np.array_equal(v, self.values)):
+            # a held frame on settled skin needs no step (SETTLED_MOTION: its fixed point)
+            self.control.set(muscle_activation=activation, bone_rotation=self._R, bone_translation=self._t)
+            self.solver.step(self.sim, self.state, self.control, dt, self.state)
+            q = self.state.particle_q.numpy().astype(np.float64)
+            self._settled = bool(np.abs(q - self._q).max() < SETTLED_MOTION) if len(q) else True
+            self._q = q
+        self._last_dt = dt
+        skin = skin_positions(self.sim, self._q)
         offsets = self.facedef.offsets(v)
         if offsets is not None:
             skin += offsets

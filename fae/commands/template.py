@@ -1,7 +1,9 @@
 """`fae template build [-o FILE]` and `fae template check FILE [--json]`.
 
 build  writes the generic head (default: the package's templates/generic_head.glb, the
-       file `fae` plays when no head is given); the same builder tools/build_template.py runs.
+       file `fae` plays when no head is given), with its FAP mapping calibrated
+       (fae.animate.calibrate) so that players load it at once; the same builder
+       tools/build_template.py runs.
 check  validates any FaceModel file: structure (fae.io.facemodel_gltf) and geometry
        (fae.anatomy.checks). Exit 0 when valid, 1 when it has problems, 2 when the file
        cannot be read.
@@ -40,10 +42,11 @@ def run(args) -> int:
 
 def _build(output: str | None) -> int:
     from fae.anatomy.template import TEMPLATE_PATH, build_template
+    from fae.animate.calibrate import calibrate
     from fae.io.facemodel_gltf import write_facemodel
 
     path = output or str(TEMPLATE_PATH)
-    model = build_template()
+    model = calibrate(build_template())
     write_facemodel(model, path)
     print(f"wrote {path}: {model.skin_vertex_count} skin vertices, {len(model.muscles)} muscles, "
           f"{len(model.feature_points)} feature points")

@@ -1,0 +1,186 @@
+"""The Player on the shipped generic head: rest, stability, clamping, sides, visemes and
+expressions, FaceDefTables, rigid poses (eyes, tongue, head about 7.1) and the FAP check."""
+
+from __future__ import annotations
+
+import copy
+import json
+
+import numpy as np
+import pytest
+
+from fae.anatomy.template import TEMPLATE_PATH
+from fae.animate.calibrate import calibrate
+from fae.animate.faptables import FAP_LIMITS, fapu_of
+from fae.animate.player import Player
+from fae.animate.verify import passed_fraction, verify_faps
+from fae.cli import main
+from fae.io.facemodel import FaceDefTable
+from fae.io.facemodel_gltf import read_facemodel
+from fae.io.frames import DenseFrame
+from fae.mpeg4.faps import AU
+from fae.mpeg4.highlevel import Expression, Viseme
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module")
+def face():
+    face = read_facemodel(TEMPLATE_PATH)
+    return face if face.fap_mapping else calibrate(face)
+
+
+@pytest.fixture(scope="module")
+def player(face):
+    return Player(face)
+
+
+def settle(player, values, frames=30):
+    player.reset()
+    for _ in range(frames):
+        skin = player.step(values, dt=1 / 25)
+    return skin
+
+
+def test_zero_faps_keep_the_face_at_rest(player):
+    player.reset()
+    worst = 0.0
+    for _ in range(100):
+        skin = player.step(np.zeros(68), dt=1 / 25)
+        worst = max(worst, float(np.abs(skin - player.face.skin_vertices).max()))
+    assert worst < 1e-5
+
+
+def test_ten_thousand_random_frames_stay_finite_and_the_face_returns_to_rest(player):
+    """Random in-range FAPs (every 50th frame 10x out of range), one solver substep per frame."""
+    player.reset()
+    rng = np.random.default_rng(0)
+    dt = player.sim.dt_max
+    rest = player.face.skin_vertices
+    for i in range(10_000):
+        scale = 10.0 if i % 50 == 0 else rng.uniform(0.0, 1.0)
+        skin = player.step(rng.uniform(FAP_LIMITS[:, 0], FAP_LIMITS[:, 1]) * scale, dt=dt)
+        if i % 100 == 0:
+            assert np.all(np.isfinite(skin)), f"frame {i}"
+            H = player.bone_transforms["head"]
+            in_head = (skin - H[:3, 3]) @ H[:3, :3]
+            assert np.abs(in_head - rest).max() < 0.1, f"frame {i}"
+    for _ in range(50):
+        skin = player.step(np.zeros(68), dt=1 / 25)
+    assert np.abs(skin - rest).max() < 1e-4
+
+
+def test_values_ten_times_out_of_range_are_clamped_and_stable(player):
+    v = np.zeros(68)
+    for k in (3, 6, 12, 19, 31, 53):  # jaw, lip corners, eyelid, brow
+        v[k - 1] = FAP_LIMITS[k - 1, 1]
+    inside = settle(player, v)
+    outside = settle(player, 10.0 * v)
+    assert np.all(np.isfinite(outside))
+    assert np.abs(outside - inside).max() < 1e-6
+    assert np.abs(inside - player.face.skin_vertices).max() > 5e-3
+
+
+def test_a_left_fap_moves_the_left_side_only(player):
+    v = np.zeros(68)
+    v[52] = FAP_LIMITS[52, 1] / 2  # stretch_l_cornerlip_o
+    skin = settle(player, v)
+    d = np.linalg.norm(skin - player.face.skin_vertices, axis=1)
+    x = player.face.skin_vertices[:, 0]
+    assert d[x > 0].max() > 2e-3
+    assert d[x < -0.01].max() < 0.1 * d[x > 0].max()
+
+
+def test_shipped_head_passes_the_fap_check(player):
+    report = verify_faps(player)
+    assert len(report) >= 45
+    bad = [(r["fap"], r["name"], round(r["ratio"], 2)) for r in report if not r["ok"]]
+    assert passed_fraction(report) >= 0.9, bad
+
+
+def test_verify_faps_command_reports_json(capsys):
+    assert main(["verify-faps", str(TEMPLATE_PATH), "--json", "--faps", "12,19"]) in (0, 1)
+    out = json.loads(capsys.readouterr().out)
+    assert [r["fap"] for r in out["faps"]] == [12, 19]
+    r = out["faps"][0]
+    assert r["name"] == "raise_l_cornerlip" and r["feature_point"] == "8.3"
+    assert r["expected_m"][1] > 0 and r["measured_m"][1] > 0 and 0.0 <= out["passed_fraction"] <= 1.0
+    assert main(["verify-faps", str(TEMPLATE_PATH), "--faps", "29"]) == 2  # a pupil: no feature-point motion
+    assert "FAP 29" in capsys.readouterr().err
+
+
+def _frame(values=None, viseme=None, expression=None):
+    return DenseFrame(0, 0.0, np.zeros(68) if values is None else values, viseme, expression)
+
+
+def test_visemes_and_expressions_move_the_face_as_their_tables_say(player):
+    fp = player.face.feature_points
+    rest = player.face.feature_point_positions()
+
+    def fdp(skin, name):
+        return player.face.surface_point_position(fp[name], skin) - rest[name]
+
+    # viseme 10 "aa" (open jaw), fully blended: the chin and lower lip go down
+    aa = settle(player, _frame(viseme=Viseme(10, 0, 63, 0)))
+    assert fdp(aa, "2.1")[1] < -5e-3 and fdp(aa, "8.2")[1] < -5e-3
+    # half blend with silence: about half the opening
+    half = settle(player, _frame(viseme=Viseme(10, 0, 32, 0)))
+    assert 0.3 < fdp(half, "2.1")[1] / fdp(aa, "2.1")[1] < 0.7
+    # a low-level FAP adds to the viseme: open_jaw on top opens further
+    v = np.zeros(68)
+    v[2] = 300
+    more = settle(player, _frame(values=v, viseme=Viseme(10, 0, 63, 0)))
+    assert fdp(more, "2.1")[1] < fdp(aa, "2.1")[1] - 2e-3
+    # expression 1 (joy): lip corners up; 6 (surprise): brows up
+    joy = settle(player, _frame(expression=Expression(1, 63, 0, 0)))
+    assert fdp(joy, "8.3")[1] > 1e-3 and fdp(joy, "8.4")[1] > 1e-3
+    surprise = settle(player, _frame(expression=Expression(6, 63, 0, 0)))
+    assert fdp(surprise, "4.3")[1] > 2e-3 and fdp(surprise, "4.4")[1] > 2e-3
+
+
+def test_face_def_tables_move_their_vertices_piecewise_linearly(face):
+    """A head with a FaceDefTable for FAP 29 (the left pupil: no muscle, no bone) moves
+    exactly the table's vertices by the integral of its piecewise-constant rates."""
+    with_table = copy.copy(face)
+    idx = np.array([10, 20, 30], dtype=np.int32)
+    D = np.zeros((2, 3, 3))
+    D[0, :, 1] = 1e-5   # metres per unit below 0
+    D[1, :, 2] = 2e-5   # and above
+    with_table.face_def_tables = [FaceDefTable(29, "skin", idx, np.array([-100.0, 0.0, 300.0]), D)]
+    p = Player(with_table)
+    v = np.zeros(68)
+    v[28] = 150.0
+    moved = p.step(v, dt=1 / 25) - face.skin_vertices
+    assert np.allclose(moved[idx], [[0, 0, 150 * 2e-5]] * 3, atol=1e-7)
+    others = np.setdiff1d(np.arange(len(moved)), idx)
+    assert np.abs(moved[others]).max() < 1e-7
+    v[28] = -250.0  # beyond the table's first border: held at -100
+    moved = p.step(v, dt=1 / 25) - face.skin_vertices
+    assert np.allclose(moved[idx], [[0, -100 * 1e-5, 0]] * 3, atol=1e-7)
+
+
+def test_eyes_tongue_and_head_poses(player):
+    fapu = fapu_of(player.face)
+    v = np.zeros(68)
+    v[22] = 20000  # eyeball yaw, left eye
+    v[44] = 200    # thrust tongue
+    v[48] = 30000  # head yaw
+    skin = player.step(v, dt=1 / 25)
+    bones = player.bone_transforms
+    H = bones["head"]
+    # the head turns about 7.1: 7.1 stays, the skin is carried rigidly, by the FAP's angle
+    c = player.face.feature_point_positions()["7.1"]
+    assert np.allclose(H[:3, :3] @ c + H[:3, 3], c, atol=1e-12)
+    assert np.isclose(np.degrees(np.arccos(H[0, 0])), np.degrees(30000 * AU), atol=1e-6)
+    rest = player.face.skin_vertices
+    assert np.allclose(np.linalg.norm(skin[100] - skin[5000]), np.linalg.norm(rest[100] - rest[5000]), atol=1e-4)
+    # the left eye turns about its own centre by its FAP's angle, in the head's frame
+    E = np.linalg.inv(H) @ bones["eye_l"]
+    ec = player.face.eye_centers["eye_l"]
+    assert np.allclose(E[:3, :3] @ ec + E[:3, 3], ec, atol=1e-12)
+    assert np.isclose(np.arccos(E[0, 0]), 20000 * AU, atol=1e-9)
+    assert np.allclose(np.linalg.inv(H) @ bones["eye_r"], np.eye(4), atol=1e-12)
+    # the tongue slides forward by 200 MW with the (closed) jaw
+    T = np.linalg.inv(bones["jaw"]) @ bones["tongue"]
+    assert np.allclose(T[:3, 3], [0, 0, 200 * fapu["MW"]], atol=1e-9)
+    player.reset()

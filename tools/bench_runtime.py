@@ -1,0 +1,86 @@
+"""Frames/s of the per-frame runtime on the shipped head: FAP frame -> skin positions.
+
+    .venv/bin/python tools/bench_runtime.py [--frames 100] [--numpy-frames 8] [--head FILE]
+
+For each real stream (fap_streams/expressions.fap; ../shared/data/fap/xface_joy.fap when
+present) the Player plays `--frames` frames at the stream's rate on one CPU core (Warp
+kernels: FAPs -> controls -> substeps -> skin positions), then the same frames' controls
+are stepped by the numpy reference solver (fae.sim.reference, same scheme and substeps),
+in the same run. Prints frames/s of both and their ratio, and the solver's substeps per
+frame.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(REPO))
+
+
+def streams() -> list[Path]:
+    out = [REPO / "fap_streams" / "expressions.fap"]
+    joy = REPO.parent / "shared" / "data" / "fap" / "xface_joy.fap"
+    if joy.exists():
+        out.append(joy)
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--frames", type=int, default=100)
+    ap.add_argument("--numpy-frames", type=int, default=8)
+    ap.add_argument("--head", default=None, help="FaceModel .glb (default: the generic head)")
+    args = ap.parse_args(argv)
+
+    from fae.anatomy.template import TEMPLATE_PATH
+    from fae.animate.player import Player
+    from fae.io.fap import read_fap
+    from fae.io.facemodel_gltf import read_facemodel
+    from fae.io.frames import dense_frames
+    from fae.sim.reference import ReferenceSolver
+    from fae.sim.solver import substep_count
+
+    face = read_facemodel(args.head or TEMPLATE_PATH)
+    t0 = time.perf_counter()
+    player = Player(face)
+    print(f"head: {args.head or TEMPLATE_PATH.name}, {player.sim.particle_count} particles, "
+          f"{player.sim.spring_count} springs; Player ready in {time.perf_counter() - t0:.1f} s")
+    ref = ReferenceSolver(player.sim)
+    for path in streams():
+        stream = read_fap(path)
+        fps = float(stream.header.fps)
+        frames = [f for _, f in zip(range(args.frames), dense_frames(stream))]
+        player.reset()
+        player.fps = fps
+        player.step(frames[0])  # warm-up: kernel load
+        player.reset()
+        t0 = time.perf_counter()
+        for f in frames:
+            player.step(f, dt=1.0 / fps)
+        warp_fps = len(frames) / (time.perf_counter() - t0)
+
+        # numpy: the same controls, the same substeps
+        q = player.sim.particle_q.numpy().astype(np.float64)
+        qd = np.zeros_like(q)
+        R, t = np.tile(np.eye(3), (2, 1, 1)), np.zeros((2, 3))
+        n = min(args.numpy_frames, len(frames))
+        t0 = time.perf_counter()
+        for f in frames[:n]:
+            activation, jaw = player.controls.controls(player.frame_values(f))
+            J = player.rig.jaw(*jaw)
+            R[1], t[1] = J[:3, :3], J[:3, 3]
+            q, qd = ref.step(q, qd, activation, R, t, 1.0 / fps)
+        numpy_fps = n / (time.perf_counter() - t0)
+        print(f"{path.name}: {len(frames)} frames at {fps:g} fps, {substep_count(player.sim, 1.0 / fps)} substeps/frame: "
+              f"warp {warp_fps:.1f} frames/s, numpy {numpy_fps:.2f} frames/s, ratio {warp_fps / numpy_fps:.1f}x")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
