@@ -1,9 +1,11 @@
 """The skin solver: explicit substeps with implicit drag, bone anchors and contact projection.
 
-Choice of scheme. The skin is a mass-spring-damper network whose per-particle stiffness
-is proportional to its mass (stiffness = kappa x mean mass of the two ends, kappa in
-1/s^2, see :mod:`fae.sim.build`), so the largest eigenvalue of M^-1 K is bounded by the
-Gershgorin row sums, computed once at build:
+Choice of scheme. The skin is a mass-spring-damper network whose stiffness is
+proportional to mass (stiffness = kappa x the lighter end's mass, kappa in 1/s^2, see
+:mod:`fae.sim.build`; with the mean mass a sliver triangle's nearly massless vertex made
+the shipped head need 0.17 ms substeps), so the largest eigenvalue of M^-1 K is bounded
+by the Gershgorin row sums, computed once at build (at most 2 x sum of kappa over a
+particle's springs plus its anchor's):
 
     omega_max^2 <= max_i (sum_j 2 k_ij + k_anchor_i) / m_i,
     dt_max = cfl * 2 / (omega_max + max_i sum_j 2 c_ij / m_i),   cfl = 0.9.
@@ -16,8 +18,13 @@ bound, so every step is stable whatever the frame rate); each substep is
 
 The drag c (1/s) is implicit, hence unconditionally stable, and sized near critical
 damping of the slowest mode (the skin moving against its bone anchors) so that the skin
-settles within one or two frames. Contact is a projection (no stiff penalty springs).
-With the default parameters a 25 fps frame takes about 6 substeps.
+settles within one or two frames. Contact is a projection (no stiff penalty springs) of
+shallow penetrations only (fae.sim.collision). Every skin particle is held to its bone:
+the deepest layer stiffly (kappa_anchor 10000), the upper layers by weak tethers
+(kappa_tether 500), which gives the network a single rest shape to return to (without
+them, skin folded by extreme poses stayed folded). Kernels are compiled with fast math.
+On the shipped head (21,840 particles, 163k springs) dt_max is about 6 ms: a 25 fps
+frame takes 7 substeps.
 """
 
 from __future__ import annotations
