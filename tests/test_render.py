@@ -105,15 +105,53 @@ def test_rest_is_restored_and_frames_are_deterministic(head, renderer):
     assert np.array_equal(renderer.render(head.skin_vertices), first)
 
 
-def test_shader_programs_are_compiled_once_not_per_frame(head, renderer):
-    """pyrender's cache keyed on a fresh OSMesa pointer object recompiled (and leaked) every frame."""
-    cache = renderer._renderer._program_cache
-    for f in jaw_frames(head, np.linspace(0, 0.3, 3)):
-        renderer.render(f.skin_vertices, f.bone_transforms)
-    before = len(cache._program_cache)
-    for f in jaw_frames(head, np.linspace(0, 0.3, 10)):
-        renderer.render(f.skin_vertices, f.bone_transforms)
-    assert len(cache._program_cache) == before
+def test_bones_under_the_skin_are_hidden_unless_asked_for(head, renderer):
+    """Skin pushed inside the skull (as a strong expression can do) still shows skin, not
+    bone; with show_bones the cranium is drawn and shows through."""
+    sunk = head.skin_vertices * 0.6  # the forehead now lies inside the cranium sphere
+    forehead = box_around(renderer, np.array([0.0, 0.035, 0.07]), 6)
+    image = renderer.render(sunk)
+    patch = image[forehead].reshape(-1, 3).mean(axis=0)
+    assert patch[0] > patch[1] > patch[2] and patch[0] > 120, f"forehead should stay skin, got {patch}"
+    with FaceRenderer(head, size=SIZE, show_bones=True) as r:
+        bones = r.render(sunk)
+        rest = r.render()
+    bone = bones[forehead].reshape(-1, 3).mean(axis=0)
+    assert np.abs(bone - patch).max() > 15, "the cranium should show through sunk skin with show_bones"
+    assert np.array_equal(rest, renderer.render()), "bones inside the skin at rest change nothing"
+
+
+def test_pupil_scale_widens_and_narrows_the_pupil(head, renderer):
+    eye = head.eye_centers["eye_l"] + [0.0, 0.0, EYE_RADIUS]
+    region = box_around(renderer, eye, 6)
+
+    def dark_pixels(scale):
+        image = renderer.render(pupil_scale={"eye_l": scale})
+        return int((image[region].max(axis=2) < 50).sum()), image
+
+    narrow, _ = dark_pixels(0.5)
+    normal, plain = dark_pixels(1.0)
+    wide, image = dark_pixels(1.8)
+    assert narrow < normal < wide, (narrow, normal, wide)
+    assert np.array_equal(plain, renderer.render()), "scale 1 is the rest pupil"
+    # Only the left eye changed.
+    right = box_around(renderer, head.eye_centers["eye_r"] + [0.0, 0.0, EYE_RADIUS], 6)
+    assert np.array_equal(image[right], plain[right])
+    # However wide, a ring of iris stays.
+    def blue_pixels(image):
+        rgb = image[region].astype(int)
+        return int((rgb[..., 2] > rgb[..., 0] + 20).sum())
+
+    _, huge = dark_pixels(10.0)
+    assert blue_pixels(huge) > 0.15 * blue_pixels(plain), "a ring of iris should stay around the widest pupil"
+
+
+def test_rgba_frames_are_the_rgb_frames_with_opaque_alpha(head, renderer):
+    frame = next(jaw_frames(head, [0.2]))
+    rgba = renderer.render_rgba(frame.skin_vertices, frame.bone_transforms)
+    rgb = renderer.render(frame.skin_vertices, frame.bone_transforms)
+    assert rgba.shape == (SIZE[1], SIZE[0], 4) and np.all(rgba[..., 3] == 255)
+    assert np.array_equal(rgba[..., :3], rgb)
 
 
 def test_supersampling_averages_a_k_times_larger_render(head, renderer):

@@ -76,3 +76,20 @@ def test_bad_sizes_frames_and_paths_are_rejected(tmp_path):
         with VideoWriter(tmp_path / "shape.mp4", (96, 64), fps=25) as video:
             video.write(np.zeros((64, 95, 3), dtype=np.uint8))
     assert list(tmp_path.iterdir()) == []
+
+
+def test_rgba_frames_encode_like_rgb_frames(tmp_path):
+    """GL colour buffers are RGBA: they go to ffmpeg as they are, alpha ignored."""
+    frames = list(gradient_frames(8))
+    for name, channels in (("rgb.mp4", 3), ("rgba.mp4", 4)):
+        with VideoWriter(tmp_path / name, (96, 64), fps=25, channels=channels) as video:
+            for f in frames:
+                video.write(f if channels == 3 else np.concatenate([f, np.full(f.shape[:2] + (1,), 255, np.uint8)], 2))
+    _, rgb = decode(tmp_path / "rgb.mp4")
+    _, rgba = decode(tmp_path / "rgba.mp4")
+    assert len(rgba) == 8 and all(np.array_equal(a, b) for a, b in zip(rgb, rgba))
+    with pytest.raises(ValueError, match=r"expected \(64, 96, 4\) uint8"):
+        with VideoWriter(tmp_path / "x.mp4", (96, 64), fps=25, channels=4) as video:
+            video.write(frames[0])
+    with pytest.raises(ValueError, match="channels"):
+        VideoWriter(tmp_path / "y.mp4", (96, 64), fps=25, channels=2)

@@ -81,6 +81,8 @@ def add_view_arguments(parser: argparse.ArgumentParser, default_size: str) -> No
     parser.add_argument("--view", choices=list(VIEWS), default="front", help="camera preset (default front)")
     parser.add_argument("--supersample", type=int, default=1, metavar="K",
                         help="render at K x size and average (anti-aliasing; costs about K^2)")
+    parser.add_argument("--show-bones", action="store_true",
+                        help="also draw the cranium and mandible (hidden under the skin; for checking how it sits)")
 
 
 def register(subparsers) -> None:
@@ -142,7 +144,8 @@ def run(args: argparse.Namespace) -> int:
 
         progress = tqdm(total=expected or None, unit="frame", desc=Path(args.output).name, file=sys.stderr)
     try:
-        with FaceRenderer(model, size=(width, height), view=args.view, supersample=args.supersample) as renderer:
+        with FaceRenderer(model, size=(width, height), view=args.view, supersample=args.supersample,
+                          show_bones=args.show_bones) as renderer:
             player = Player(model, device="cpu")
             timings = render_video(player.play(stream, fps=args.fps), renderer, args.output, fps,
                                    frames_dir=frames_dir,

@@ -42,7 +42,8 @@ def run(args: argparse.Namespace) -> int:
     from fae.render.png import write_png
     from fae.render.renderer import FaceRenderer
 
-    with FaceRenderer(model, size=args.size, view=args.view, supersample=args.supersample) as renderer:
+    with FaceRenderer(model, size=args.size, view=args.view, supersample=args.supersample,
+                      show_bones=args.show_bones) as renderer:
         image = renderer.render()
     write_png(args.output, image)
     print(f"{args.output}: {head.name}, {args.view} view, {args.size[0]}x{args.size[1]}", file=sys.stderr)

@@ -48,12 +48,15 @@ class PlayTimings:
         return self.frames / self.wall if self.wall > 0 else 0.0
 
 
-def _snapshot(frame) -> tuple[np.ndarray | None, dict]:
-    """Copy a frame's arrays: a source may reuse its buffers for the next frame."""
+def _snapshot(frame) -> tuple[np.ndarray | None, dict, dict]:
+    """(skin_vertices, bone_transforms, pupil_scale) copied from a frame: a source may
+    reuse its buffers for the next frame."""
     skin = getattr(frame, "skin_vertices", None)
     bones = getattr(frame, "bone_transforms", None) or {}
+    pupils = getattr(frame, "pupil_scale", None) or {}
     return (None if skin is None else np.array(skin, dtype=np.float64, copy=True),
-            {k: np.array(v, dtype=np.float64, copy=True) for k, v in bones.items()})
+            {k: np.array(v, dtype=np.float64, copy=True) for k, v in bones.items()},
+            {k: float(v) for k, v in pupils.items()})
 
 
 class _Producer(threading.Thread):
@@ -143,8 +146,9 @@ def render_video(source: Iterable, renderer: FaceRenderer, path: str | os.PathLi
                  crf: int = 20, preset: str = "veryfast") -> PlayTimings:
     """Render every frame of `source` with `renderer` into the H.264 mp4 `path` at `fps`.
 
-    source      iterable of frames with `skin_vertices` (V, 3) metres and
-                `bone_transforms` {bone: (4, 4)} (fae.animate.player.PlayedFrame)
+    source      iterable of frames with `skin_vertices` (V, 3) metres, `bone_transforms`
+                {bone: (4, 4)} and optionally `pupil_scale` {eye: float}
+                (fae.animate.player.PlayedFrame)
     frames_dir  also write each frame as `frame_00000.png`, ... into this existing folder
     overlap     run the source in a producer thread (False: one thread, for comparison)
     on_frame    called with the number of frames done after each frame (progress bars)
@@ -161,14 +165,14 @@ def render_video(source: Iterable, renderer: FaceRenderer, path: str | os.PathLi
     t0 = time.perf_counter()
     frames = _frames_overlapped(source, timings, queue_size) if overlap else _frames_serial(source, timings)
     try:
-        with VideoWriter(path, renderer.size, fps, crf=crf, preset=preset) as video:
-            for skin, bones in frames:
+        with VideoWriter(path, renderer.size, fps, crf=crf, preset=preset, channels=4) as video:
+            for skin, bones, pupils in frames:
                 t = time.perf_counter()
-                image = renderer.render(skin, bones)
+                image = renderer.render_rgba(skin, bones, pupils)
                 render_s += time.perf_counter() - t
                 video.write(image)
                 if frames_dir is not None:
-                    write_png(Path(frames_dir) / f"frame_{count:05d}.png", image, compress_level=1)
+                    write_png(Path(frames_dir) / f"frame_{count:05d}.png", image[:, :, :3], compress_level=1)
                 count += 1
                 if on_frame is not None:
                     on_frame(count)

@@ -1,19 +1,26 @@
-"""Headless frames of a FaceModel: the only module in fae that imports pyrender or OpenGL.
+"""Headless frames of a FaceModel: the only module in fae that talks to OpenGL.
 
-`FaceRenderer(model, size, view, supersample).render(skin_vertices, bone_transforms)`
-returns an (H, W, 3) uint8 RGB image. Everything the frame loop needs (scene, GL buffers,
-shader programs, index arrays) is made once in the constructor. Skin, its dark inward copy
-(the mouth cavity) and the rigid parts are one primitive with vertex colours: a frame
-poses the parts on the CPU, writes positions and normals into the existing vertex buffer
-(`glBufferSubData`, no GL objects created per frame), draws once and reads the colour
-buffer back (no depth readback).
+`FaceRenderer(model, size, view, supersample).render(skin_vertices, bone_transforms,
+pupil_scale)` returns an (H, W, 3) uint8 RGB image.
 
-pyrender 0.1.45 under OSMesa and numpy 2 needs three fixes, applied once on import by
-`_patch_pyrender()` and documented there: its `Mesh.bounds` uses `np.infty` (gone in
-numpy 2); its shader-program cache is keyed on a ctypes context pointer that OSMesa
-returns as a new object on every call, so the cache never hits (every frame recompiles
-the shaders and leaks about 3 MB); an integer background colour renders black (we always
-pass floats).
+What is drawn is what shows on a real face: the skin, the eyes, teeth and tongue, and the
+mouth cavity (the skin's own inner side, dark, seen through the open mouth or any other
+opening). The cranium and mandible are anatomy under the skin and are left out unless
+`show_bones=True` (for looking at how the skin sits on the skull).
+
+Everything the frame loop needs is made once in the constructor: one GL program (Blinn-
+Phong with a key, fill and rim light, per-vertex colour and gloss, gamma 2.2), one static
+vertex buffer (colours, gloss), one index buffer and one dynamic buffer of positions and
+normals. A frame computes skin normals, poses the rigid parts on the CPU (and widens or
+narrows the pupils), writes the dynamic buffer with one `glBufferSubData`, issues three
+draw calls (outer skin, rigid parts, inner skin) and reads the OSMesa colour buffer, which
+is a numpy array already (no `glReadPixels`). No GL object is created per frame.
+
+pyrender is used only for its headless GL platforms (OSMesa, EGL): its scene renderer
+runs a physically based fragment shader that costs about 3x this one on llvmpipe, plus
+about 1 ms of Python per primitive per frame (tools/bench_play.py measures the gain).
+llvmpipe rasterizes with `LP_NUM_THREADS` threads; it is set to the usable core count
+unless the environment already sets it.
 """
 
 from __future__ import annotations
@@ -22,95 +29,97 @@ import ctypes
 import os
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
+os.environ.setdefault("LP_NUM_THREADS", str(len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
+                                            else (os.cpu_count() or 1)))
 
 import numpy as np  # noqa: E402
-import OpenGL.contextdata  # noqa: E402
-import pyrender  # noqa: E402
 from OpenGL import GL  # noqa: E402
-from pyrender.shader_program import ShaderProgramCache  # noqa: E402
 
-from fae.io.facemodel import FaceModel  # noqa: E402
+from fae.io.facemodel import FaceModel, Part  # noqa: E402
 from fae.render.framing import VIEWS, CameraView, camera_view  # noqa: E402
 from fae.render.normals import per_vertex_normals  # noqa: E402
 
-# Linear RGB colours and materials. The background is applied as-is (no gamma).
+# Colours are linear RGB; the shader applies gamma 2.2. The background is used as-is.
 BACKGROUND = (0.80, 0.82, 0.85)
-CAVITY_COLOR = (0.045, 0.010, 0.012, 1.0)  # inside of the mouth and head, seen through openings
+CAVITY_COLOR = (0.05, 0.012, 0.014)  # inside of the mouth and head, seen through openings
+BONE_COLOR = (0.80, 0.75, 0.62)  # cranium and mandible when shown
 AMBIENT = 0.22
-# Parts that are anatomy inside the head: drawn in the cavity colour so that the mouth
-# opening shows a dark interior instead of bone.
-INTERIOR_PARTS = ("cranium", "mandible")
-_ROUGHNESS = {"skin": 0.6}
+# Anatomy under the skin: not drawn unless show_bones.
+HIDDEN_PARTS = ("cranium", "mandible")
+# (specular weight, Blinn-Phong exponent) per part; wet eyes shine, skin barely.
+GLOSS = {
+    "skin": (0.10, 18.0),
+    "cavity": (0.0, 1.0),
+    "eye_l": (0.85, 90.0),
+    "eye_r": (0.85, 90.0),
+    "upper_teeth": (0.35, 40.0),
+    "lower_teeth": (0.35, 40.0),
+    "tongue": (0.30, 30.0),
+}
+_DEFAULT_GLOSS = (0.10, 20.0)
 
 # Light rig in camera coordinates (x right, y up, +z towards the viewer): direction the
-# light comes FROM and intensity. A warm key from the upper left, a cool softer fill from
-# the right, a rim light from behind and above to separate the head from the background.
-_LIGHTS = (
-    ((-0.55, 0.55, 1.0), (1.0, 0.97, 0.92), 3.2),
-    ((0.85, 0.05, 0.8), (0.88, 0.92, 1.0), 1.3),
-    ((0.2, 0.9, -0.9), (1.0, 1.0, 1.0), 1.6),
+# light comes FROM, colour, and intensity. A warm key from the upper left, a cool softer
+# fill from the right, a rim light from behind and above that separates the head from the
+# background.
+LIGHTS = (
+    ((-0.55, 0.55, 1.0), (1.0, 0.97, 0.92), 1.0),
+    ((0.85, 0.05, 0.8), (0.88, 0.92, 1.0), 0.42),
+    ((0.2, 0.9, -0.9), (1.0, 1.0, 1.0), 0.5),
 )
+# A pupil never grows past this fraction of the iris (angles from the eye's axis).
+_PUPIL_MAX_PER_IRIS = 0.85
+_PUPIL_MIN_SCALE = 0.2
 
-_patched = False
+_VERTEX_SHADER = """
+#version 330 core
+layout(location = 0) in vec3 position;
+layout(location = 1) in vec3 normal;
+layout(location = 2) in vec3 color;
+layout(location = 3) in vec2 gloss;
+uniform mat4 world_to_camera;
+uniform mat4 projection;
+uniform vec3 light_direction[%(lights)d];
+uniform vec3 light_color[%(lights)d];
+uniform float ambient;
+out vec3 v_front;
+out vec3 v_back;
 
+vec3 shade(vec3 n, vec3 to_eye, vec3 albedo, vec2 g) {
+    vec3 c = ambient * albedo;
+    for (int i = 0; i < %(lights)d; ++i) {
+        float d = dot(n, light_direction[i]);
+        if (d > 0.0) {
+            vec3 h = normalize(light_direction[i] + to_eye);
+            c += light_color[i] * (d * albedo + g.x * pow(max(dot(n, h), 0.0), g.y));
+        }
+    }
+    return pow(clamp(c, 0.0, 1.0), vec3(1.0 / 2.2));
+}
 
-def _current_context_address() -> int:
-    """Integer address of the current GL context (stable across calls, unlike the pointer object)."""
-    ctx = OpenGL.contextdata.getContext()
-    address = ctypes.cast(ctx, ctypes.c_void_p).value if not isinstance(ctx, int) else ctx
-    return int(address or 0)
+void main() {
+    vec4 p = world_to_camera * vec4(position, 1.0);
+    vec3 n = normalize(mat3(world_to_camera) * normal);
+    vec3 to_eye = normalize(-p.xyz);
+    v_front = shade(n, to_eye, color, gloss);
+    // The inside: mostly its own dark colour, a little shape from the key light.
+    v_back = pow(vec3(%(cavity)s) * (0.6 + 0.6 * max(dot(-n, light_direction[0]), 0.0)), vec3(1.0 / 2.2));
+    gl_Position = projection * p;
+}
+"""
 
-
-def _patch_pyrender() -> None:
-    """Fix pyrender 0.1.45 for numpy 2 and OSMesa; idempotent.
-
-    1. `Mesh.bounds` starts from `np.infty`, removed in numpy 2: replaced by a property
-       that takes the min/max over the primitives' bounds.
-    2. `ShaderProgramCache.get_program` keys its cache on `OpenGL.contextdata.getContext()`;
-       under OSMesa each call returns a new pointer object that compares unequal, so every
-       frame compiled the shaders again and leaked about 3 MB. Wrapped so that programs are
-       looked up by the context's integer address first; the original method runs only on
-       a miss (once per shader variant). `clear()` empties both caches.
-    """
-    global _patched
-    if _patched:
-        return
-
-    def mesh_bounds(self):
-        if self._bounds is None:
-            lows = np.array([p.bounds[0] for p in self.primitives])
-            highs = np.array([p.bounds[1] for p in self.primitives])
-            self._bounds = np.array([lows.min(axis=0), highs.max(axis=0)])
-        return self._bounds
-
-    if not hasattr(np, "infty"):
-        pyrender.Mesh.bounds = property(mesh_bounds, doc="(2, 3) float: axis-aligned bounds of the mesh.")
-
-    original_get_program = ShaderProgramCache.get_program
-    original_clear = ShaderProgramCache.clear
-
-    def get_program(self, vertex_shader, fragment_shader, geometry_shader=None, defines=None):
-        key = (_current_context_address(), vertex_shader, fragment_shader, geometry_shader,
-               tuple(sorted((defines or {}).items())))
-        programs = self.__dict__.setdefault("_programs_by_address", {})
-        program = programs.get(key)
-        if program is None:
-            program = original_get_program(self, vertex_shader, fragment_shader, geometry_shader, defines)
-            programs[key] = program
-        return program
-
-    def clear(self):
-        original_clear(self)
-        self.__dict__.pop("_programs_by_address", None)
-
-    get_program.__doc__ = original_get_program.__doc__
-    ShaderProgramCache.unpatched_get_program = original_get_program  # kept for tools/bench_play.py's baseline
-    ShaderProgramCache.get_program = get_program
-    ShaderProgramCache.clear = clear
-    _patched = True
-
-
-_patch_pyrender()
+# Lit per vertex (a skin triangle covers a few pixels at video sizes, so this matches
+# per-pixel lighting closely, and llvmpipe's fragment work drops to a copy). A triangle
+# seen from behind is the inside of the head: it gets the cavity colour.
+_FRAGMENT_SHADER = """
+#version 330 core
+in vec3 v_front;
+in vec3 v_back;
+out vec4 frag_color;
+void main() {
+    frag_color = vec4(gl_FrontFacing ? v_front : v_back, 1.0);
+}
+"""
 
 
 def _make_platform(width: int, height: int):
@@ -130,13 +139,98 @@ def _make_platform(width: int, height: int):
     return platform
 
 
-def _material(color, roughness: float) -> pyrender.MetallicRoughnessMaterial:
-    return pyrender.MetallicRoughnessMaterial(
-        baseColorFactor=np.asarray(color, dtype=np.float64).reshape(4),
-        metallicFactor=0.0,
-        roughnessFactor=float(roughness),
-        doubleSided=False,
-    )
+def _compile_program(vertex_source: str, fragment_source: str) -> int:
+    shaders = []
+    for kind, source in ((GL.GL_VERTEX_SHADER, vertex_source), (GL.GL_FRAGMENT_SHADER, fragment_source)):
+        shader = GL.glCreateShader(kind)
+        GL.glShaderSource(shader, source)
+        GL.glCompileShader(shader)
+        if not GL.glGetShaderiv(shader, GL.GL_COMPILE_STATUS):
+            raise RuntimeError(f"shader compilation failed: {GL.glGetShaderInfoLog(shader).decode(errors='replace')}")
+        shaders.append(shader)
+    program = GL.glCreateProgram()
+    for shader in shaders:
+        GL.glAttachShader(program, shader)
+    GL.glLinkProgram(program)
+    if not GL.glGetProgramiv(program, GL.GL_LINK_STATUS):
+        raise RuntimeError(f"shader link failed: {GL.glGetProgramInfoLog(program).decode(errors='replace')}")
+    for shader in shaders:
+        GL.glDetachShader(program, shader)
+        GL.glDeleteShader(shader)
+    return program
+
+
+def perspective(yfov: float, aspect: float, znear: float, zfar: float) -> np.ndarray:
+    """(4, 4) float64 OpenGL projection matrix (camera looks along -z)."""
+    f = 1.0 / np.tan(0.5 * yfov)
+    P = np.zeros((4, 4))
+    P[0, 0], P[1, 1] = f / aspect, f
+    P[2, 2] = (zfar + znear) / (znear - zfar)
+    P[2, 3] = 2.0 * zfar * znear / (znear - zfar)
+    P[3, 2] = -1.0
+    return P
+
+
+class _PupilRig:
+    """Widens or narrows one eye's pupil by turning its vertices about the eye centre.
+
+    Vertices are moved along the eyeball, away from or towards the eye's axis (centre ->
+    pupil): the pupil's angular radius is multiplied by the scale, the iris ring between
+    pupil and limbus is stretched or squeezed to fit, and the limbus and the white stay
+    where they are. Vertex colours do not change; the dark pupil colour goes with its
+    vertices.
+
+    centre (3,) metres; axis (3,) unit; index (k,) vertices of the part inside the iris;
+    radial (k, 3) unit directions away from the axis; angle (k,) radians from the axis.
+    """
+
+    def __init__(self, vertices: np.ndarray, colors: np.ndarray, base_color: np.ndarray, centre: np.ndarray):
+        luminance = colors[:, :3] @ np.array([0.2126, 0.7152, 0.0722])
+        pupil = luminance < 0.05
+        iris = np.abs(colors[:, :3] - base_color[:3]).max(axis=1) > 0.05
+        if not pupil.any() or pupil.all() or not iris.any():
+            raise ValueError("no pupil")
+        self.centre = centre
+        axis = (vertices[pupil] - centre).mean(axis=0)
+        self.axis = axis / np.linalg.norm(axis)
+        d = vertices - centre
+        along = d @ self.axis
+        angle = np.arctan2(np.linalg.norm(d - along[:, None] * self.axis, axis=1), along)
+        self.pupil_angle = float(angle[pupil].max())
+        self.iris_angle = float(angle[iris].max())
+        if not 0.0 < self.pupil_angle < self.iris_angle:
+            raise ValueError("pupil not inside the iris")
+        self.index = np.nonzero(angle <= self.iris_angle)[0]
+        d = d[self.index]
+        radial = d - (d @ self.axis)[:, None] * self.axis
+        length = np.linalg.norm(radial, axis=1)
+        length[length < 1e-12] = 1.0
+        self.radial = radial / length[:, None]
+        self.angle = angle[self.index]
+        self.max_scale = _PUPIL_MAX_PER_IRIS * self.iris_angle / self.pupil_angle
+
+    def turn(self, scale: float) -> np.ndarray | None:
+        """(k,) radians each iris vertex turns away from the axis for `scale`, or None at 1."""
+        s = float(np.clip(scale, _PUPIL_MIN_SCALE, self.max_scale))
+        if s == 1.0:
+            return None
+        p, i, a = self.pupil_angle, self.iris_angle, self.angle
+        new = np.where(a <= p, a * s, i - (i - a) * (i - s * p) / (i - p))
+        return new - a
+
+    def apply(self, scale: float, P: np.ndarray, N: np.ndarray) -> None:
+        """Move the iris vertices of rest positions P and normals N (n, 3) in place."""
+        delta = self.turn(scale)
+        if delta is None:
+            return
+        c, s = np.cos(delta)[:, None], np.sin(delta)[:, None]
+        a, r = self.axis, self.radial
+        for X, origin in ((P, self.centre), (N, 0.0)):
+            x = X[self.index] - origin
+            xa, xr = x @ a, np.einsum("ij,ij->i", x, r)
+            rest = x - xa[:, None] * a - xr[:, None] * r  # the part along the rotation axis
+            X[self.index] = origin + rest + (c[:, 0] * xa - s[:, 0] * xr)[:, None] * a \
+                + (s[:, 0] * xa + c[:, 0] * xr)[:, None] * r
 
 
 class FaceRenderer:
@@ -148,13 +242,14 @@ class FaceRenderer:
                  feature points, see fae.render.framing)
     supersample  k >= 1: render at k x size and average k x k blocks (anti-aliasing; OSMesa
                  has no multisampling). Costs about k^2 in fragment work.
-    background   linear RGB floats in [0, 1]
+    background   linear RGB floats in [0, 1], used as-is
+    show_bones   also draw the cranium and mandible (hidden under the skin on a real face)
 
     Use as a context manager or call `close()` to free the GL context.
     """
 
     def __init__(self, model: FaceModel, size: tuple[int, int] = (640, 480), view: str = "front",
-                 supersample: int = 1, background=BACKGROUND):
+                 supersample: int = 1, background=BACKGROUND, show_bones: bool = False):
         width, height = (int(s) for s in size)
         if width <= 0 or height <= 0:
             raise ValueError(f"image size {width}x{height}: expected positive width and height")
@@ -162,25 +257,18 @@ class FaceRenderer:
             raise ValueError(f"supersample {supersample!r}: expected an integer >= 1")
         if view not in VIEWS:
             raise ValueError(f"unknown view {view!r}: expected one of {', '.join(VIEWS)}")
+        bg = np.asarray(background, dtype=np.float64).reshape(-1)
+        if bg.size < 3 or not np.all((bg[:3] >= 0.0) & (bg[:3] <= 1.0)):
+            raise ValueError(f"background {background!r}: expected linear RGB floats in [0, 1]")
         self.model = model
         self.size = (width, height)
         self.supersample = int(supersample)
         self.view = view
+        self.show_bones = bool(show_bones)
         self._vw, self._vh = width * self.supersample, height * self.supersample
         self.camera: CameraView = camera_view(model, view, aspect=width / height)
+        self._background = tuple(float(c) for c in bg[:3])
 
-        bg = np.asarray(background, dtype=np.float64).reshape(-1)[:3]
-        self._scene = pyrender.Scene(bg_color=np.append(bg, 1.0), ambient_light=np.full(3, AMBIENT))
-        cam = pyrender.PerspectiveCamera(yfov=self.camera.yfov, znear=self.camera.znear,
-                                         zfar=self.camera.zfar, aspectRatio=width / height)
-        self._scene.add(cam, pose=self.camera.pose)
-        self._add_lights()
-
-        # Everything is one primitive (one draw call, one buffer upload per frame; pyrender
-        # spends about 1 ms of Python per primitive per frame): the skin, a dark copy of it
-        # facing inwards (reversed triangles; it shows only through openings such as the
-        # mouth or the back of a face-only mesh), then every rigid part, posed on the CPU.
-        # Colours are per vertex, so the material is white.
         rest = np.asarray(model.skin_vertices, dtype=np.float64)
         faces = np.asarray(model.skin_faces, dtype=np.int64)
         if rest.ndim != 2 or rest.shape[1] != 3 or faces.ndim != 2 or faces.shape[1] != 3:
@@ -190,66 +278,110 @@ class FaceRenderer:
         self._skin_faces = faces
         self._corner_index = faces.ravel()
         self._skin_rest_normals = per_vertex_normals(rest, faces, self._corner_index)
-        skin_color = np.asarray(model.skin_color, dtype=np.float32).reshape(4)
-        positions = [rest, rest]
-        normals = [self._skin_rest_normals, -self._skin_rest_normals]
-        colors = [np.tile(skin_color, (nv, 1)), np.tile(np.asarray(CAVITY_COLOR, dtype=np.float32), (nv, 1))]
-        tris = [faces, faces[:, ::-1] + nv]
-        offset = 2 * nv
-        self._parts = []  # (bone, slice into the vertex arrays, rest vertices, rest normals)
+
+        # Vertex arrays: the skin, then each drawn rigid part. The skin's inner side (the
+        # cavity) is the same vertices drawn again with front faces culled.
+        skin_rgb = np.asarray(model.skin_color, dtype=np.float32).reshape(-1)[:3]
+        colors = [np.tile(skin_rgb, (nv, 1))]
+        gloss = [np.tile(np.asarray(GLOSS["skin"], dtype=np.float32), (nv, 1))]
+        tris = [faces]
+        offset = nv
+        self._parts = []  # (bone, slice into the vertex arrays, rest vertices, rest normals, pupil rig)
         for name, part in model.parts.items():
             pv = np.asarray(part.vertices, dtype=np.float64)
             pf = np.asarray(part.faces, dtype=np.int64)
-            if pv.size == 0 or pf.size == 0:
+            if pv.size == 0 or pf.size == 0 or (name in HIDDEN_PARTS and not self.show_bones):
                 continue
-            pn = per_vertex_normals(pv, pf)
-            if name in INTERIOR_PARTS:
-                pc = np.tile(np.asarray(CAVITY_COLOR, dtype=np.float32), (len(pv), 1))
-            elif part.vertex_colors is not None:
-                pc = np.asarray(part.vertex_colors, dtype=np.float32).reshape(-1, 4)
-            else:
-                pc = np.tile(np.asarray(part.color, dtype=np.float32).reshape(4), (len(pv), 1))
-            positions.append(pv)
-            normals.append(pn)
-            colors.append(pc)
+            pc = self._part_colors(name, part)
+            pupil = None
+            if part.vertex_colors is not None and part.bone in model.eye_centers:
+                try:
+                    pupil = _PupilRig(pv, pc, np.asarray(part.color, dtype=np.float32).reshape(-1),
+                                      np.asarray(model.eye_centers[part.bone], dtype=np.float64))
+                except ValueError:
+                    pupil = None  # an eye without a pupil colour: drawn, never dilated
+            colors.append(pc[:, :3])
+            gloss.append(np.tile(np.asarray(GLOSS.get(name, _DEFAULT_GLOSS), dtype=np.float32), (len(pv), 1)))
             tris.append(pf + offset)
-            self._parts.append((part.bone, slice(offset, offset + len(pv)), pv, pn))
+            self._parts.append((part.bone, slice(offset, offset + len(pv)), pv, per_vertex_normals(pv, pf), pupil))
             offset += len(pv)
-        colors = np.concatenate(colors).astype(np.float32)
-        colors[:, 3] = 1.0  # opaque: pyrender would otherwise sort and blend
-        self._vertex_count = offset
-        self._primitive = pyrender.Primitive(
-            positions=np.concatenate(positions), normals=np.concatenate(normals), color_0=colors,
-            indices=np.concatenate(tris), material=_material((1.0, 1.0, 1.0, 1.0), _ROUGHNESS["skin"]))
-        self._scene.add(pyrender.Mesh([self._primitive]), name="head")
-        # Interleaved float32 staging array in the primitive's buffer layout (position,
-        # normal, colour); positions and normals are rewritten in place every frame.
-        self._staging = np.empty((offset, 10), dtype=np.float32)
-        self._staging[:, 6:] = colors
+        self.vertex_count = offset
+        self.vertex_colors = np.concatenate(colors).astype(np.float32)  # (vertex_count, 3) linear RGB
+        self.triangles = np.concatenate(tris).astype(np.uint32)  # (m, 3) into the frame_geometry arrays
+        self._skin_index_count = 3 * len(faces)
+        self._index_count = 3 * sum(len(t) for t in tris)
+        # Per frame: positions and normals, float32, interleaved.
+        self._dynamic = np.empty((offset, 6), dtype=np.float32)
+        static = np.concatenate([self.vertex_colors, np.concatenate(gloss)], axis=1).astype(np.float32)
+        indices = self.triangles
 
         self._platform = _make_platform(self._vw, self._vh)
-        self._renderer = pyrender.Renderer(self._vw, self._vh)
-        self._flags = pyrender.RenderFlags.NONE  # draws into the default framebuffer; no depth readback
-        self._renderer.render(self._scene, self._flags)  # creates the GL buffers and shader programs once
         self._closed = False
+        self._make_gl_objects(static, indices)
 
-    def _add_lights(self) -> None:
-        R = self.camera.pose[:3, :3]
-        for from_dir, color, intensity in _LIGHTS:
-            towards_light = R @ (np.asarray(from_dir) / np.linalg.norm(from_dir))
-            pose = np.eye(4)
-            # A directional light shines along its node's -z: point +z towards the light.
-            z = towards_light
-            x = np.cross((0.0, 1.0, 0.0), z)
-            if np.linalg.norm(x) < 1e-6:
-                x = np.array([1.0, 0.0, 0.0])
-            x /= np.linalg.norm(x)
-            pose[:3, 0], pose[:3, 1], pose[:3, 2] = x, np.cross(z, x), z
-            self._scene.add(pyrender.DirectionalLight(color=np.asarray(color), intensity=intensity), pose=pose)
+    @staticmethod
+    def _part_colors(name: str, part: Part) -> np.ndarray:
+        if name in HIDDEN_PARTS:
+            return np.tile(np.array([*BONE_COLOR, 1.0], dtype=np.float32), (len(part.vertices), 1))
+        if part.vertex_colors is not None:
+            return np.asarray(part.vertex_colors, dtype=np.float32).reshape(-1, 4)
+        return np.tile(np.asarray(part.color, dtype=np.float32).reshape(4), (len(part.vertices), 1))
 
-    def frame_geometry(self, skin_vertices=None, bone_transforms=None) -> tuple[np.ndarray, np.ndarray]:
-        """(positions, normals), each (n, 3) float64, of everything drawn in one frame: skin,
-        its inward copy, then the rigid parts posed by their bones (see `render`)."""
+    def _make_gl_objects(self, static: np.ndarray, indices: np.ndarray) -> None:
+        cavity = ", ".join(f"{c:.6f}" for c in CAVITY_COLOR)
+        self._program = _compile_program(_VERTEX_SHADER % {"cavity": cavity, "lights": len(LIGHTS)},
+                                          _FRAGMENT_SHADER)
+        self._vao = GL.glGenVertexArrays(1)
+        GL.glBindVertexArray(self._vao)
+        self._buffers = GL.glGenBuffers(3)
+        dynamic_buffer, static_buffer, index_buffer = (int(b) for b in self._buffers)
+        self._dynamic_buffer = dynamic_buffer
+        GL.glBindBuffer(GL.GL_ARRAY_BUFFER, dynamic_buffer)
+        GL.glBufferData(GL.GL_ARRAY_BUFFER, self._dynamic.nbytes, None, GL.GL_STREAM_DRAW)
+        for location, start in ((0, 0), (1, 3)):
+            GL.glEnableVertexAttribArray(location)
+            GL.glVertexAttribPointer(location, 3, GL.GL_FLOAT, GL.GL_FALSE, 24, ctypes.c_void_p(4 * start))
+        GL.glBindBuffer(GL.GL_ARRAY_BUFFER, static_buffer)
+        GL.glBufferData(GL.GL_ARRAY_BUFFER, static.nbytes, np.ascontiguousarray(static), GL.GL_STATIC_DRAW)
+        for location, count, start in ((2, 3, 0), (3, 2, 3)):
+            GL.glEnableVertexAttribArray(location)
+            GL.glVertexAttribPointer(location, count, GL.GL_FLOAT, GL.GL_FALSE, 20, ctypes.c_void_p(4 * start))
+        GL.glBindBuffer(GL.GL_ELEMENT_ARRAY_BUFFER, index_buffer)
+        GL.glBufferData(GL.GL_ELEMENT_ARRAY_BUFFER, indices.nbytes, indices, GL.GL_STATIC_DRAW)
+        GL.glBindBuffer(GL.GL_ARRAY_BUFFER, 0)
+
+        GL.glUseProgram(self._program)
+        world_to_camera = np.linalg.inv(self.camera.pose)
+        # y flipped: rows come out of GL top row first, as images are stored. That mirrors
+        # the winding on screen, so front faces are the clockwise ones.
+        projection = np.diag([1.0, -1.0, 1.0, 1.0]) @ perspective(
+            self.camera.yfov, self.size[0] / self.size[1], self.camera.znear, self.camera.zfar)
+        location = GL.glGetUniformLocation
+        GL.glUniformMatrix4fv(location(self._program, "world_to_camera"), 1, GL.GL_TRUE,
+                              world_to_camera.astype(np.float32))
+        GL.glUniformMatrix4fv(location(self._program, "projection"), 1, GL.GL_TRUE, projection.astype(np.float32))
+        directions = np.array([np.asarray(d) / np.linalg.norm(d) for d, _, _ in LIGHTS], dtype=np.float32)
+        light_colors = np.array([np.asarray(c) * i for _, c, i in LIGHTS], dtype=np.float32)
+        GL.glUniform3fv(location(self._program, "light_direction"), len(LIGHTS), directions)
+        GL.glUniform3fv(location(self._program, "light_color"), len(LIGHTS), light_colors)
+        GL.glUniform1f(location(self._program, "ambient"), AMBIENT)
+        GL.glViewport(0, 0, self._vw, self._vh)
+        GL.glClearColor(*self._background, 1.0)
+        GL.glEnable(GL.GL_DEPTH_TEST)
+        GL.glDepthFunc(GL.GL_LESS)
+        GL.glDisable(GL.GL_CULL_FACE)
+        GL.glFrontFace(GL.GL_CW)
+        GL.glDisable(GL.GL_BLEND)
+
+    def frame_geometry(self, skin_vertices=None, bone_transforms=None,
+                       pupil_scale=None) -> tuple[np.ndarray, np.ndarray]:
+        """(positions, normals), each (vertex_count, 3) float32, of everything drawn in one
+        frame: the skin, then each drawn rigid part posed by its bone (see `render`)."""
+        self._write_geometry(skin_vertices, bone_transforms, pupil_scale)
+        return self._dynamic[:, :3].copy(), self._dynamic[:, 3:].copy()
+
+    def _write_geometry(self, skin_vertices, bone_transforms, pupil_scale) -> None:
+        """Fill the (vertex_count, 6) float32 staging array of positions and normals."""
         if skin_vertices is None:
             V, N = self._skin_rest, self._skin_rest_normals
         else:
@@ -257,57 +389,86 @@ class FaceRenderer:
             if V.shape != self._skin_rest.shape:
                 raise ValueError(f"skin_vertices: expected shape {self._skin_rest.shape}, got {V.shape}")
             N = per_vertex_normals(V, self._skin_faces, self._corner_index)
-        P = np.empty((self._vertex_count, 3))
-        Q = np.empty((self._vertex_count, 3))
+        out = self._dynamic
         nv = V.shape[0]
-        P[:nv], P[nv:2 * nv], Q[:nv], Q[nv:2 * nv] = V, V, N, -N
+        out[:nv, :3] = V
+        out[:nv, 3:] = N
         bones = bone_transforms or {}
-        for bone, where, pv, pn in self._parts:
+        pupils = pupil_scale or {}
+        for bone, where, pv, pn, pupil in self._parts:
+            scale = pupils.get(bone)
+            if pupil is not None and scale is not None and pupil.turn(scale) is not None:
+                pv, pn = pv.copy(), pn.copy()
+                pupil.apply(scale, pv, pn)
             T = bones.get(bone)
             if T is None:
-                P[where], Q[where] = pv, pn
+                out[where, :3], out[where, 3:] = pv, pn
                 continue
             T = np.asarray(T, dtype=np.float64)
             if T.shape != (4, 4):
                 raise ValueError(f"bone_transforms[{bone!r}]: expected a (4, 4) matrix, got shape {T.shape}")
-            P[where] = pv @ T[:3, :3].T + T[:3, 3]
-            Q[where] = pn @ T[:3, :3].T  # rigid: rotation only
-        return P, Q
+            out[where, :3] = pv @ T[:3, :3].T + T[:3, 3]
+            out[where, 3:] = pn @ T[:3, :3].T  # rigid: rotation only
 
     def render(self, skin_vertices: np.ndarray | None = None,
-               bone_transforms: dict[str, np.ndarray] | None = None) -> np.ndarray:
+               bone_transforms: dict[str, np.ndarray] | None = None,
+               pupil_scale: dict[str, float] | None = None) -> np.ndarray:
         """One frame, (H, W, 3) uint8 RGB.
 
         skin_vertices    (V, 3) float metres, the deformed skin in world space; None: rest
         bone_transforms  bone name -> (4, 4) world transform (rest -> now) of the parts on
                          that bone ("head", "jaw", "eye_l", "eye_r", "tongue"); a bone not
                          given (or None) stays at rest
+        pupil_scale      eye bone ("eye_l", "eye_r") -> pupil diameter / rest diameter
+                         (MPEG-4 FAPs 29, 30); kept between 0.2 and what the iris holds
         """
+        return np.ascontiguousarray(self.render_rgba(skin_vertices, bone_transforms, pupil_scale)[:, :, :3])
+
+    def render_rgba(self, skin_vertices: np.ndarray | None = None,
+                    bone_transforms: dict[str, np.ndarray] | None = None,
+                    pupil_scale: dict[str, float] | None = None) -> np.ndarray:
+        """One frame, (H, W, 4) uint8 RGBA (alpha 255), as `render` but without dropping
+        the alpha channel: the GL colour buffer is RGBA, and copying 3 of every 4 bytes
+        costs more than the copy itself (ffmpeg and Pillow take RGBA as it is)."""
         if self._closed:
             raise RuntimeError("FaceRenderer is closed")
-        P, Q = self.frame_geometry(skin_vertices, bone_transforms)
-        self._staging[:, :3] = P
-        self._staging[:, 3:6] = Q
+        self._write_geometry(skin_vertices, bone_transforms, pupil_scale)
         self._platform.make_current()
-        GL.glBindBuffer(GL.GL_ARRAY_BUFFER, self._primitive._buffers[0])  # the interleaved vertex buffer
-        GL.glBufferSubData(GL.GL_ARRAY_BUFFER, 0, self._staging.nbytes, self._staging)
+        GL.glBindBuffer(GL.GL_ARRAY_BUFFER, self._dynamic_buffer)
+        GL.glBufferSubData(GL.GL_ARRAY_BUFFER, 0, self._dynamic.nbytes, self._dynamic)
         GL.glBindBuffer(GL.GL_ARRAY_BUFFER, 0)
-        self._renderer.render(self._scene, self._flags)
-        image = self._renderer.read_color_buf()
+        GL.glUseProgram(self._program)
+        GL.glBindVertexArray(self._vao)
+        GL.glClear(GL.GL_COLOR_BUFFER_BIT | GL.GL_DEPTH_BUFFER_BIT)
+        GL.glDrawElements(GL.GL_TRIANGLES, self._index_count, GL.GL_UNSIGNED_INT, None)
+        GL.glFinish()
+        image = self._color_buffer()
         k = self.supersample
         if k > 1:
             w, h = self.size
-            blocks = image.reshape(h, k, w, k, 3).astype(np.uint16).sum(axis=(1, 3))
+            blocks = image.reshape(h, k, w, k, 4).astype(np.uint16).sum(axis=(1, 3))
             return ((blocks + (k * k) // 2) // (k * k)).astype(np.uint8)
-        return np.ascontiguousarray(image)
+        return image
+
+    def _color_buffer(self) -> np.ndarray:
+        """(vh, vw, 4) uint8 copy of the rendered colour buffer, top row first (the
+        projection flips y, so GL's first row is the image's top row)."""
+        buffer = getattr(self._platform, "_buffer", None)
+        if buffer is not None:  # OSMesa renders straight into this array
+            return np.array(buffer, dtype=np.uint8, copy=True).reshape(self._vh, self._vw, 4)
+        GL.glPixelStorei(GL.GL_PACK_ALIGNMENT, 1)
+        data = GL.glReadPixels(0, 0, self._vw, self._vh, GL.GL_RGBA, GL.GL_UNSIGNED_BYTE)
+        return np.frombuffer(data, dtype=np.uint8).reshape(self._vh, self._vw, 4).copy()
 
     def close(self) -> None:
-        """Free the GL context and buffers; idempotent."""
+        """Free the GL objects and context; idempotent."""
         if getattr(self, "_closed", True):
             return
         self._closed = True
         self._platform.make_current()
-        self._renderer.delete()
+        GL.glDeleteBuffers(3, self._buffers)
+        GL.glDeleteVertexArrays(1, [self._vao])
+        GL.glDeleteProgram(self._program)
         self._platform.delete_context()
 
     def __enter__(self) -> "FaceRenderer":

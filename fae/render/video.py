@@ -35,13 +35,14 @@ def _rate(fps: float) -> str:
 
 
 class VideoWriter:
-    """Write (H, W, 3) uint8 RGB frames to an H.264 (yuv420p) mp4 at `path`.
+    """Write (H, W, 3) uint8 RGB (or (H, W, 4) RGBA) frames to an H.264 (yuv420p) mp4 at `path`.
 
     path    the .mp4 to create (its folder must exist); replaced only on success
     size    (width, height) in pixels, both even (yuv420p halves the chroma planes)
     fps     frames per second (may be fractional, e.g. 29.97)
     crf     x264 constant rate factor (0 lossless .. 51 worst; 18-23 looks clean)
     preset  x264 speed preset ("ultrafast" .. "veryslow")
+    channels  3: frames are RGB; 4: RGBA (alpha ignored), as a GL colour buffer comes
 
     Use as a context manager: leaving the block normally finishes the file, an exception
     discards it. `encode_seconds` accumulates the time spent handing frames to ffmpeg and
@@ -49,10 +50,13 @@ class VideoWriter:
     """
 
     def __init__(self, path: str | os.PathLike, size: tuple[int, int], fps: float,
-                 crf: int = 20, preset: str = "veryfast"):
+                 crf: int = 20, preset: str = "veryfast", channels: int = 3):
         width, height = (int(s) for s in size)
         if width <= 0 or height <= 0 or width % 2 or height % 2:
             raise ValueError(f"video size {width}x{height}: H.264 yuv420p needs positive, even width and height")
+        if channels not in (3, 4):
+            raise ValueError(f"channels {channels!r}: expected 3 (RGB) or 4 (RGBA)")
+        self.channels = int(channels)
         self.path = Path(path)
         self.size = (width, height)
         self.fps = float(fps)
@@ -64,7 +68,7 @@ class VideoWriter:
         self._log = tempfile.TemporaryFile()
         cmd = [
             imageio_ffmpeg.get_ffmpeg_exe(), "-y", "-nostdin", "-v", "error",
-            "-f", "rawvideo", "-pix_fmt", "rgb24", "-s", f"{width}x{height}", "-framerate", rate, "-i", "-",
+            "-f", "rawvideo", "-pix_fmt", "rgb24" if channels == 3 else "rgba", "-s", f"{width}x{height}", "-framerate", rate, "-i", "-",
             "-an", "-c:v", "libx264", "-preset", preset, "-crf", str(int(crf)), "-pix_fmt", "yuv420p",
             "-r", rate, "-movflags", "+faststart", str(self._tmp),
         ]
@@ -77,13 +81,13 @@ class VideoWriter:
         self._open = True
 
     def write(self, image: np.ndarray) -> None:
-        """Append one frame: (H, W, 3) uint8 RGB, H and W matching `size`."""
+        """Append one frame: (H, W, channels) uint8, H and W matching `size`."""
         if not self._open:
             raise VideoError(f"{self.path}: the video is already closed")
         image = np.asarray(image)
         w, h = self.size
-        if image.shape != (h, w, 3) or image.dtype != np.uint8:
-            raise ValueError(f"{self.path}: frame {self.frame_count}: expected ({h}, {w}, 3) uint8, "
+        if image.shape != (h, w, self.channels) or image.dtype != np.uint8:
+            raise ValueError(f"{self.path}: frame {self.frame_count}: expected ({h}, {w}, {self.channels}) uint8, "
                              f"got {image.shape} {image.dtype}")
         t = time.perf_counter()
         try:
