@@ -16,12 +16,12 @@ pytest.importorskip("fae.render.video")
 
 
 class GreyRenderer:
-    """Paints the whole image one grey level: the frame's count, so decoding tells order."""
+    """Paints the whole image one grey level: the render's count, so decoding tells order."""
 
     def __init__(self) -> None:
         self.count = 0
 
-    def render(self, skin_vertices, bone_transforms):
+    def render(self, skin_vertices, bone_transforms, pupil_scale):
         assert skin_vertices.shape == LinearFace.rest.shape
         image = np.full((64, 64, 3), (self.count * 5) % 250, dtype=np.uint8)
         self.count += 1
@@ -54,13 +54,16 @@ def test_record_writes_every_frame_of_a_stream_and_appears_only_when_closed(tmp_
         assert not out.exists()  # still recording
         await server.close()
         await recorder.close()
-        return recorder
+        return recorder, report
 
-    recorder = run_main(main())
+    recorder, report = run_main(main())
     assert out.is_file() and recorder.frames_written == 43 and recorder.skipped == 0
+    # One render per face step; frames coalesced into one step repeat its image.
+    assert recorder.frames_rendered == report.steps
     levels = decoded_grey_levels(out)
     assert len(levels) == 43
-    np.testing.assert_allclose(levels, [(k * 5) % 250 for k in range(43)], atol=3)
+    expected = [(k * 5) % 250 for k in np.repeat(np.arange(report.steps), np.bincount(report.frame_steps - 1))]
+    np.testing.assert_allclose(levels, expected, atol=3)
     assert not [p for p in tmp_path.iterdir() if p.name != "live.mp4"]  # no temporary left behind
 
 

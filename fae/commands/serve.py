@@ -56,7 +56,7 @@ async def _serve(args, model) -> int:
         from fae.render.renderer import FaceRenderer
 
         size = _size(args.size)
-        recorder = StreamRecorder(server.subscribe(maxsize=8, lossless=True), args.record,
+        recorder = StreamRecorder(server.subscribe(maxsize=64, lossless=True), args.record,
                                   lambda: FaceRenderer(model, size, args.view), size)
     await server.start()
     if recorder is not None:
@@ -67,7 +67,10 @@ async def _serve(args, model) -> int:
         loop.add_signal_handler(sig, stop.set)
     print(f"fae serve: listening on {args.host}:{server.port} (head {args.head})", file=sys.stderr, flush=True)
     await server.serve_until(stop)
-    print(f"fae serve: stopped after {server.connections_total} connections", file=sys.stderr)
+    st = server.stats()
+    print(f"fae serve: stopped after {st['connections']} connections; native streams: {st['native_frames']} "
+          f"frames in {st['native_steps']} face steps; Xface: {st['xface_frames']} frames in "
+          f"{st['xface_steps']} face steps", file=sys.stderr)
     if recorder is not None:
         await recorder.close()
         print(f"fae serve: wrote {recorder.frames_written} frames to {args.record}"
@@ -89,10 +92,20 @@ def run(args) -> int:
         return 2
     from fae.io.facemodel_gltf import read_facemodel
 
+    from fae.net.faces import playable_model
+
     try:
         model = read_facemodel(args.head)
     except (OSError, ValueError) as exc:
         print(f"fae serve: --head {args.head}: {exc}", file=sys.stderr)
+        return 2
+    if not model.fap_mapping:
+        print(f"fae serve: {args.head} carries no FAP mapping; calibrating it once (tens of seconds)",
+              file=sys.stderr, flush=True)
+    try:
+        model = playable_model(model, args.device)
+    except (RuntimeError, ValueError) as exc:
+        print(f"fae serve: --head {args.head}: cannot animate it: {exc}", file=sys.stderr)
         return 2
     try:
         return asyncio.run(_serve(args, model))

@@ -22,6 +22,7 @@ class SendReport:
     errors        the server's `error ...` lines, in order
     latencies     (frames_ok,) float64 seconds from sending a frame's values line to
                   reading its `ok`
+    frame_steps   (frames_ok,) int64 the step number each `ok` named, in reply order
     elapsed       seconds from the first frame sent to the last reply read
     fps           the stream's frame rate from the server's header reply (0 if none)
     """
@@ -31,6 +32,7 @@ class SendReport:
     steps: int = 0
     errors: list[str] = field(default_factory=list)
     latencies: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    frame_steps: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     elapsed: float = 0.0
     fps: float = 0.0
     header_ok: bool = False
@@ -84,6 +86,7 @@ async def send_fap(text: str, host: str = "127.0.0.1", port: int = 50011, *, rat
     report = SendReport()
     sent_at: dict[str, list[float]] = {}
     latencies: list[float] = []
+    frame_steps: list[int] = []
     header_seen = asyncio.Event()
     start = [0.0]
 
@@ -115,7 +118,8 @@ async def send_fap(text: str, host: str = "127.0.0.1", port: int = 50011, *, rat
                         latencies.append(now - times.pop(0))
                     report.frames_ok += 1
                     if len(parts) > 2 and parts[2].isdigit():
-                        report.steps = max(report.steps, int(parts[2]))
+                        frame_steps.append(int(parts[2]))
+                        report.steps = max(report.steps, frame_steps[-1])
                 elif line.startswith("error"):
                     report.errors.append(line)
                     header_seen.set()
@@ -155,4 +159,5 @@ async def send_fap(text: str, host: str = "127.0.0.1", port: int = 50011, *, rat
         except ConnectionError:
             pass
     report.latencies = np.asarray(latencies, dtype=np.float64)
+    report.frame_steps = np.asarray(frame_steps, dtype=np.int64)
     return report

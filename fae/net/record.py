@@ -5,7 +5,9 @@ every frame of a recorded stream is in the video. It follows one stream at a tim
 first one it sees; when that stream ends, the next one that plays), so concurrent
 clients never interleave in the video; frames of streams it is not following are counted
 in `skipped`. Rendering runs in one thread of its own (an OpenGL context belongs to the
-thread that made it). The file appears only when the recorder is closed cleanly.
+thread that made it). Frames that share one pose (the face coalesced them into one step)
+are rendered once and written as many times, so the video keeps the stream's timing.
+The file appears only when the recorder is closed cleanly.
 """
 
 from __future__ import annotations
@@ -21,8 +23,8 @@ from fae.net.hub import FrameEvent, StreamEnd, Subscription
 
 
 class FrameRenderer(Protocol):
-    def render(self, skin_vertices: np.ndarray, bone_transforms: dict) -> np.ndarray:
-        """(H, W, 3) uint8 RGB image of the pose."""
+    def render(self, skin_vertices: np.ndarray, bone_transforms: dict, pupil_scale: dict) -> np.ndarray:
+        """(H, W, 3) uint8 RGB image of the pose (fae.render.renderer.FaceRenderer.render)."""
 
     def close(self) -> None: ...
 
@@ -46,11 +48,14 @@ class StreamRecorder:
         self.size = size
         self.fps = fps
         self.frames_written = 0
+        self.frames_rendered = 0
         self.skipped = 0
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="fae-record")
         self._renderer: FrameRenderer | None = None
         self._writer = None
         self._task: asyncio.Task | None = None
+        self._last_pose = None
+        self._last_image: np.ndarray | None = None
 
     def start(self) -> None:
         self._task = asyncio.create_task(self._run())
@@ -62,7 +67,12 @@ class StreamRecorder:
             self._renderer = self.renderer_factory()
         if self._writer is None:
             self._writer = VideoWriter(self.path, self.size, self.fps or event.fps)
-        self._writer.write(self._renderer.render(event.pose.skin_vertices, event.pose.bone_transforms))
+        if event.pose is not self._last_pose:
+            pose = event.pose
+            self._last_image = self._renderer.render(pose.skin_vertices, pose.bone_transforms, pose.pupil_scale)
+            self._last_pose = pose
+            self.frames_rendered += 1
+        self._writer.write(self._last_image)
         self.frames_written += 1
 
     def _finish(self, ok: bool) -> None:
