@@ -59,15 +59,18 @@ def run(args) -> int:
         print(f"fae verify-faps: cannot read {path}: {exc}", file=sys.stderr)
         return 2
 
-    from fae.animate.player import Player
-    from fae.animate.verify import TOLERANCE, passed_fraction, verify_faps
+    import contextlib
 
-    player = Player(face)
-    try:
-        report = verify_faps(player, faps)
-    except ValueError as exc:
-        print(f"fae verify-faps: {exc}", file=sys.stderr)
-        return 2
+    with contextlib.redirect_stdout(sys.stderr):  # Warp's banner and kernel-load lines: stdout is the report's
+        from fae.animate.player import Player
+        from fae.animate.verify import TOLERANCE, passed_fraction, verify_faps
+
+        player = Player(face)
+        try:
+            report = verify_faps(player, faps)
+        except ValueError as exc:
+            print(f"fae verify-faps: {exc}", file=sys.stderr)
+            return 2
     fraction = passed_fraction(report)
     if args.json:
         print(json.dumps({"head": path, "tolerance": TOLERANCE, "faps": report, "passed_fraction": fraction}, indent=1))
