@@ -1,8 +1,11 @@
 """Benchmark `fae serve`: frames/s ingested and latency (frame sent -> pose ready), 1 and 10 clients.
 
 Baseline, measured in the same run: the same face stepped directly in-process (no sockets,
-no parsing). Throughput runs send as fast as the server takes frames; latency runs pace
-each client at --paced-fps so queues stay short (latency at full speed is queueing time).
+no parsing), one step per frame. The clients run in a separate process from the server.
+Throughput runs send as fast as the server takes frames; paced runs send each client's
+frames at --paced-fps. Latency is frame sent -> its `ok` read (positions ready). When
+frames arrive faster than a face steps, the server coalesces them (one step with the
+latest held values; see docs/protocol.md): the output shows frames vs face steps.
 
     .venv/bin/python tools/bench_serve.py                      # Player on the shipped head
     .venv/bin/python tools/bench_serve.py --face linear        # protocol cost only
@@ -13,13 +16,23 @@ vertices as the head has (or --vertices): it measures the server, not the animat
 
 from __future__ import annotations
 
-import argparse
-import asyncio
-import sys
-import time
-from pathlib import Path
+import os
 
-import numpy as np
+# Several faces step in threads of one process: BLAS thread pools of their own only fight
+# over the cores (a 9k-vertex linear step: 2 ms with one BLAS thread, 16 ms with a pool on a
+# busy 2-core machine). Set before numpy loads; the client process inherits it.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import argparse  # noqa: E402
+import asyncio  # noqa: E402
+import json  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -68,19 +81,44 @@ def direct_rate(factory, text: str, seconds: float = 2.0) -> float:
     return n / (time.perf_counter() - t0)
 
 
-async def served(factory, clients: int, text: str, rate: str):
-    server = FapServer(factory, port=0)
+async def served(factory, clients: int, text: str, rate: str, spare_faces: int = 0):
+    """Serve `clients` concurrent streams of `text` sent by a separate client process."""
+    server = FapServer(factory, port=0, spare_faces=spare_faces)
     await server.start()
     viewer = server.subscribe(maxsize=8)  # a lossy subscriber, as a viewer would be
+    with tempfile.NamedTemporaryFile("w", suffix=".fap", delete=False) as handle:
+        handle.write(text)
+    try:
+        proc = await asyncio.create_subprocess_exec(
+            sys.executable, __file__, "--client", handle.name, "--port", str(server.port),
+            "--clients", str(clients), "--rate", rate, stdout=asyncio.subprocess.PIPE)
+        out, _ = await proc.communicate()
+    finally:
+        Path(handle.name).unlink()
+        await server.close()
+        viewer.close()
+    if proc.returncode != 0:
+        raise RuntimeError(f"bench client failed ({proc.returncode})")
+    result = json.loads(out)
+    stats = server.stats()
+    return result["frames_per_s"], result["p50_ms"], result["p99_ms"], stats["native_frames"], stats["native_steps"]
+
+
+async def client_main(path: str, port: int, clients: int, rate: str) -> dict:
+    """The client side: `clients` concurrent streams of one file; frames/s and latency."""
+    text = Path(path).read_text()
     t0 = time.perf_counter()
-    reports = await asyncio.gather(*[send_fap(text, port=server.port, rate=rate, timeout=120) for _ in range(clients)])
+    reports = await asyncio.gather(*[send_fap(text, port=port, rate=rate, timeout=300) for _ in range(clients)])
     wall = time.perf_counter() - t0
-    await server.close()
-    viewer.close()
-    assert all(r.complete for r in reports), [r.summary() for r in reports if not r.complete]
-    frames = sum(r.frames_ok for r in reports)
+    bad = [r.summary() for r in reports if not r.complete]
+    if bad:
+        raise RuntimeError(f"incomplete streams: {bad}")
+    # Frames/s from the first frame sent to the last ack, per client (face set-up excluded).
+    first = min(r.started for r in reports)
+    last = max(r.started + r.elapsed for r in reports)
     lat = np.concatenate([r.latencies for r in reports]) * 1e3
-    return frames / wall, np.percentile(lat, 50), np.percentile(lat, 99)
+    return {"frames_per_s": sum(r.frames_ok for r in reports) / (last - first), "wall_s": wall,
+            "p50_ms": float(np.percentile(lat, 50)), "p99_ms": float(np.percentile(lat, 99))}
 
 
 def main() -> int:
@@ -90,7 +128,14 @@ def main() -> int:
     ap.add_argument("--vertices", type=int, default=0, help="linear face size (default: the head's, else 20000)")
     ap.add_argument("--frames", type=int, default=2000, help="frames per client in throughput runs")
     ap.add_argument("--paced-fps", type=float, default=100.0, help="per-client rate in latency runs")
+    ap.add_argument("--client", metavar="FILE.fap", help=argparse.SUPPRESS)  # the client process
+    ap.add_argument("--port", type=int, default=0, help=argparse.SUPPRESS)
+    ap.add_argument("--clients", type=int, default=1, help=argparse.SUPPRESS)
+    ap.add_argument("--rate", default="max", help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.client:
+        print(json.dumps(asyncio.run(client_main(args.client, args.port, args.clients, args.rate))))
+        return 0
     if not FAP.is_file():
         print(f"bench_serve: {FAP} not found", file=sys.stderr)
         return 2
@@ -112,14 +157,15 @@ def main() -> int:
     base = direct_rate(factory, text)
     print(f"baseline, face stepped directly in-process: {base:,.0f} frames/s")
     for clients in (1, 10):
-        fps, p50, p99 = asyncio.run(served(factory, clients, text if clients == 1 else long_stream(args.frames // 4, 25), "max"))
+        stream = text if clients == 1 else long_stream(args.frames // 4, 25)
+        fps, p50, p99, frames, steps = asyncio.run(served(factory, clients, stream, "max", spare_faces=clients))
         print(f"{clients:2d} client(s), max rate: {fps:,.0f} frames/s ingested ({fps / base:.2f}x baseline), "
-              f"latency p50 {p50:.2f} ms p99 {p99:.2f} ms (includes queueing)")
+              f"{frames} frames in {steps} face steps, latency p50 {p50:.2f} ms p99 {p99:.2f} ms")
     for clients in (1, 10):
         paced = long_stream(int(args.paced_fps * 3), args.paced_fps)
-        fps, p50, p99 = asyncio.run(served(factory, clients, paced, "realtime"))
+        fps, p50, p99, frames, steps = asyncio.run(served(factory, clients, paced, "realtime", spare_faces=clients))
         print(f"{clients:2d} client(s), paced {args.paced_fps:g} frames/s each: {fps:,.0f} frames/s, "
-              f"latency p50 {p50:.2f} ms p99 {p99:.2f} ms")
+              f"{frames} frames in {steps} face steps, latency p50 {p50:.2f} ms p99 {p99:.2f} ms")
     return 0
 
 

@@ -49,7 +49,8 @@ def register(subparsers) -> None:
 async def _serve(args, model) -> int:
     from fae.net.faces import player_face_factory
 
-    server = FapServer(player_face_factory(model, args.device), args.host, args.port, fap_dir=args.fap_dir)
+    server = FapServer(player_face_factory(model, args.device), args.host, args.port, fap_dir=args.fap_dir,
+                       spare_faces=1)
     recorder = None
     if args.record:
         from fae.net.record import StreamRecorder
@@ -99,14 +100,14 @@ def run(args) -> int:
     except (OSError, ValueError) as exc:
         print(f"fae serve: --head {args.head}: {exc}", file=sys.stderr)
         return 2
-    if not model.fap_mapping:
+    if not model.fap_mapping:  # calibrate once here, not in every client's face
         print(f"fae serve: {args.head} carries no FAP mapping; calibrating it once (tens of seconds)",
               file=sys.stderr, flush=True)
-    try:
-        model = playable_model(model, args.device)
-    except (RuntimeError, ValueError) as exc:
-        print(f"fae serve: --head {args.head}: cannot animate it: {exc}", file=sys.stderr)
-        return 2
+        try:
+            model = playable_model(model, args.device)
+        except (RuntimeError, ValueError) as exc:
+            print(f"fae serve: --head {args.head}: cannot animate it: {exc}", file=sys.stderr)
+            return 2
     try:
         return asyncio.run(_serve(args, model))
     except OSError as exc:

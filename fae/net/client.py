@@ -23,6 +23,7 @@ class SendReport:
     latencies     (frames_ok,) float64 seconds from sending a frame's values line to
                   reading its `ok`
     frame_steps   (frames_ok,) int64 the step number each `ok` named, in reply order
+    started       time.perf_counter() when the first frame was sent
     elapsed       seconds from the first frame sent to the last reply read
     fps           the stream's frame rate from the server's header reply (0 if none)
     """
@@ -33,6 +34,7 @@ class SendReport:
     errors: list[str] = field(default_factory=list)
     latencies: np.ndarray = field(default_factory=lambda: np.zeros(0))
     frame_steps: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    started: float = 0.0
     elapsed: float = 0.0
     fps: float = 0.0
     header_ok: bool = False
@@ -134,7 +136,7 @@ async def send_fap(text: str, host: str = "127.0.0.1", port: int = 50011, *, rat
         await asyncio.wait([receiver, asyncio.create_task(header_seen.wait())], timeout=timeout,
                            return_when=asyncio.FIRST_COMPLETED)
         fps = report.fps if report.fps > 0 else 25.0
-        start[0] = time.perf_counter()
+        start[0] = report.started = time.perf_counter()
         for k, (mask, values) in enumerate(frames):
             if receiver.done():
                 break

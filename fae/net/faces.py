@@ -87,6 +87,42 @@ class FaceWorker:
         self._executor.shutdown(wait=False, cancel_futures=True)
 
 
+class FacePool:
+    """Hands out FaceWorkers, each with a new face, keeping `spares` of them built ahead.
+
+    Building a Player takes seconds; with a spare, a client's face is (usually) ready when
+    its header arrives, and the next spare is built while that client streams.
+
+    factory  builds one face (called in the worker's thread)
+    spares   faces kept built ahead (0: each face is built when it is asked for)
+    """
+
+    def __init__(self, factory: FaceFactory, spares: int = 0) -> None:
+        if spares < 0:
+            raise ValueError(f"spares: expected >= 0, got {spares}")
+        self.factory = factory
+        self.spares = spares
+        self._ready: list[FaceWorker] = []
+        self._fill()
+
+    def _fill(self) -> None:
+        while len(self._ready) < self.spares:
+            self._ready.append(FaceWorker(self.factory))
+
+    def take(self) -> FaceWorker:
+        """A worker whose face is built or being built; the caller closes it."""
+        worker = self._ready.pop(0) if self._ready else FaceWorker(self.factory)
+        self._fill()
+        return worker
+
+    def close(self) -> None:
+        """Release the spares."""
+        for worker in self._ready:
+            worker.close()
+        self._ready.clear()
+        self.spares = 0
+
+
 class PlayerFace:
     """A FaceModel animated by fae's Player (fae.animate.player), as a FrameConsumer.
 

@@ -29,15 +29,19 @@ import logging
 
 from fae.net.connection import READ_CHUNK, Connection
 from fae.net.decode import FapFormatError, HeaderRead, StreamDecoder, StreamFrame
-from fae.net.faces import FaceFactory, FaceWorker
+from fae.net.faces import FacePool, FaceWorker
 from fae.net.hub import FrameEvent, FrameHub, StreamEnd
 from fae.net.lines import LineSplitter
 
 log = logging.getLogger("fae.net")
 
+YIELD_LINES = 32  # lines decoded between chances for other tasks to run (~ a few ms)
+
 
 class NativeSession:
     """Serve one native client until it closes, errs too often, or the server stops.
+
+    faces       where the client's face comes from (taken when its header arrives)
 
     window      frames decoded but not yet acknowledged per client before reading pauses
     max_line    bytes per line
@@ -47,13 +51,13 @@ class NativeSession:
     errors (error replies).
     """
 
-    def __init__(self, conn: Connection, face_factory: FaceFactory, hub: FrameHub, *,
+    def __init__(self, conn: Connection, faces: FacePool, hub: FrameHub, *,
                  window: int = 1024, max_line: int = 8192, max_errors: int = 32) -> None:
         if window < 1:
             raise ValueError(f"window: expected >= 1 frame, got {window}")
         self.conn = conn
         self.stream = f"native-{conn.client_id}"
-        self.face_factory = face_factory
+        self.faces = faces
         self.hub = hub
         self.window = window
         self.max_errors = max_errors
@@ -85,6 +89,10 @@ class NativeSession:
                     await self._handle_line(line)
                     if self._stop_reading:
                         break
+                    if line.number % YIELD_LINES == 0:
+                        # Decoding a full read takes tens of ms and a read of buffered bytes
+                        # does not yield: let the face's finished step and other clients in.
+                        await asyncio.sleep(0)
                 if self._stop_reading or self.conn.closing:
                     break
                 while self.unacknowledged >= self.window and not self._stopped():
@@ -140,7 +148,7 @@ class NativeSession:
 
     async def _start_face(self, number: int, fps: float) -> None:
         """Build the face (reading waits for it: nothing can be played before) and say so."""
-        self.worker = FaceWorker(self.face_factory, name=f"fae-{self.stream}")
+        self.worker = self.faces.take()
         try:
             await self.worker.ready()
         except Exception as exc:

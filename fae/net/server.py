@@ -20,7 +20,7 @@ from pathlib import Path
 
 from fae.net import xface
 from fae.net.connection import READ_CHUNK, Connection
-from fae.net.faces import FaceFactory
+from fae.net.faces import FaceFactory, FacePool
 from fae.net.hub import FrameHub, Subscription
 from fae.net.native import NativeSession
 from fae.net.stage import XfaceStage
@@ -61,17 +61,22 @@ class FapServer:
                   native stream and once for the shared Xface face
     host, port    where to listen; port 0 picks a free port (see `.port` after start)
     fap_dir       folder Xface LOAD_FAP may read .fap files from (None: LOAD_FAP refused)
+    spare_faces   faces built ahead of need, so a new client's face is ready at once
+                  (each costs one face's memory; 0: built when a header arrives)
     """
 
     def __init__(self, face_factory: FaceFactory, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, *,
-                 fap_dir: str | Path | None = None, limits: ServerLimits = ServerLimits()) -> None:
+                 fap_dir: str | Path | None = None, limits: ServerLimits = ServerLimits(),
+                 spare_faces: int = 0) -> None:
         self.face_factory = face_factory
+        self.spare_faces = spare_faces
+        self.faces = FacePool(face_factory, spare_faces)
         self.host = host
         self.requested_port = port
         self.limits = limits
         self.hub = FrameHub()
         self.clients: dict[int, Connection] = {}
-        self.stage = XfaceStage(face_factory, self.hub, self.clients,
+        self.stage = XfaceStage(self.faces, self.hub, self.clients,
                                 fap_dir=Path(fap_dir) if fap_dir is not None else None, max_task=limits.max_task)
         self.connections_total = 0
         self.native_frames = 0
@@ -128,6 +133,7 @@ class FapServer:
         if self._handlers:
             await asyncio.gather(*self._handlers, return_exceptions=True)
         await self.stage.close()
+        self.faces.close()
         await self.hub.close()
         if self._server is not None:
             await self._server.wait_closed()
@@ -151,7 +157,7 @@ class FapServer:
             if first.lstrip()[:1] == b"<":
                 await self.stage.session(conn, first)
             else:
-                session = NativeSession(conn, self.face_factory, self.hub, window=self.limits.window,
+                session = NativeSession(conn, self.faces, self.hub, window=self.limits.window,
                                         max_line=self.limits.max_line, max_errors=self.limits.max_errors)
                 try:
                     await session.run(first)

@@ -20,7 +20,7 @@ from pathlib import Path
 from fae.net import xface
 from fae.net.connection import READ_CHUNK, Connection
 from fae.net.decode import FapFormatError, decode_text
-from fae.net.faces import FaceFactory, FaceWorker, Pose
+from fae.net.faces import FacePool, FaceWorker, Pose
 from fae.net.hub import FrameEvent, FrameHub, StreamEnd
 
 log = logging.getLogger("fae.net")
@@ -55,14 +55,15 @@ def resolve_fap_path(fap_dir: Path | None, param: str) -> Path:
 class XfaceStage:
     """State shared by all Xface clients of one server.
 
+    faces      where the shared face comes from (taken at the first frame played)
     clients    the server's connections by client id (notifications are routed by ownerId)
     fap_dir    folder LOAD_FAP may read from, or None to refuse LOAD_FAP
     max_task   bytes per task message (an UPLOAD_FAP holds a whole file)
     """
 
-    def __init__(self, face_factory: FaceFactory, hub: FrameHub, clients: dict[int, Connection], *,
+    def __init__(self, faces: FacePool, hub: FrameHub, clients: dict[int, Connection], *,
                  fap_dir: Path | None = None, max_task: int = 8 << 20, queue_size: int = 64) -> None:
-        self.face_factory = face_factory
+        self.faces = faces
         self.hub = hub
         self.clients = clients
         self.fap_dir = Path(fap_dir) if fap_dir is not None else None
@@ -199,7 +200,7 @@ class XfaceStage:
     # -- playback ------------------------------------------------------------------
     def _face(self) -> FaceWorker:
         if self.worker is None:
-            self.worker = FaceWorker(self.face_factory, name="fae-xface")
+            self.worker = self.faces.take()
         return self.worker
 
     async def _apply(self, frame, skipped: list = ()) -> None:
