@@ -13,7 +13,7 @@ import pytest
 
 from fae.io.facemodel_gltf import write_facemodel
 from fae.render.play import render_video
-from fae.render.renderer import FaceRenderer
+from fae.render.renderer import BACKGROUND, FaceRenderer
 from test_render_support import jaw_frames, synthetic_head
 
 REPO = Path(__file__).resolve().parent.parent
@@ -144,27 +144,30 @@ def test_fae_play_rejects_bad_arguments_before_doing_work(tmp_path, head_glb, ca
     assert list(tmp_path.iterdir()) == []
 
 
-# --- end to end through the animation runtime --------------------------------------
+# --- end to end through the animation runtime, on the shipped head -----------------
 
 
-_TEMPLATE_STATE: list = []
+_TEMPLATE_STATE: dict = {}
 
 
-def _player_and_template():
+def shipped_head() -> Path:
+    """The head `fae play` uses by default; skips while it cannot play without calibrating."""
     pytest.importorskip("fae.animate.player", reason="the animation runtime has not landed yet")
-    template = REPO / "templates" / "generic_head.glb"
-    if not template.is_file():
-        pytest.skip("templates/generic_head.glb has not been built yet")
-    if not _TEMPLATE_STATE:
+    from fae.commands.play import default_head_path
+
+    path = default_head_path()
+    if not path.is_file():
+        pytest.skip(f"{path} has not been built yet")
+    if path not in _TEMPLATE_STATE:
         from fae.io.facemodel_gltf import read_facemodel
 
-        _TEMPLATE_STATE.append(bool(read_facemodel(template).fap_mapping))
-    if not _TEMPLATE_STATE[0]:
-        pytest.skip("the shipped template carries no fap_mapping yet (the Player would calibrate it for minutes)")
-    return template
+        _TEMPLATE_STATE[path] = read_facemodel(path)
+    if not _TEMPLATE_STATE[path].fap_mapping:
+        pytest.skip("the shipped head carries no fap_mapping yet (the Player would calibrate it for minutes)")
+    return path
 
 
-def short_stream(tmp_path, frames: int = 40, break_at: int | None = None) -> Path:
+def short_stream(tmp_path, frames: int = 25, break_at: int | None = None) -> Path:
     """The first `frames` frames of fap_streams/expressions.fap (optionally with a bad line)."""
     lines = (REPO / "fap_streams" / "expressions.fap").read_text().splitlines()
     body = lines[1:1 + 2 * frames]
@@ -177,32 +180,95 @@ def short_stream(tmp_path, frames: int = 40, break_at: int | None = None) -> Pat
     return path
 
 
-@pytest.mark.slow
-def test_fae_play_writes_the_streams_frames_at_its_rate(tmp_path):
-    _player_and_template()
-    from fae.io.fap import read_fap
+def jaw_stream(path: Path, open_jaw) -> Path:
+    """A 25 fps stream sending only FAP 3 (open_jaw, MNS units) with the given values;
+    None in place of the values: a stream that sends nothing at all."""
+    from fae.io.fap import FapFrame, FapHeader, write_fap
 
-    stream = short_stream(tmp_path, 40)
-    header = read_fap(stream).header
+    frames = []
+    for i, value in enumerate(open_jaw):
+        mask = np.zeros(68, dtype=bool)
+        values = np.zeros(68)
+        if value is not None:
+            mask[2], values[2] = True, value
+        frames.append(FapFrame(number=i, mask=mask, values=values))
+    write_fap(path, FapHeader("2.1", path.stem, 25.0, len(frames)), frames)
+    return path
+
+
+def mouth_box(head: Path, size, half: tuple[int, int]) -> tuple[slice, slice]:
+    """Pixels around the lips of the shipped head in a front view of `size`."""
+    from fae.render.framing import camera_view
+
+    model = _TEMPLATE_STATE[head]
+    fp = model.feature_point_positions()
+    x, y = camera_view(model, "front", aspect=size[0] / size[1]).project(0.5 * (fp["2.2"] + fp["2.3"]), size)[0]
+    return slice(int(y) - half[1], int(y) + half[1] + 1), slice(int(x) - half[0], int(x) + half[0] + 1)
+
+
+@pytest.mark.slow
+def test_fae_play_renders_the_shipped_head_centred_at_the_streams_rate(tmp_path):
+    head = shipped_head()
+    from PIL import Image
+
+    stream = short_stream(tmp_path, 25)
     out = tmp_path / "expressions.mp4"
-    assert run_command("play", [str(stream), "-o", str(out), "--size", "160x120"]) == 0
+    frames_dir = tmp_path / "frames"
+    assert run_command("play", [str(stream), "-o", str(out), "--size", "160x120", "--frames-dir", str(frames_dir)]) == 0
     meta, frames = decode(out)
-    assert meta["fps"] == pytest.approx(header.fps) and meta["size"] == (160, 120)
-    assert len(frames) == 40
-    # Expressions move the face: frames differ from the first.
-    assert max(np.abs(f.astype(int) - frames[0]).mean() for f in frames) > 1.0
-    # Resampled to 12.5 fps: half as many frames over the same duration.
-    out2 = tmp_path / "half.mp4"
-    assert run_command("play", [str(stream), "-o", str(out2), "--size", "160x120", "--fps", "12.5"]) == 0
-    meta2, frames2 = decode(out2)
-    assert meta2["fps"] == pytest.approx(12.5) and abs(len(frames2) - 20) <= 1
+    assert meta["fps"] == pytest.approx(25) and meta["size"] == (160, 120)
+    assert len(frames) == 25
+    background = np.round(np.asarray(BACKGROUND) * 255)
+    for frame in frames[::8]:
+        face = np.abs(frame.astype(int) - background).max(axis=2) > 25
+        assert 0.1 < face.mean() < 0.7, "the head should fill a good part of the frame"
+        ys, xs = np.nonzero(face)
+        assert abs(xs.mean() - 80) < 8 and abs(ys.mean() - 60) < 10, "the head should be centred"
+    # The expressions move the face.
+    assert max(np.abs(f.astype(int) - frames[0]).mean() for f in frames) > 0.5
+    # One PNG per frame, the same pictures the video holds (up to H.264 loss).
+    names = sorted(p.name for p in frames_dir.iterdir())
+    assert names == [f"frame_{i:05d}.png" for i in range(25)]
+    png = np.asarray(Image.open(frames_dir / names[12]).convert("RGB")).astype(int)
+    assert png.shape == (120, 160, 3) and np.abs(png - frames[12]).mean() < 4
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["expressions.mp4", "frames", "short.fap"]
 
 
 @pytest.mark.slow
-def test_fae_play_leaves_no_video_for_a_stream_broken_part_way(tmp_path):
-    _player_and_template()
-    broken = short_stream(tmp_path, 40, break_at=25)
+def test_the_mouth_opens_with_fap3_and_stays_still_without_faps(tmp_path):
+    head = shipped_head()
+    size = (160, 120)
+    ramp = list(np.linspace(0.0, 600.0, 10)) + [600.0] * 10
+    videos = {}
+    for name, values in (("jaw", ramp), ("still", [None] * 20)):
+        stream = jaw_stream(tmp_path / f"{name}.fap", values)
+        assert run_command("play", [str(stream), "-o", str(tmp_path / f"{name}.mp4"), "--size", "160x120"]) == 0
+        videos[name] = decode(tmp_path / f"{name}.mp4")[1]
+    mouth = mouth_box(head, size, (8, 7))
+    opened = np.abs(videos["jaw"][-1][mouth].astype(int) - videos["jaw"][0][mouth]).mean()
+    assert opened > 15, f"the mouth should change as the jaw opens ({opened:.1f})"
+    # The open mouth shows its dark inside.
+    assert (videos["jaw"][-1][mouth].sum(axis=2) < 200).sum() > 5
+    still = max(np.abs(f[mouth].astype(int) - videos["still"][0][mouth]).mean() for f in videos["still"])
+    assert still < 1.0, f"with no FAPs sent the mouth should not move ({still:.2f})"
+    assert np.abs(videos["still"][0].astype(int) - videos["jaw"][0]).mean() < 1.0, "both start at rest"
+
+
+@pytest.mark.slow
+def test_fae_play_resamples_to_the_requested_rate(tmp_path):
+    shipped_head()
+    stream = short_stream(tmp_path, 25)
+    out = tmp_path / "half.mp4"
+    assert run_command("play", [str(stream), "-o", str(out), "--size", "160x120", "--fps", "12.5"]) == 0
+    meta, frames = decode(out)
+    assert meta["fps"] == pytest.approx(12.5) and abs(len(frames) - 13) <= 1
+
+
+@pytest.mark.slow
+def test_fae_play_leaves_no_video_for_a_stream_broken_part_way(tmp_path, capsys):
+    shipped_head()
+    broken = short_stream(tmp_path, 25, break_at=15)
     out = tmp_path / "broken.mp4"
     assert run_command("play", [str(broken), "-o", str(out), "--size", "160x120"]) == 2
-    assert not out.exists()
+    assert "broken.fap" in capsys.readouterr().err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["broken.fap"]

@@ -36,7 +36,7 @@ import numpy as np  # noqa: E402
 from OpenGL import GL  # noqa: E402
 
 from fae.io.facemodel import FaceModel, Part  # noqa: E402
-from fae.render.framing import VIEWS, CameraView, camera_view  # noqa: E402
+from fae.render.framing import VIEWS, CameraView, camera_view, head_frame  # noqa: E402
 from fae.render.normals import per_vertex_normals  # noqa: E402
 
 # Colours are linear RGB; the shader applies gamma 2.2. The background is used as-is.
@@ -158,6 +158,26 @@ def _compile_program(vertex_source: str, fragment_source: str) -> int:
         GL.glDetachShader(program, shader)
         GL.glDeleteShader(shader)
     return program
+
+
+def boundary_components(F: np.ndarray, n: int) -> list[np.ndarray]:
+    """The holes of a triangle mesh: one (k,) int64 array of vertex indices per connected
+    set of boundary edges (edges used by one triangle). F (m, 3) int, n vertex count."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    edges = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1).astype(np.int64)
+    unique, counts = np.unique(edges, axis=0, return_counts=True)
+    boundary = unique[counts == 1]
+    if len(boundary) == 0:
+        return []
+    graph = coo_matrix((np.ones(len(boundary)), (boundary[:, 0], boundary[:, 1])), shape=(n, n))
+    _, label = connected_components(graph, directed=False)
+    on_boundary = np.unique(boundary)
+    order = np.argsort(label[on_boundary], kind="stable")
+    grouped = on_boundary[order]
+    splits = np.nonzero(np.diff(label[grouped]))[0] + 1
+    return list(np.split(grouped, splits))
 
 
 def perspective(yfov: float, aspect: float, znear: float, zfar: float) -> np.ndarray:
@@ -310,6 +330,13 @@ class FaceRenderer:
         self.triangles = np.concatenate(tris).astype(np.uint32)  # (m, 3) into the frame_geometry arrays
         self._skin_index_count = 3 * len(faces)
         self._index_count = 3 * sum(len(t) for t in tris)
+        # The skin's inside shows where the skin folds over (lips parting on a closed skin)
+        # and through its holes (mouth, neck, the open back of a face scan). Each frame
+        # draws the inside of just the triangles that face away from the camera and either
+        # lie on the near half of the head or overlap a hole on screen (bounding boxes):
+        # the far half's inside, hidden behind the face, costs the rasterizer as much as
+        # the whole outside.
+        self._holes = boundary_components(faces, nv)
         # Per frame: positions and normals, float32, interleaved.
         self._dynamic = np.empty((offset, 6), dtype=np.float32)
         static = np.concatenate([self.vertex_colors, np.concatenate(gloss)], axis=1).astype(np.float32)
@@ -347,11 +374,20 @@ class FaceRenderer:
             GL.glEnableVertexAttribArray(location)
             GL.glVertexAttribPointer(location, count, GL.GL_FLOAT, GL.GL_FALSE, 20, ctypes.c_void_p(4 * start))
         GL.glBindBuffer(GL.GL_ELEMENT_ARRAY_BUFFER, index_buffer)
-        GL.glBufferData(GL.GL_ELEMENT_ARRAY_BUFFER, indices.nbytes, indices, GL.GL_STATIC_DRAW)
+        # All triangles, then room for the inside triangles chosen each frame.
+        GL.glBufferData(GL.GL_ELEMENT_ARRAY_BUFFER, indices.nbytes + 4 * self._skin_index_count, None,
+                        GL.GL_DYNAMIC_DRAW)
+        GL.glBufferSubData(GL.GL_ELEMENT_ARRAY_BUFFER, 0, indices.nbytes, indices)
         GL.glBindBuffer(GL.GL_ARRAY_BUFFER, 0)
 
         GL.glUseProgram(self._program)
         world_to_camera = np.linalg.inv(self.camera.pose)
+        # Depth up to which the inside of skin facing away may show: the head centre, plus a
+        # little for folds on the silhouette (the neck behind a turned or opened jaw).
+        self._target_distance = float(np.linalg.norm(self.camera.pose[:3, 3] - self.camera.target)) \
+            + 0.25 * head_frame(self.model).depth
+        self._world_to_clip = (perspective(self.camera.yfov, self.size[0] / self.size[1], self.camera.znear,
+                                           self.camera.zfar) @ world_to_camera)
         # y flipped: rows come out of GL top row first, as images are stored. That mirrors
         # the winding on screen, so front faces are the clockwise ones.
         projection = np.diag([1.0, -1.0, 1.0, 1.0]) @ perspective(
@@ -369,7 +405,7 @@ class FaceRenderer:
         GL.glClearColor(*self._background, 1.0)
         GL.glEnable(GL.GL_DEPTH_TEST)
         GL.glDepthFunc(GL.GL_LESS)
-        GL.glDisable(GL.GL_CULL_FACE)
+        GL.glEnable(GL.GL_CULL_FACE)
         GL.glFrontFace(GL.GL_CW)
         GL.glDisable(GL.GL_BLEND)
 
@@ -440,7 +476,14 @@ class FaceRenderer:
         GL.glUseProgram(self._program)
         GL.glBindVertexArray(self._vao)
         GL.glClear(GL.GL_COLOR_BUFFER_BIT | GL.GL_DEPTH_BUFFER_BIT)
+        inside = self._inside_triangles()
+        if len(inside):
+            GL.glBufferSubData(GL.GL_ELEMENT_ARRAY_BUFFER, 4 * self._index_count, inside.nbytes, inside)
+        GL.glCullFace(GL.GL_BACK)
         GL.glDrawElements(GL.GL_TRIANGLES, self._index_count, GL.GL_UNSIGNED_INT, None)
+        if len(inside):
+            GL.glCullFace(GL.GL_FRONT)
+            GL.glDrawElements(GL.GL_TRIANGLES, inside.size, GL.GL_UNSIGNED_INT, ctypes.c_void_p(4 * self._index_count))
         GL.glFinish()
         image = self._color_buffer()
         k = self.supersample
@@ -449,6 +492,29 @@ class FaceRenderer:
             blocks = image.reshape(h, k, w, k, 4).astype(np.uint16).sum(axis=(1, 3))
             return ((blocks + (k * k) // 2) // (k * k)).astype(np.uint8)
         return image
+
+    def _inside_triangles(self) -> np.ndarray:
+        """(k, 3) uint32 skin triangles of this frame whose inside may show (see __init__)."""
+        nv = len(self._skin_rest)
+        V = self._dynamic[:nv, :3]
+        M = self._world_to_clip.astype(np.float32)
+        w = V @ M[3, :3] + M[3, 3]  # distance in front of the camera
+        if w.min() <= 1e-6:  # something behind the camera: keep every inside triangle
+            return self._skin_faces.astype(np.uint32)
+        xy = (V @ M[:2, :3].T + M[:2, 3]) / w[:, None]
+        F = self._skin_faces
+        a, b, c = xy[F[:, 0]], xy[F[:, 1]], xy[F[:, 2]]
+        # Counter-clockwise seen from outside; negative area on screen: facing away.
+        away = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0]) < 0.0
+        seen = w[F].min(axis=1) < self._target_distance
+        if self._holes:
+            lo = np.minimum(np.minimum(a, b), c)
+            hi = np.maximum(np.maximum(a, b), c)
+            margin = 4.0 / min(self._vw, self._vh)  # a couple of pixels, in NDC
+            for hole in self._holes:
+                hlo, hhi = xy[hole].min(axis=0) - margin, xy[hole].max(axis=0) + margin
+                seen |= (lo[:, 0] <= hhi[0]) & (hi[:, 0] >= hlo[0]) & (lo[:, 1] <= hhi[1]) & (hi[:, 1] >= hlo[1])
+        return np.ascontiguousarray(F[away & seen], dtype=np.uint32)
 
     def _color_buffer(self) -> np.ndarray:
         """(vh, vw, 4) uint8 copy of the rendered colour buffer, top row first (the
