@@ -545,3 +545,126 @@ def test_fae_send_reports_and_exits_nonzero_when_frames_are_rejected(tmp_path, c
     assert "43/43 frames ok in " in out and ", 0 errors" in out and "latency p50" in out
     assert "1/2 frames ok in 1 face steps, 1 errors" in out
     assert "server: error 3:" in err
+
+
+# -- audio tasks, coalescing, spare faces, the parser's partial frames ------------------
+
+def test_upload_wav_bytes_are_passed_over_and_wav_tasks_are_refused():
+    text = fap_text()
+    # Raw audio that looks like tasks and terminators: none of it may be read as a task.
+    audio = b"RIFF" + b"\0\0" + task("KILL_APP", 1, 99) + b"</task>\0" + bytes(range(256)) * 4
+
+    async def main():
+        server = await started(limits=ServerLimits(greeting_delay=0.05))
+        reader, writer, me = await xface_connect(server.port)
+        writer.write(task("UPLOAD_WAV", me, 1, "speech.wav", str(len(audio))) + audio[:100])
+        await writer.drain()
+        await asyncio.sleep(0.05)  # the rest of the audio in a later read
+        writer.write(audio[100:] + task("UPLOAD_FAP", me, 2, text))
+        got = await expect(reader, 4)
+        writer.write(task("LOAD_WAV", me, 3, "speech.wav"))
+        got += await expect(reader, 1)
+        writer.write(task("UPLOAD_WAV", me, 4, "speech.wav", "lots"))  # no byte count: cannot go on
+        got += await expect(reader, 1)
+        rest = await read_all(reader)
+        writer.close()
+        await well_behaved(server.port)
+        await server.close()
+        return got, rest
+
+    got, rest = run(main())
+    assert got == [n("ERROR", 0, 0, 7), *[n("UPLOAD_FAP", 1, 2, s) for s in (1, 2, 3)], n("ERROR", 0, 0, 7),
+                   n("ERROR", 0, 0, 7)]
+    assert rest == b""  # closed
+
+
+def test_frames_arriving_while_the_face_steps_are_coalesced_and_errors_answered_at_once():
+    """A face slower than the client: every frame is acknowledged, frames that arrived during
+    a step share the next step, which plays the latest held values; a bad line is answered
+    before the acks of the frames still waiting for the face."""
+    text = fap_text()
+    header, frames = split_fap_text(text)
+    steps_dt = []
+
+    class SlowFace(LinearFace):
+        def step(self, frame, dt):
+            steps_dt.append(dt)
+            import time
+            time.sleep(0.05)
+            return super().step(frame, dt)
+
+    bad = [(frames[5][0].replace("0", "x", 1), frames[5][1])]
+    body = frames[:5] + bad + frames[6:]
+    payload = (header + "\n" + "".join(f"{m}\n{v}\n" for m, v in body)).encode()
+
+    async def main():
+        server = await started(SlowFace)
+        sub = server.subscribe(maxsize=1000)
+        replies = await native_exchange(server.port, payload)
+        events = []
+        while not sub._queue.empty():
+            events.append(await sub.get())
+        stats = server.stats()
+        await server.close()
+        return replies, events, stats
+
+    replies, events, stats = run(main())
+    oks, errors, other = replies_by_kind(replies)
+    numbers = [v.split()[0] for _, v in frames]
+    assert oks == numbers[:5] + numbers[6:] and len(errors) == 1 and "mask bit" in errors[0]
+    # The error came back before the last frames' acks (they waited for the face).
+    assert replies.index(errors[0]) < replies.index(f"ok {numbers[-1]} {replies[-2].split()[2]}")
+    poses = [e for e in events if isinstance(e, FrameEvent)]
+    steps = [e.step for e in poses]
+    assert steps[-1] == len(steps_dt) < len(poses) and steps == sorted(steps)
+    assert stats["native_frames"] == len(poses) and stats["native_steps"] == steps[-1]
+    assert replies[-1] == f"done {len(poses)} frames {steps[-1]} steps 1 errors"
+    # Each step plays one frame period with the values held after its latest frame.
+    assert all(dt == pytest.approx(1 / 25) for dt in steps_dt)
+    held = np.zeros(68)
+    for mask, values in frames[:5] + frames[6:]:
+        bits = np.array(mask.split(), dtype=int).astype(bool)
+        held[bits] = np.array(values.split()[1:], dtype=float)
+    np.testing.assert_allclose(poses[-1].pose.skin_vertices, LinearFace.expected(held), atol=1e-12)
+    for a, b in zip(poses, poses[1:]):
+        assert (a.pose is b.pose) == (a.step == b.step)
+
+
+def test_spare_faces_are_built_ahead_and_each_client_gets_its_own():
+    text = fap_text()
+    built = []
+
+    def factory():
+        built.append(LinearFace())
+        return built[-1]
+
+    async def main():
+        server = await started(factory, spare_faces=1)
+        await asyncio.sleep(0.2)
+        assert len(built) == 1  # built before any client came
+        first = await send_fap(text, port=server.port)
+        second = await send_fap(text, port=server.port)
+        await server.close()
+        return first, second
+
+    first, second = run(main())
+    assert first.complete and second.complete
+    assert len(built) == 3 and [f.steps for f in built[:2]] == [first.steps, second.steps]
+
+
+def test_parser_discards_a_partial_frame_and_reads_the_next_line_as_a_mask():
+    from fae.io.fap import FapFormatError, FapParser
+
+    header, frames = split_fap_text(fap_text())
+    (m0, v0), (m1, v1) = frames[:2]
+    parser = FapParser("socket")
+    parser.feed_line(header, 1)
+    assert parser.discard_partial_frame() is False
+    parser.feed_line(m0, 2)
+    assert parser.in_frame
+    assert parser.discard_partial_frame() is True and not parser.in_frame
+    with pytest.raises(FapFormatError, match="mask bit"):
+        parser.feed_line(v0, 3)  # now read as a mask line: a values line is not one
+    parser.feed_line(m1, 4)
+    frame = parser.feed_line(v1, 5)
+    assert frame is not None and str(frame.number) == v1.split()[0]

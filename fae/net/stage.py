@@ -32,6 +32,14 @@ HANDLED = ("UPLOAD_FAP", "LOAD_FAP", "RESUME_PLAYBACK", "STOP_PLAYBACK", "REWIND
            "RENDER_FRAME", "ADVANCE_FRAME")
 
 
+def wav_byte_count(task: xface.XfaceTask) -> int | None:
+    """The audio byte count an UPLOAD_WAV task announces (its second param), or None."""
+    if len(task.params) < 2:
+        return None
+    text = task.params[1].strip()
+    return int(text) if text.isdigit() and len(text) <= 12 else None
+
+
 def resolve_fap_path(fap_dir: Path | None, param: str) -> Path:
     """The file a LOAD_FAP parameter names, kept inside `fap_dir`.
 
@@ -89,19 +97,31 @@ class XfaceStage:
         splitter = xface.TaskSplitter(self.max_task)
         data = first
         while data and not conn.closing:
-            try:
-                messages = splitter.feed(data)
-            except xface.TaskFormatError as exc:
-                log.warning("xface client %d: %s; closing", conn.client_id, exc)
-                await conn.send_and_drain(xface.error_notify_bytes())
-                return
-            for message in messages:
+            splitter.push(data)
+            while True:
+                try:
+                    message = splitter.pop()
+                except xface.TaskFormatError as exc:
+                    log.warning("xface client %d: %s; closing", conn.client_id, exc)
+                    await conn.send_and_drain(xface.error_notify_bytes())
+                    return
+                if message is None:
+                    break
                 try:
                     task = xface.parse_task(message)
                 except xface.TaskFormatError as exc:
                     log.warning("xface client %d: %s", conn.client_id, exc)
                     await conn.send_and_drain(xface.error_notify_bytes())
                     continue
+                if task.name == "UPLOAD_WAV":  # audio is not played: pass over its bytes
+                    count = wav_byte_count(task)
+                    if count is None:
+                        log.warning("xface client %d: UPLOAD_WAV: expected <param>NAME</param><param>BYTE COUNT"
+                                    "</param>, got %r; closing (its audio bytes cannot be told from tasks)",
+                                    conn.client_id, task.params)
+                        await conn.send_and_drain(xface.error_notify_bytes())
+                        return
+                    splitter.skip(count)
                 if task.name not in HANDLED:
                     log.warning("xface client %d: task %s is not supported", conn.client_id, task.name)
                     await conn.send_and_drain(xface.error_notify_bytes())

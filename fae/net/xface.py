@@ -86,6 +86,7 @@ class TaskSplitter:
     A message ends at a NUL byte or right after `</task>`, whichever comes first, so
     tasks ending in one NUL, two NULs or nothing at all are all found, and a read may
     hold several tasks or part of one. Empty and whitespace-only pieces are skipped.
+    :meth:`skip` passes over raw bytes that follow a task (UPLOAD_WAV's audio).
 
     max_message  bytes one message may hold; a longer one raises TaskFormatError (the
                  caller should close the connection: the stream cannot be resynchronized
@@ -96,17 +97,47 @@ class TaskSplitter:
         self.max_message = int(max_message)
         self._buf = bytearray()
         self._scan_from = 0
+        self._skip = 0
+        self._skip_nuls = 0
 
     @property
     def buffered(self) -> int:
         """Bytes held waiting for the end of a message."""
         return len(self._buf)
 
-    def feed(self, data: bytes) -> list[bytes]:
-        """Add bytes; return the complete messages now available, in order."""
+    @property
+    def skipping(self) -> int:
+        """Raw bytes still to be passed over (see :meth:`skip`)."""
+        return self._skip
+
+    def push(self, data: bytes) -> None:
+        """Add bytes (take the messages with :meth:`pop`)."""
         self._buf += data
-        out: list[bytes] = []
-        while True:
+        self._drop_skipped()
+
+    def skip(self, count: int) -> None:
+        """Pass over the next `count` raw bytes of the stream, after at most two NULs ending
+        the task before them; no message is looked for inside them."""
+        if count < 0:
+            raise ValueError(f"skip: expected a byte count >= 0, got {count}")
+        self._skip, self._skip_nuls = int(count), 2
+        self._scan_from = 0
+        self._drop_skipped()
+
+    def _drop_skipped(self) -> None:
+        while self._skip_nuls and self._buf[:1] == b"\0":
+            del self._buf[:1]
+            self._skip_nuls -= 1
+        if self._buf:
+            self._skip_nuls = 0
+        if self._skip and self._buf:
+            n = min(self._skip, len(self._buf))
+            del self._buf[:n]
+            self._skip -= n
+
+    def pop(self) -> bytes | None:
+        """The next complete message, or None until more bytes arrive."""
+        while not self._skip:
             start = max(0, self._scan_from - len(_END_TAG))
             nul = self._buf.find(b"\0", start)
             end = self._buf.find(_END_TAG, start)
@@ -120,11 +151,20 @@ class TaskSplitter:
                     self._buf.clear()
                     self._scan_from = 0
                     raise TaskFormatError(f"expected a task of at most {self.max_message} bytes")
-                return out
+                return None
             piece = bytes(self._buf[:cut])
             del self._buf[: cut + skip]
             self._scan_from = 0
             if len(piece) > self.max_message:
                 raise TaskFormatError(f"expected a task of at most {self.max_message} bytes")
             if piece.strip():
-                out.append(piece)
+                return piece
+        return None
+
+    def feed(self, data: bytes) -> list[bytes]:
+        """Add bytes; return the complete messages now available, in order."""
+        self.push(data)
+        out: list[bytes] = []
+        while (message := self.pop()) is not None:
+            out.append(message)
+        return out
