@@ -146,6 +146,21 @@ def test_pupil_scale_widens_and_narrows_the_pupil(head, renderer):
     assert blue_pixels(huge) > 0.15 * blue_pixels(plain), "a ring of iris should stay around the widest pupil"
 
 
+@pytest.mark.parametrize("view", ["front", "profile"])
+def test_drawing_only_the_inside_that_can_show_changes_no_pixel(head, view):
+    """Each frame draws the skin's inside only for triangles near the camera or over a hole
+    (the mouth slit here): the picture must equal drawing the whole inside."""
+    frames = list(jaw_frames(head, [0.0, 0.15, 0.3]))
+    with FaceRenderer(head, size=SIZE, view=view) as r:
+        chosen = [r.render(f.skin_vertices, f.bone_transforms) for f in frames]
+        assert 0 < len(r._inside_triangles()) < len(head.skin_faces)
+        r._inside_triangles = lambda: np.asarray(head.skin_faces, dtype=np.uint32)
+        everything = [r.render(f.skin_vertices, f.bone_transforms) for f in frames]
+    for a, b in zip(chosen, everything):
+        assert np.array_equal(a, b)
+    assert np.abs(chosen[2].astype(int) - chosen[0]).mean() > 0.1, "the jaw frames differ"
+
+
 def test_rgba_frames_are_the_rgb_frames_with_opaque_alpha(head, renderer):
     frame = next(jaw_frames(head, [0.2]))
     rgba = renderer.render_rgba(frame.skin_vertices, frame.bone_transforms)

@@ -58,7 +58,7 @@ def main() -> int:
         written.append(args.out / name)
     frames = demo_frames(model, args.stream, args.strip_frames)
     with FaceRenderer(model, size=(240, 240), view="front", supersample=2) as r:
-        tiles = [r.render(f.skin_vertices, f.bone_transforms) for f in frames]
+        tiles = [r.render(f.skin_vertices, f.bone_transforms, f.pupil_scale) for f in frames]
     write_png(args.out / "demo_strip.png", np.concatenate(tiles, axis=1), compress_level=9)
     written.append(args.out / "demo_strip.png")
     for path in written:
