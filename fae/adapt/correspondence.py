@@ -18,6 +18,8 @@ from scipy.spatial import Delaunay
 from fae.adapt.errors import Surface
 from fae.adapt.geometry import mean_curvature, per_face_normals
 
+PAIR_COSINE = 0.7  # closest-point pairs: normals at most 45 degrees apart (concave folds such as behind the ears)
+
 
 def feature_mesh(L: np.ndarray, centre: np.ndarray) -> np.ndarray:
     """(t, 3) int triangles over feature points L (k, 3), triangulated in (azimuth, height)
@@ -82,3 +84,32 @@ def curvature_features(scan: Surface, box_min: np.ndarray, box_max: np.ndarray, 
     _, first = np.unique(cell, axis=0, return_index=True)
     keep = cand[np.sort(first)]
     return keep[np.argsort(-H[keep])][:count]
+
+
+def grid_sample(X: np.ndarray, spacing: float, candidates: np.ndarray | None = None) -> np.ndarray:
+    """(s,) indices into X (n, 3): one point per occupied cube of side `spacing` metres
+    (the first candidate in each), a cheap even subsample of a surface's vertices."""
+    idx = np.arange(len(X)) if candidates is None else np.flatnonzero(candidates)
+    if len(idx) == 0:
+        return idx
+    cell = np.floor(X[idx] / spacing).astype(np.int64)
+    _, first = np.unique(cell, axis=0, return_index=True)
+    return idx[np.sort(first)]
+
+
+def closest_pairs(X: np.ndarray, NX: np.ndarray, scan: Surface, max_distance: float,
+                  samples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Closest scan points to the model vertices X[samples] (normals NX), kept when compatible
+    (normals at most 90 degrees apart, within max_distance, not on the scan's border).
+
+    Returns the accepted sample indices (p,) and their scan points (p, 3). Used where the
+    feature mesh does not reach (sides of the head, forehead, neck): each level's CSRBF then
+    pulls the whole scanned area, not only the region between feature points.
+    """
+    pts, dist, face, bary = scan.query.closest_points(X[samples], max_distance)
+    ok = face >= 0
+    N = np.einsum("nk,nkd->nd", bary[ok], scan.N[scan.F[face[ok]]])
+    good = np.sum(N * NX[samples[ok]], axis=1) > PAIR_COSINE
+    good &= ~scan.face_on_boundary[face[ok]]
+    keep = np.flatnonzero(ok)[good]
+    return samples[keep], pts[keep]

@@ -22,6 +22,8 @@ import scipy.sparse as sp
 from scipy.sparse.linalg import LinearOperator, cg
 from scipy.spatial import cKDTree
 
+QUADRIC_DEGREE = 2
+
 
 def wendland_c2(r: np.ndarray) -> np.ndarray:
     """Wendland's (1 - r)^4_+ (4 r + 1) for normalized distances r >= 0 (eq. 12)."""
@@ -46,10 +48,12 @@ def _monomials(uv: np.ndarray) -> np.ndarray:
 
 
 def local_quadrics(P: np.ndarray, N: np.ndarray, D: np.ndarray, support: float, k: int = 16,
-                   ridge: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:
+                   ridge: float = 1e-3, degree: int = 2) -> tuple[np.ndarray, np.ndarray]:
     """Weighted least-squares quadrics of D around each centre (eq. 14-15).
 
     P (m, 3) centres, N (m, 3) normals, D (m, 3) displacements, support metres.
+    degree: 2 (the paper's quadric), 1 (plane) or 0 (weighted mean); the coefficients of
+    higher monomials are then zero.
     Returns frames (m, 3, 3) and coefficients (m, 6, 3) over monomials of (u, v)/support.
     """
     m = len(P)
@@ -61,6 +65,7 @@ def local_quadrics(P: np.ndarray, N: np.ndarray, D: np.ndarray, support: float, 
     rel = P[idx] - P[:, None, :]  # (m, k, 3)
     uv = np.einsum("mkd,mad->mka", rel, frames[:, :2, :]) / support
     M = _monomials(uv)  # (m, k, 6)
+    M[..., {0: 1, 1: 3, 2: 6}[degree]:] = 0.0
     MtW = M.transpose(0, 2, 1) * w[:, None, :]
     A = MtW @ M + ridge * np.eye(6)[None]
     B = MtW @ D[idx]  # (m, 6, 3)
@@ -108,7 +113,7 @@ def csrbf_weights(P: np.ndarray, N: np.ndarray, D: np.ndarray, support: float, r
     m = len(P)
     if m == 0:
         return CSRBF(P, np.zeros((0, 3, 3)), np.zeros((0, 6, 3)), np.zeros(0), np.zeros((0, 3)), support, 0)
-    frames, quad = local_quadrics(P, N, D, support)
+    frames, quad = local_quadrics(P, N, D, support, degree=QUADRIC_DEGREE)
     tree = cKDTree(P)
     i, j, r = _pairs(P, P, support, tree)
     phi = wendland_c2(r / support)

@@ -5,7 +5,15 @@ Level 0 is a global RBF through the feature-point pairs. Each further level adds
 and fits either a new global RBF (below GLOBAL_LIMIT pairs) or a CSRBF offset with halved
 support on top of the previous function (eq. 17-21). Then optional local adaptation to a
 low-pass pyramid (paper 001). Errors (paper 000 §5) are measured after every level and the
-result with the smallest combined error is returned.
+result with the smallest combined error is returned, after fae.adapt.untangle has blended
+it back towards the first level wherever it cuts through itself (reported as
+`relaxed_vertices`).
+
+Correspondences per level k: the feature points, feature-mesh ray pairs (paper 000 §4.1),
+mean-curvature features, and closest-point pairs from template vertices sampled every
+SURFACE_SPACING / 2^(k-1) metres (the feature mesh only covers the area between feature
+points; these reach the forehead, sides and neck). Pairs whose residual is far beyond the
+others' (consistent_pairs) are dropped: they matched the wrong sheet of the scan.
 
 Methods (all given the same feature points):
   "multilevel"   paper 000 levels (biharmonic RBF, then CSRBF) + paper 001 local step
@@ -22,16 +30,22 @@ from typing import Callable
 
 import numpy as np
 
-from fae.adapt.correspondence import curvature_features, feature_mesh, feature_mesh_samples, ray_pairs
+from fae.adapt.correspondence import (closest_pairs, curvature_features, feature_mesh, feature_mesh_samples,
+                                     grid_sample, ray_pairs)
 from fae.adapt.csrbf import CSRBF, csrbf_interpolant, csrbf_weights
 from fae.adapt.errors import (Surface, combined_error, compatible_closest_points, distance_error,
                               marker_error, surface, symmetric_rms)
 from fae.adapt.geometry import per_vertex_normals
-from fae.adapt.local import lowpass_pyramid, nearest_neighbor_adaptation
+from fae.adapt.local import (OffsetSmoother, limit_offsets, lowpass_pyramid, nearest_neighbor_adaptation,
+                             offset_clearance)
 from fae.adapt.rbf import RBF, rbf_interpolant, rbf_weights
+from fae.adapt.untangle import edge_crossings, untangle
 
 METHODS = ("multilevel", "rbf", "wendland", "multiquadric")
 GLOBAL_LIMIT = 500  # paper 000 §4.3: global RBF below this many pairs, CSRBF above
+CSRBF_RHO = 1e-2  # diagonal regularization of each CSRBF level (Phi's diagonal is 1)
+CSRBF_TOL = 1e-3  # relative CG residual: finer detail is the local step's job
+SURFACE_SPACING = 0.01  # m: closest-point pairs every 10 mm at level 1, halved per level
 
 
 @dataclass
@@ -72,13 +86,15 @@ class Fit:
 
 def fit_template(P: np.ndarray, F: np.ndarray, P_landmarks: np.ndarray, scan_V: np.ndarray,
                  scan_F: np.ndarray, Q_landmarks: np.ndarray, method: str = "multilevel",
-                 levels: int = 3, local_levels: int = 4, rho: float = 0.0,
-                 progress: Callable[[str], None] | None = None) -> Fit:
+                 levels: int = 2, local_levels: int = 4, rho: float = 0.0,
+                 progress: Callable[[str], None] | None = None, movable: np.ndarray | None = None) -> Fit:
     """Fit template surface P (n, 3), F (m, 3) to a scan already in the face frame.
 
     P_landmarks (k, 3) and Q_landmarks (k, 3): the same feature points on template and scan,
     metres. levels: refinement levels after the first (multilevel only); local_levels:
-    pyramid levels of the local step (multilevel, wendland; 0 disables it).
+    pyramid levels of the local step (multilevel, wendland; 0 disables it). movable (n,)
+    bool: template vertices the local step may match to the scan (default all; a head
+    passes False for surfaces no scanner sees, such as the inside of the mouth).
     """
     if method not in METHODS:
         raise ValueError(f"unknown adaptation method {method!r}; expected one of {METHODS}")
@@ -88,16 +104,17 @@ def fit_template(P: np.ndarray, F: np.ndarray, P_landmarks: np.ndarray, scan_V: 
     PL = np.asarray(P_landmarks, dtype=np.float64)
     QL = np.asarray(Q_landmarks, dtype=np.float64)
     scan = surface(scan_V, scan_F)
-    width = float(np.max(np.ptp(P, axis=0)))
+    width = float(np.ptp(P[:, 0]))  # the face frame's x: ear to ear
     max_distance = width / 10.0
     NP = per_vertex_normals(P, F)
     centre = 0.5 * (P.min(0) + P.max(0))
+    scored = np.ones(len(P), dtype=bool) if movable is None else np.asarray(movable, dtype=bool)
     report: list[dict] = []
     results: list[tuple[np.ndarray, Deformation]] = []
 
     def evaluate(X: np.ndarray, deformation: Deformation, pairs: int, lm_now: np.ndarray) -> None:
         NX = per_vertex_normals(X, F)
-        _, _, dist, ok = compatible_closest_points(X, NX, scan, max_distance)
+        _, _, dist, ok = compatible_closest_points(X[scored], NX[scored], scan, max_distance)
         de = distance_error(dist, ok.astype(float))
         me = marker_error(lm_now, QL)
         report.append({"level": len(report), "pairs": int(pairs), "distance_error": de, "marker_error": me,
@@ -111,7 +128,8 @@ def fit_template(P: np.ndarray, F: np.ndarray, P_landmarks: np.ndarray, scan_V: 
               "multiquadric": "multiquadric"}[method]
     deformation = Deformation(rbf_weights(PL, QL - PL, kernel, rho=rho))
     X = deformation(P)
-    evaluate(X, deformation, len(PL), deformation(PL))
+    XL = deformation(PL)
+    evaluate(X, deformation, len(PL), XL)
 
     if method == "multilevel" and levels > 0:
         T = feature_mesh(PL, centre)
@@ -120,32 +138,40 @@ def fit_template(P: np.ndarray, F: np.ndarray, P_landmarks: np.ndarray, scan_V: 
         spacing = width / 40.0
         curv = curvature_features(scan, box_min, box_max, 200, spacing)
         support = width / 2.0
+        can_match = np.ones(len(P), dtype=bool) if movable is None else np.asarray(movable, dtype=bool)
         for k in range(1, levels + 1):
-            XL = deformation(PL)
             origins, dirs = feature_mesh_samples(XL, T, k)
             model = surface(X, F)
             fm, bm, qs, _ = ray_pairs(origins, dirs, model, scan, max_distance)
             fc, bc, qc, _ = ray_pairs(scan.V[curv], scan.N[curv], model, scan, max_distance)
             face = np.concatenate([fm, fc])
             bary = np.concatenate([bm, bc])
-            p_new = np.einsum("nk,nkd->nd", bary, P[F[face]])
-            n_new = np.einsum("nk,nkd->nd", bary, NP[F[face]])
-            q_new = np.concatenate([qs, qc])
+            seen = can_match[F[face]].all(axis=1)  # no pairs on skin the scan cannot show
+            face, bary = face[seen], bary[seen]
+            q_rays = np.vstack([qs, qc])[seen]
+            vs, qv = closest_pairs(X, model.N, scan, max_distance,
+                                   grid_sample(P, SURFACE_SPACING / 2 ** (k - 1), can_match))
+            p_new = np.vstack([np.einsum("nk,nkd->nd", bary, P[F[face]]), P[vs]])
+            n_new = np.vstack([np.einsum("nk,nkd->nd", bary, NP[F[face]]), NP[vs]])
+            q_new = np.vstack([q_rays, qv])
+            keep = consistent_pairs(deformation(p_new), q_new)
+            p_new, n_new, q_new = p_new[keep], n_new[keep], q_new[keep]
             p_all = np.vstack([PL, p_new])
             q_all = np.vstack([QL, q_new])
             m = len(p_all)
             if m < GLOBAL_LIMIT:
                 deformation = Deformation(rbf_weights(p_all, q_all - p_all, "biharmonic", rho=rho))
+                X, XL = deformation(P), deformation(PL)
             else:
                 n_all = np.vstack([NL, n_new])
                 resid = q_all - deformation(p_all)
                 from scipy.spatial import cKDTree
                 spacing_pairs = float(np.median(cKDTree(p_all).query(p_all, k=2)[0][:, 1]))
                 support = max(min(support / 2.0, 6.0 * spacing_pairs), 3.0 * spacing_pairs)
-                off = csrbf_weights(p_all, n_all, resid, support, rho=1e-2)
+                off = csrbf_weights(p_all, n_all, resid, support, rho=CSRBF_RHO, tol=CSRBF_TOL)
                 deformation = Deformation(deformation.base, deformation.offsets + [off])
-            X = deformation(P)
-            evaluate(X, deformation, m, deformation(PL))
+                X, XL = X + csrbf_interpolant(off, P), XL + csrbf_interpolant(off, PL)
+            evaluate(X, deformation, m, XL)
             if len(report) >= 3 and report[-1]["combined_error"] > report[-2]["combined_error"] > report[-3]["combined_error"]:
                 break
 
@@ -153,20 +179,41 @@ def fit_template(P: np.ndarray, F: np.ndarray, P_landmarks: np.ndarray, scan_V: 
     X, deformation = results[best]
     if method in ("multilevel", "wendland") and local_levels > 0:
         lm_face, lm_bary = _landmark_anchors(X, F, deformation(PL))
+        X0 = X
+        clearance = offset_clearance(X0, per_vertex_normals(X0, F), width / 20.0)
+        smoother = OffsetSmoother(F, len(X0))
         for level_V in lowpass_pyramid(scan, levels=local_levels):
             NX = per_vertex_normals(X, F)
-            X, moved = nearest_neighbor_adaptation(X, NX, scan, level_V, max_distance)
+            Y, moved = nearest_neighbor_adaptation(X, NX, scan, level_V, max_distance, movable=movable)
+            X = X0 + limit_offsets(X - X0 + smoother(Y - X, moved), clearance)
             lm_now = np.einsum("nk,nkd->nd", lm_bary, X[F[lm_face]])
             evaluate(X, deformation, int(moved.sum()), lm_now)
         best = int(np.argmin([r["combined_error"] for r in report]))
     X, deformation = results[best]
+    relaxed = 0
+    if len(edge_crossings(X, F)[0]):
+        safe = results[0][0] if len(edge_crossings(results[0][0], F)[0]) == 0 else P
+        X, weight = untangle(F, X, safe)
+        relaxed = int(np.sum(weight < 1.0))
     final = symmetric_rms(surface(X, F), scan, max_distance)
+    final["relaxed_vertices"] = relaxed
     final["marker_error"] = report[best]["marker_error"]
     final["distance_error"] = report[best]["distance_error"]
     final["combined_error"] = report[best]["combined_error"]
     final["seconds"] = time.perf_counter() - t0
     final["method"] = method
     return Fit(X, deformation, report, final, best)
+
+
+def consistent_pairs(X: np.ndarray, Q: np.ndarray, factor: float = 4.0, floor: float = 0.002) -> np.ndarray:
+    """(p,) bool: pairs whose residual |Q - X| (X: where the current deformation puts the
+    template points, (p, 3) metres) is within `factor` times the median residual (at least
+    `floor` metres). A pair far beyond the others matched the wrong sheet of the scan (the
+    other lip, behind the ear) and would fold the surface."""
+    r = np.linalg.norm(np.asarray(Q) - np.asarray(X), axis=1)
+    if len(r) == 0:
+        return np.zeros(0, dtype=bool)
+    return r <= max(factor * float(np.median(r)), floor)
 
 
 def _nearest(P: np.ndarray, L: np.ndarray) -> np.ndarray:

@@ -48,6 +48,17 @@ def _closest_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), max_dist: 
         out_face[i] = -1
 
 
+@wp.kernel
+def _sign_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), max_dist: float,
+                 out_sign: wp.array(dtype=float)):
+    i = wp.tid()
+    q = wp.mesh_query_point_sign_normal(mesh, points[i], max_dist)
+    if q.result:
+        out_sign[i] = q.sign
+    else:
+        out_sign[i] = 1.0
+
+
 class MeshQuery:
     """A BVH over one triangle mesh: V (n, 3) float64, F (m, 3) int, any consistent unit."""
 
@@ -102,6 +113,18 @@ class MeshQuery:
         dist = np.linalg.norm(pts - np.asarray(X, np.float64), axis=1)
         dist[~ok] = np.inf
         return pts, dist, face, bary
+
+    def inside(self, X: np.ndarray, max_dist: float = 1e6) -> np.ndarray:
+        """(n,) bool: which points X (n, 3) lie inside the mesh (closed, outward faces), by
+        the angle-weighted normal at the closest point (exact for a watertight mesh up to
+        float32 rounding at the surface)."""
+        n = len(X)
+        if n == 0:
+            return np.zeros(0, dtype=bool)
+        p = wp.array(np.asarray(X, np.float32), dtype=wp.vec3, device="cpu")
+        sign = wp.zeros(n, dtype=float, device="cpu")
+        wp.launch(_sign_kernel, dim=n, inputs=[self._mesh.id, p, float(max_dist), sign], device="cpu")
+        return sign.numpy() < 0.0
 
     def bidirectional_hits(self, origins: np.ndarray, directions: np.ndarray, max_t: float
                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

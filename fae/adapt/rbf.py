@@ -86,18 +86,44 @@ def gcv_ridge(H: np.ndarray, D: np.ndarray, grid: np.ndarray | None = None) -> f
     return best_l
 
 
+def unique_centers(P: np.ndarray, D: np.ndarray, tol: float = 1e-7) -> tuple[np.ndarray, np.ndarray]:
+    """Centres closer than `tol` metres merged into one, with their displacements averaged.
+
+    P (m, 3), D (m, 3) -> P' (k, 3), D' (k, 3), k <= m. Coincident centres (e.g. MPEG-4
+    feature points that share a vertex: 2.4 and 8.3 on the generic head) make every RBF
+    system singular; one centre with the mean displacement is the least-squares answer.
+    """
+    P = np.asarray(P, dtype=np.float64)
+    D = np.asarray(D, dtype=np.float64)
+    if len(P) < 2:
+        return P, D
+    pairs = cKDTree(P).query_pairs(tol, output_type="ndarray")
+    if len(pairs) == 0:
+        return P, D
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
+    g = sp.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(P), len(P)))
+    k, label = connected_components(g, directed=False)
+    count = np.bincount(label, minlength=k)[:, None]
+    mean = lambda X: np.column_stack([np.bincount(label, X[:, a], minlength=k) for a in range(3)]) / count
+    return mean(P), mean(D)
+
+
 def rbf_weights(P: np.ndarray, D: np.ndarray, kernel: str = "biharmonic", rho: float = 0.0,
                 support: float | None = None) -> RBF:
     """Fit the interpolant of displacements D (m, 3) at centres P (m, 3), metres.
 
     rho: regularization (biharmonic, wendland); ignored for multiquadric (GCV picks it).
     support: Wendland support radius in metres (default: bounding-box diagonal of P).
+    Coincident centres are merged first (unique_centers).
     """
     P = np.asarray(P, dtype=np.float64)
     D = np.asarray(D, dtype=np.float64)
-    m = len(P)
     if P.shape != D.shape or P.ndim != 2 or P.shape[1] != 3:
         raise ValueError(f"rbf_weights: centres {P.shape} and displacements {D.shape} must both be (m, 3)")
+    P, D = unique_centers(P, D)
+    m = len(P)
     R = _distances(P, P)
     if kernel == "multiquadric":
         if m < 2:

@@ -202,3 +202,88 @@ def synthetic_scan(seed: int = 0, subdivisions: int = 6, noise: float = 0.0, hol
     scan_v = Vn @ to_scan[:3, :3].T + to_scan[:3, 3]
     lm = {n: landmark_points[i] @ to_scan[:3, :3].T + to_scan[:3, 3] for i, n in enumerate(fdp)}
     return SyntheticScan(scan_v, Ft, lm, Vt, Ft, warp, to_scan)
+
+
+def template_warp(V: np.ndarray, seed: int, amplitude: float = 0.006, detail: float = 0.0005,
+                  width: float = 0.06) -> Warp:
+    """A Warp for a head whose vertices V (n, 3) metres are given: 12 Gaussian centres spread
+    over V's bounding box (width `width` metres, amplitude `amplitude` metres per axis), and
+    radial detail of `detail` metres about V's bounding-box centre."""
+    rng = np.random.default_rng(seed)
+    lo, hi = V.min(axis=0), V.max(axis=0)
+    centre = 0.5 * (lo + hi)
+    centres = rng.uniform(lo, hi, size=(12, 3)) - centre
+    return _CentredWarp(centres=centres, amplitudes=rng.normal(size=(12, 3)) * amplitude, width=width,
+                        detail_amplitude=detail, detail_frequency=2 * np.pi / 0.02,
+                        detail_phase=rng.uniform(0, 2 * np.pi, 3), centre=centre)
+
+
+@dataclass
+class _CentredWarp(Warp):
+    """A Warp applied about `centre` (3,) metres instead of the origin."""
+
+    centre: np.ndarray = None
+
+    def __call__(self, X: np.ndarray) -> np.ndarray:
+        X = np.asarray(X, dtype=np.float64)
+        return super().__call__(X - self.centre) + self.centre
+
+
+def template_scan(V: np.ndarray, F: np.ndarray, landmarks: dict[str, np.ndarray], seed: int = 0,
+                  subdivisions: int = 1, drop_faces: np.ndarray | None = None, noise: float = 0.0,
+                  holes: int = 0, face_only: bool = False, unit: float = 1e-3, max_angle: float = 0.6,
+                  amplitude: float = 0.006, detail: float = 0.0005) -> SyntheticScan:
+    """A "scan" of another person made from a template head (V (n, 3) metres, F (m, 3),
+    landmarks FDP name -> (3,) metres on it): the surface is remeshed by `subdivisions`
+    Loop steps (each x4 faces; vertices move, so no scan vertex is a template vertex),
+    faces flagged in `drop_faces` (m,) bool are left out first (e.g. the mouth cavity, which
+    a scanner does not see), then the result is warped by template_warp(seed), optionally
+    noisy (`noise` metres along normals), holed (round holes of 8 mm radius away from the
+    landmarks), cropped to the front (`face_only`: z > 0.2 of the depth behind the
+    bounding-box centre), turned by up to `max_angle` radians and written in `unit` metres.
+
+    The returned landmarks are the warped template landmarks (exact up to the Loop
+    smoothing, well under a millimetre); `warp` maps template points to their truth.
+    """
+    rng = np.random.default_rng(seed)
+    V = np.asarray(V, dtype=np.float64)
+    F = np.asarray(F, dtype=np.int64)
+    if drop_faces is not None:
+        F = F[~np.asarray(drop_faces, dtype=bool)]
+    mesh = trimesh.Trimesh(V, F, process=False)
+    mesh.remove_unreferenced_vertices()
+    SV, SF = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    if subdivisions > 0:
+        SV, SF = trimesh.remesh.subdivide_loop(SV, SF, iterations=subdivisions)
+    warp = template_warp(V, seed + 1000, amplitude, detail)
+    names = list(landmarks)
+    L = np.array([landmarks[n] for n in names])
+    W = warp(SV)
+    WL = warp(L)
+    keep = np.ones(len(SF), dtype=bool)
+    centroids = W[SF].mean(axis=1)
+    if face_only:
+        lo, hi = V.min(axis=0), V.max(axis=0)
+        keep &= SV[SF].mean(axis=1)[:, 2] > 0.5 * (lo[2] + hi[2]) - 0.2 * (hi[2] - lo[2])
+        keep &= SV[SF].mean(axis=1)[:, 1] > lo[1] + 0.25 * (hi[1] - lo[1])  # no neck
+    front = np.flatnonzero(SV[:, 2] > np.percentile(SV[:, 2], 70))
+    for _ in range(holes):
+        for _attempt in range(50):
+            c = W[rng.choice(front)]
+            if np.min(np.linalg.norm(WL - c, axis=1)) > 0.014:
+                break
+        keep &= np.linalg.norm(centroids - c, axis=1) > 0.008
+    truth = trimesh.Trimesh(W, SF[keep], process=False)
+    truth.remove_unreferenced_vertices()
+    Vt, Ft = np.asarray(truth.vertices), np.asarray(truth.faces, dtype=np.int32)
+    Vn = Vt.copy()
+    if noise > 0:
+        Vn = Vn + truth.vertex_normals * rng.normal(scale=noise, size=(len(Vt), 1))
+    R = _random_rotation(rng, max_angle)
+    t = rng.uniform(-0.2, 0.2, 3)
+    to_scan = np.eye(4)
+    to_scan[:3, :3] = R / unit
+    to_scan[:3, 3] = t / unit
+    scan_v = Vn @ to_scan[:3, :3].T + to_scan[:3, 3]
+    lm = {n: WL[i] @ to_scan[:3, :3].T + to_scan[:3, 3] for i, n in enumerate(names)}
+    return SyntheticScan(scan_v, Ft, lm, Vt, Ft, warp, to_scan)

@@ -66,6 +66,101 @@ def scan_landmarks_in_face_frame(template_points: dict[str, np.ndarray], scan_la
     return T, unit, names, ignored
 
 
+def visible_skin(model: FaceModel, offset: float = 1e-4) -> np.ndarray:
+    """(V,) bool: skin vertices a scanner can see, i.e. whose outward normal ray (from
+    `offset` metres above the skin) meets neither the skin nor an eyeball. False inside the
+    mouth, between the lips, on the eye sockets behind the eyelids and inside the nostrils;
+    those vertices get no scan target and follow their neighbours."""
+    V, F = model.skin_vertices, model.skin_faces.astype(np.int64)
+    meshes = [(V, F)] + [model.mesh(n) for n in ("eye_l", "eye_r") if n in model.parts]
+    allV, allF, base = [], [], 0
+    for mv, mf in meshes:
+        allV.append(np.asarray(mv, dtype=np.float64))
+        allF.append(np.asarray(mf, dtype=np.int64) + base)
+        base += len(mv)
+    q = MeshQuery(np.vstack(allV), np.vstack(allF))
+    N = per_vertex_normals(V, F)
+    hit, _, _, _ = q.ray_hits(V + offset * N, N, 1.0)
+    return ~hit
+
+
+EYE_SOCKET_REACH = 0.004  # m: skin this close to the template's eyeball forms its socket
+EYE_MIN_GAP_SHARE = 0.5  # of each socket vertex's template gap kept between it and the eyeball
+
+
+def eye_in_socket(template: FaceModel, model: FaceModel, name: str) -> tuple[np.ndarray, float]:
+    """Centre (3,) metres and uniform scale of eyeball `name` fitted into the adapted socket.
+
+    The socket is the template skin within EYE_SOCKET_REACH of the eyeball (eyelids and
+    the orbit behind them), with gaps g_i = |x_i - c0| - r0 to the template's eyeball
+    (centre c0, radius r0). On the adapted skin (positions y_i) the centre c and radius R
+    minimize sum (|y_i - c| - R - g_i)^2 (paper 000 eq. 25-28 move the eye with the
+    deformation; a fit to the socket keeps the eyelids on the eyeball). The scale R / r0
+    is then capped so that every socket vertex keeps EYE_MIN_GAP_SHARE of its gap from the
+    eyeball's surface in its direction: the eyeball never pokes through the eyelids.
+    """
+    from scipy.optimize import least_squares
+
+    c0 = np.asarray(template.eye_centers[name], dtype=np.float64)
+    EV = template.parts[name].vertices
+    r_eye = np.linalg.norm(EV - c0, axis=1)
+    r0 = float(np.median(r_eye))
+    X0 = template.skin_vertices
+    gap = np.linalg.norm(X0 - c0, axis=1) - r0
+    socket = np.flatnonzero((gap > 0) & (gap < EYE_SOCKET_REACH))
+    c_start = np.asarray(model.eye_centers[name], dtype=np.float64)
+    if len(socket) < 10:
+        return c_start, 1.0
+    Y, g = model.skin_vertices[socket], gap[socket]
+
+    def residual(x):
+        return np.linalg.norm(Y - x[:3], axis=1) - x[3] - g
+
+    sol = least_squares(residual, np.append(c_start, r0), x_scale=np.full(4, 1e-3))
+    c, R = sol.x[:3], float(sol.x[3])
+    # the eyeball's radius towards each socket vertex (the cornea bulges in front)
+    from scipy.spatial import cKDTree
+
+    d = Y - c
+    room = np.linalg.norm(d, axis=1)
+    toward = cKDTree((EV - c0) / r_eye[:, None]).query(d / room[:, None])[1]
+    limit = float(np.min((room - EYE_MIN_GAP_SHARE * g) / r_eye[toward]))
+    return c, float(min(R / r0, limit))
+
+
+MUSCLE_SEARCH_RADIUS = 0.015  # m: how far a linear muscle's attachment may move on its bone
+
+
+def keep_muscles_inside(model: FaceModel) -> list[str]:
+    """Move the bone attachment of every linear muscle whose line leaves the soft tissue of
+    `model` (skin changed, bones did not follow exactly) to the nearest bone vertex, within
+    MUSCLE_SEARCH_RADIUS, from which the line to its (unchanged) skin insertion stays inside
+    the skin. Changes `model` in place; returns the names of the muscles moved."""
+    from fae.io.facemodel import SurfacePoint
+
+    q = MeshQuery(model.skin_vertices, model.skin_faces)
+    ts = np.array([0.1, 0.3, 0.5, 0.7, 0.9])
+    moved = []
+    for mus in model.muscles:
+        if mus.kind != "linear" or mus.insertion is None:
+            continue
+        a = model.surface_point_position(mus.attachment)
+        b = model.surface_point_position(mus.insertion)
+        if q.inside(a + ts[:, None] * (b - a)).all():
+            continue
+        BV, BF = model.mesh(mus.attachment.part)
+        near = np.flatnonzero(np.linalg.norm(BV - a, axis=1) <= MUSCLE_SEARCH_RADIUS)
+        near = near[np.argsort(np.linalg.norm(BV[near] - a, axis=1))]
+        lines = BV[near][:, None, :] + ts[None, :, None] * (b - BV[near])[:, None, :]
+        ok = q.inside(lines.reshape(-1, 3)).reshape(len(near), len(ts)).all(axis=1)
+        if np.any(ok):
+            v = int(near[np.argmax(ok)])
+            tri = int(np.flatnonzero((BF == v).any(axis=1))[0])
+            mus.attachment = SurfacePoint(mus.attachment.part, tri, (np.asarray(BF[tri]) == v).astype(np.float64))
+            moved.append(mus.name)
+    return moved
+
+
 def _ratio(a: dict, b: dict, p: str, q: str) -> float | None:
     if p in a and q in a and p in b and q in b:
         d0 = np.linalg.norm(a[p] - a[q])
@@ -75,7 +170,7 @@ def _ratio(a: dict, b: dict, p: str, q: str) -> float | None:
 
 
 def adapt_facemodel(template: FaceModel, scan_V: np.ndarray, scan_F: np.ndarray,
-                    scan_landmarks: dict[str, np.ndarray], method: str = "multilevel", levels: int = 3,
+                    scan_landmarks: dict[str, np.ndarray], method: str = "multilevel", levels: int = 2,
                     progress: Callable[[str], None] | None = None) -> tuple[FaceModel, dict]:
     """A personalized copy of `template` fitted to the scan (V (n, 3), F (m, 3) in the scan's
     frame and unit; landmarks FDP name -> (3,) in the same). Returns (model, report dict)."""
@@ -87,7 +182,7 @@ def adapt_facemodel(template: FaceModel, scan_V: np.ndarray, scan_F: np.ndarray,
     PL = np.array([skin_fdp[n] for n in names])
     QL = apply_transform(T, np.array([scan_landmarks[n] for n in names]))
     fit = fit_template(template.skin_vertices, template.skin_faces, PL, SV, scan_F, QL, method=method,
-                       levels=levels, progress=progress)
+                       levels=levels, progress=progress, movable=visible_skin(template))
     model = copy.deepcopy(template)
     model.skin_vertices = fit.vertices.copy()
     fdp_new = model.feature_point_positions()
@@ -104,6 +199,13 @@ def adapt_facemodel(template: FaceModel, scan_V: np.ndarray, scan_F: np.ndarray,
         else:
             part.vertices = deform(part.vertices)
     model.eye_centers = {k: deform(np.asarray(v)[None])[0] for k, v in template.eye_centers.items()}
+    eye_scale = {}
+    for name in ("eye_l", "eye_r"):
+        if name in model.parts and name in template.eye_centers:
+            c, s = eye_in_socket(template, model, name)
+            model.parts[name].vertices = (template.parts[name].vertices - template.eye_centers[name]) * s + c
+            model.eye_centers[name] = c
+            eye_scale[name] = s
     model.jaw_pivot = deform(np.asarray(template.jaw_pivot)[None])[0]
     # bones stay under the skin
     skin_q = MeshQuery(model.skin_vertices, model.skin_faces)
@@ -134,15 +236,17 @@ def adapt_facemodel(template: FaceModel, scan_V: np.ndarray, scan_F: np.ndarray,
             m.semi_axes = np.asarray(m.semi_axes) * s
         m.fall_start *= s
         m.fall_end *= s
-    fapu_ratio = _fapu_ratio(fdp_old, fdp_new)
+    moved_muscles = keep_muscles_inside(model)
+    fapu_ratio = _fapu_ratio(fdp_old, model.feature_point_positions())  # eyes, teeth placed
     for t in model.face_def_tables:
         t.displacements = np.asarray(t.displacements) * fapu_ratio
     model.fap_mapping = {}
     model.scan_transform = np.linalg.inv(T)
     model.meta = dict(template.meta)
-    model.meta.update({"generator": "fae adapt", "adapt_method": method, "scan_unit": unit})
+    model.meta.update({"generator": "fae adapt", "adapt_method": method, "scan_unit": unit, "symmetric": False})
     report = {"method": method, "scan_unit": unit, "landmarks_used": names, "ignored_landmarks": ignored,
               "bone_vertices_pushed_under_skin": pushed, "fapu_ratio": fapu_ratio,
+              "eye_scale": eye_scale, "muscle_attachments_moved": moved_muscles,
               "levels": fit.levels, "chosen_level": fit.chosen_level, "final": dict(fit.final)}
     report["final"]["seconds"] = time.perf_counter() - t0
     return model, report
@@ -161,7 +265,7 @@ def _fapu_ratio(old: dict, new: dict) -> float:
 
 def adapt_surface(template_V: np.ndarray, template_F: np.ndarray, template_landmarks: dict[str, np.ndarray],
                   scan_V: np.ndarray, scan_F: np.ndarray, scan_landmarks: dict[str, np.ndarray],
-                  method: str = "multilevel", levels: int = 3) -> tuple[np.ndarray, np.ndarray, dict]:
+                  method: str = "multilevel", levels: int = 2) -> tuple[np.ndarray, np.ndarray, dict]:
     """Fit a bare template surface (V (n, 3) metres, F, FDP name -> (3,)) to a scan in any
     frame and unit. Returns fitted V (n, 3) in the face frame (metres), the (4, 4) scan ->
     face frame transform, and the report dict."""

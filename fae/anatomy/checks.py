@@ -6,7 +6,9 @@ Checks: the skin is an oriented 2-manifold whose only open borders (if any) run 
 the mouth, the eyelids or the bottom of the neck; it does not cut through itself; no skin
 vertex lies inside a bone and every bone lies inside the skin; linear muscles run inside
 the soft tissue; every rigid part is closed; all 84 MPEG-4 feature points are present;
-the mirror map pairs each vertex with its reflection; regions cover every vertex.
+the mirror map is a pairing (mirror[mirror[i]] == i) and, for a head that claims to be
+symmetric (claims_symmetry: the template), pairs each vertex with its reflection; regions
+cover every vertex.
 Helpers (`self_intersections`, `edge_problems`) take plain arrays, libigl-style.
 """
 
@@ -17,7 +19,7 @@ import numpy as np
 from fae.io.facemodel import FaceModel
 from fae.mpeg4 import FEATURE_POINTS
 
-MIRROR_TOLERANCE = 0.01  # m: a personalized head keeps the template's pairing but not exact symmetry
+MIRROR_TOLERANCE = 1e-5  # m: partners of a symmetric head are reflections up to float32 storage
 OPENING_REGIONS = ("lip_upper", "lip_lower", "mouth_cavity", "eyelid_upper_l", "eyelid_upper_r",
                    "eyelid_lower_l", "eyelid_lower_r", "neck")
 _EPS = 1e-12
@@ -134,6 +136,16 @@ def _points_inside_quick(V: np.ndarray, F: np.ndarray, points: np.ndarray) -> np
     return np.einsum("ij,ij->i", offset, normals[nearest]) < 0.0
 
 
+def claims_symmetry(model: FaceModel) -> bool:
+    """Whether `model` says its skin is mirror-symmetric: meta["symmetric"] when present,
+    else True for a head in its own frame (identity scan_transform, like the template).
+    A personalized head keeps the template's mirror pairing (the runtime uses it to map
+    left/right) but a person's face is not symmetric; fae adapt writes symmetric=False."""
+    if "symmetric" in model.meta:
+        return bool(model.meta["symmetric"])
+    return bool(np.allclose(np.asarray(model.scan_transform, dtype=np.float64), np.eye(4)))
+
+
 def facemodel_problems(model: FaceModel) -> list[str]:
     """Geometric problems of `model` (see module docstring); [] when it is a valid head."""
     problems: list[str] = []
@@ -198,8 +210,13 @@ def facemodel_problems(model: FaceModel) -> list[str]:
     if mirror.shape != (n,) or (n and (mirror.min() < 0 or mirror.max() >= n)):
         problems.append("skin_mirror: expected one valid vertex index per skin vertex")
     else:
-        err = np.abs(V[mirror] * np.array([-1.0, 1.0, 1.0]) - V).max(initial=0.0)
-        if err > MIRROR_TOLERANCE:
-            problems.append(f"skin_mirror: partners are {err * 1e3:.3g} mm from each other's reflection "
-                            f"(tolerance {MIRROR_TOLERANCE * 1e3:g} mm)")
+        unpaired = np.flatnonzero(mirror[mirror] != np.arange(n))
+        if len(unpaired):
+            problems.append(f"skin_mirror: expected a pairing (mirror[mirror[i]] == i); fails at {len(unpaired)} "
+                            f"vertices (first: vertex {int(unpaired[0])})")
+        if claims_symmetry(model):
+            err = np.abs(V[mirror] * np.array([-1.0, 1.0, 1.0]) - V).max(initial=0.0)
+            if err > MIRROR_TOLERANCE:
+                problems.append(f"skin_mirror: partners are {err * 1e3:.3g} mm from each other's reflection "
+                                f"(tolerance {MIRROR_TOLERANCE * 1e3:g} mm; the head claims to be symmetric)")
     return problems

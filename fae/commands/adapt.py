@@ -26,7 +26,7 @@ def register(subparsers) -> None:
                    "index}, menpo .ljson or CSV (68 iBUG points or name,x,y,z rows)")
     p.add_argument("--template", metavar="FILE", default=DEFAULT_TEMPLATE, help="template FaceModel .glb")
     p.add_argument("--method", choices=METHODS, default="multilevel", help="fitting method (default: multilevel)")
-    p.add_argument("--levels", type=int, default=3, help="refinement levels after the first (multilevel)")
+    p.add_argument("--levels", type=int, default=2, help="refinement levels after the first (multilevel)")
     p.add_argument("-o", "--output", required=True, metavar="HEAD.glb", help="personalized FaceModel to write")
     p.add_argument("--report", metavar="R.json", help="write the per-level error report as JSON")
     p.add_argument("--plot", metavar="R.png", help="plot the errors per level (PNG)")

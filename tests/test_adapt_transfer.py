@@ -1,0 +1,167 @@
+"""Personalizing the shipped head: the template fitted to synthetic scans of other people
+(the template warped by a smooth random field plus fine detail, remeshed, in millimetres,
+turned) must give a valid, animatable head whose feature points and FAPU follow the scan."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fae.adapt.calibration import apply_transform
+from fae.adapt.synthetic import template_scan
+from fae.adapt.transfer import adapt_facemodel, visible_skin
+from fae.anatomy.checks import facemodel_problems, self_intersections
+from fae.anatomy.template import TEMPLATE_PATH
+from fae.io.facemodel_gltf import read_facemodel, write_facemodel
+from fae.mpeg4.fapu import fapu0_from_positions
+
+REPO = Path(__file__).resolve().parents[1]
+FAP_DIR = REPO / ".." / "shared" / "data" / "fap"
+
+
+@pytest.fixture(scope="module")
+def template():
+    return read_facemodel(TEMPLATE_PATH)
+
+
+def skin_fdps(model):
+    return {n: p for n, p in model.feature_point_positions().items() if model.feature_points[n].part == "skin"}
+
+
+def person_scan(template, seed, **kw):
+    """A face-only scan of another person, as a scanner sees it (no inside of the mouth,
+    lips or eye sockets), with the ground truth."""
+    F = template.skin_faces.astype(np.int64)
+    hidden = ~visible_skin(template)[F].all(axis=1)
+    return template_scan(template.skin_vertices, F, skin_fdps(template), seed=seed, subdivisions=1,
+                         drop_faces=hidden, face_only=True, **kw)
+
+
+def to_truth_frame(model, scan, X):
+    """Face-frame points of an adapted model -> the frame of the scan's ground truth (metres)."""
+    return apply_transform(np.linalg.inv(scan.to_scan) @ model.scan_transform, X)
+
+
+@pytest.fixture(scope="module")
+def adapted(template):
+    scan = person_scan(template, seed=4)
+    model, report = adapt_facemodel(template, scan.vertices, scan.faces, scan.landmarks)
+    return scan, model, report
+
+
+def test_the_adapted_head_is_valid(adapted, template):
+    _, model, report = adapted
+    assert facemodel_problems(model) == []
+    assert model.meta["symmetric"] is False and model.fap_mapping == {}
+    assert report["scan_unit"] == "mm"
+    # eyes are fitted into their sockets without going through the eyelids
+    from fae.adapt.query import MeshQuery
+
+    skin = MeshQuery(model.skin_vertices, model.skin_faces)
+    for eye in ("eye_l", "eye_r"):
+        assert not skin.inside(model.parts[eye].vertices).any()
+        assert 0.8 < report["eye_scale"][eye] < 1.2
+
+
+def test_skin_feature_points_and_fapu_follow_the_scan(adapted, template):
+    scan, model, report = adapted
+    old = skin_fdps(template)
+    new = {n: to_truth_frame(model, scan, p[None])[0] for n, p in skin_fdps(model).items()}
+    truth = {n: scan.warp(p[None])[0] for n, p in old.items()}
+    used = report["landmarks_used"]
+    err = np.array([np.linalg.norm(new[n] - truth[n]) for n in used])
+    assert np.sqrt(np.mean(err**2)) < 0.5e-3 and err.max() < 1.5e-3, err
+    every_old = template.feature_point_positions()
+    every_new = {n: to_truth_frame(model, scan, p[None])[0] for n, p in model.feature_point_positions().items()}
+    fapu_new = fapu0_from_positions(every_new)
+    fapu_truth = fapu0_from_positions({n: scan.warp(p[None])[0] for n, p in every_old.items()})
+    for key in ("ES0", "ENS0", "MNS0", "MW0"):
+        assert fapu_new[key] == pytest.approx(fapu_truth[key], rel=0.03), key
+
+
+def test_the_skin_lies_on_the_true_surface(adapted, template):
+    from fae.adapt.errors import compatible_closest_points, surface
+    from fae.adapt.geometry import per_vertex_normals
+
+    scan, model, report = adapted
+    Y = to_truth_frame(model, scan, model.skin_vertices)
+    F = model.skin_faces.astype(np.int64)
+    _, _, d, ok = compatible_closest_points(Y, per_vertex_normals(Y, F), surface(scan.truth_vertices, scan.truth_faces),
+                                            0.01)
+    seen = visible_skin(template) & ok
+    assert seen.mean() > 0.4
+    assert np.sqrt(np.mean(d[seen] ** 2)) < 0.4e-3
+    # what the template's global fit alone would give is several times worse
+    assert report["levels"][0]["distance_error"] > 2 * report["final"]["distance_error"]
+
+
+def test_the_adapted_head_survives_a_file_round_trip(adapted, tmp_path):
+    _, model, _ = adapted
+    path = tmp_path / "person.glb"
+    write_facemodel(model, path)
+    back = read_facemodel(path)
+    assert np.allclose(back.skin_vertices, model.skin_vertices, atol=1e-6)
+    assert np.allclose(back.scan_transform, model.scan_transform)
+    assert back.meta["symmetric"] is False
+    assert [m.attachment.triangle for m in back.muscles] == [m.attachment.triangle for m in model.muscles]
+    assert facemodel_problems(back) == []
+
+
+def test_mirror_check_demands_a_pairing_always_and_symmetry_only_when_claimed(template, adapted):
+    import copy
+
+    _, model, _ = adapted
+    assert facemodel_problems(template) == []  # symmetric, and claims it (identity frame)
+    claimed = copy.deepcopy(model)
+    claimed.meta["symmetric"] = True
+    assert any("reflection" in p for p in facemodel_problems(claimed))
+    broken = copy.deepcopy(model)
+    broken.skin_mirror = broken.skin_mirror.copy()
+    broken.skin_mirror[0] = broken.skin_mirror[1]
+    assert any("pairing" in p for p in facemodel_problems(broken))
+
+
+def test_edge_crossings_find_what_the_pairwise_test_finds(template):
+    from fae.adapt.untangle import edge_crossings, untangle
+
+    V = template.skin_vertices.copy()
+    F = template.skin_faces.astype(np.int64)
+    assert len(edge_crossings(V, F)[0]) == 0
+    lip = template.feature_point_positions()["8.1"]
+    k = int(np.argmin(np.linalg.norm(V - lip, axis=1)))
+    dent = V.copy()
+    dent[k] -= np.array([0.0, 0.0, 0.03])  # the upper lip pushed 3 cm into the head
+    pairs = self_intersections(dent, F)
+    edges, faces = edge_crossings(dent, F)
+    assert len(pairs) > 0 and len(edges) > 0
+    assert set(np.unique(F[faces])) & set(np.unique(F[pairs.ravel()]))
+    fixed, weight = untangle(F, dent, V)
+    assert len(self_intersections(fixed, F)) == 0
+    assert weight[k] == 0.0 and np.mean(weight == 1.0) > 0.95  # only a neighbourhood is relaxed
+
+
+@pytest.mark.slow
+def test_fae_play_animates_the_adapted_head(adapted, tmp_path):
+    from fae.cli import main
+    from fae.io.fap import FapFrame, FapHeader, write_fap
+
+    _, model, _ = adapted
+    head = tmp_path / "person.glb"
+    write_facemodel(model, head)
+    frames = []
+    for i, value in enumerate(np.linspace(0.0, 500.0, 6)):  # open_jaw ramp
+        mask, values = np.zeros(68, dtype=bool), np.zeros(68)
+        mask[2], values[2] = True, value
+        frames.append(FapFrame(number=i, mask=mask, values=values))
+    stream = tmp_path / "jaw.fap"
+    write_fap(stream, FapHeader("2.1", "jaw", 25.0, len(frames)), frames)
+    out = tmp_path / "person.mp4"
+    frames_dir = tmp_path / "frames"
+    assert main(["play", str(stream), "--head", str(head), "-o", str(out), "--size", "96x72",
+                 "--frames-dir", str(frames_dir)]) == 0
+    from PIL import Image
+
+    pngs = sorted(frames_dir.iterdir())
+    assert len(pngs) == 6 and out.stat().st_size > 0
+    first, last = (np.asarray(Image.open(p).convert("RGB")).astype(int) for p in (pngs[0], pngs[-1]))
+    assert np.abs(last - first).mean() > 0.2, "the jaw should open on the adapted head"
