@@ -9,16 +9,18 @@ opening). The cranium and mandible are anatomy under the skin and are left out u
 `show_bones=True` (for looking at how the skin sits on the skull).
 
 Everything the frame loop needs is made once in the constructor: one GL program (Blinn-
-Phong with a key, fill and rim light, per-vertex colour and gloss, gamma 2.2), one static
-vertex buffer (colours, gloss), one index buffer and one dynamic buffer of positions and
-normals. A frame computes skin normals, poses the rigid parts on the CPU (and widens or
-narrows the pupils), writes the dynamic buffer with one `glBufferSubData`, issues three
-draw calls (outer skin, rigid parts, inner skin) and reads the OSMesa colour buffer, which
-is a numpy array already (no `glReadPixels`). No GL object is created per frame.
+Phong lit per vertex with a key, fill and rim light, per-vertex colour and gloss, gamma
+2.2), one static vertex buffer (colours, gloss), one index buffer and one dynamic buffer of
+positions and normals. A frame computes skin normals, poses the rigid parts on the CPU
+(widening or narrowing the pupils), writes the dynamic buffer with one `glBufferSubData`,
+draws every outward-facing triangle, then the inside (the cavity colour) of the skin
+triangles that can show it, and copies the OSMesa colour buffer, which is a numpy array
+already (no `glReadPixels`). The projection flips y so rows come out top first. No GL
+object is created per frame.
 
-pyrender is used only for its headless GL platforms (OSMesa, EGL): its scene renderer
-runs a physically based fragment shader that costs about 3x this one on llvmpipe, plus
-about 1 ms of Python per primitive per frame (tools/bench_play.py measures the gain).
+pyrender is used only for its headless GL platforms (OSMesa, EGL). Its scene renderer
+(a physically based shader per pixel, about 1 ms of Python per primitive per frame) is
+the baseline tools/bench_play.py measures this one against.
 llvmpipe rasterizes with `LP_NUM_THREADS` threads; it is set to the usable core count
 unless the environment already sets it.
 """
