@@ -74,7 +74,8 @@ class Fit:
 
     vertices (n, 3) metres: the fitted template skin; deformation: the level functions
     (maps any template-frame point, e.g. bones, without the local step); levels: per-level
-    report dicts; final: final report dict; chosen_level: index into levels.
+    report dicts; final: final report dict; chosen_level: index into levels;
+    dropped_landmarks: indices of feature points left out because they folded the skin.
     """
 
     vertices: np.ndarray
@@ -82,6 +83,7 @@ class Fit:
     levels: list[dict]
     final: dict
     chosen_level: int
+    dropped_landmarks: list[int] = field(default_factory=list)
 
 
 def fit_template(P: np.ndarray, F: np.ndarray, P_landmarks: np.ndarray, scan_V: np.ndarray,
@@ -126,7 +128,10 @@ def fit_template(P: np.ndarray, F: np.ndarray, P_landmarks: np.ndarray, scan_V: 
 
     kernel = {"multilevel": "biharmonic", "rbf": "biharmonic", "wendland": "wendland",
               "multiquadric": "multiquadric"}[method]
-    deformation = Deformation(rbf_weights(PL, QL - PL, kernel, rho=rho))
+    deformation, dropped = folding_free_rbf(P, F, PL, QL, kernel, rho)
+    if dropped:
+        keep = np.setdiff1d(np.arange(len(PL)), dropped)
+        PL, QL = PL[keep], QL[keep]
     X = deformation(P)
     XL = deformation(PL)
     evaluate(X, deformation, len(PL), XL)
@@ -202,7 +207,39 @@ def fit_template(P: np.ndarray, F: np.ndarray, P_landmarks: np.ndarray, scan_V: 
     final["combined_error"] = report[best]["combined_error"]
     final["seconds"] = time.perf_counter() - t0
     final["method"] = method
-    return Fit(X, deformation, report, final, best)
+    return Fit(X, deformation, report, final, best, dropped)
+
+
+def folding_free_rbf(P: np.ndarray, F: np.ndarray, PL: np.ndarray, QL: np.ndarray, kernel: str, rho: float,
+                     max_drops: int = 8) -> tuple[Deformation, list[int]]:
+    """The level-0 RBF through the feature points PL -> QL (k, 3), and the indices of those
+    left out because the surface P, F folded through itself with them.
+
+    Feature points that almost coincide on the template but not on the scan (the inner lip
+    contour of a face scanned with the mouth open, closed eyelids over open ones) ask the
+    interpolant for a huge local stretch: the lips cross. While the fitted surface crosses
+    itself, the feature point nearest to the crossings, among those whose displacement
+    differs most from their neighbours', is dropped and the RBF fitted again.
+    """
+    dropped: list[int] = []
+    keep = np.arange(len(PL))
+    for _ in range(max_drops + 1):
+        deformation = Deformation(rbf_weights(PL[keep], QL[keep] - PL[keep], kernel, rho=rho))
+        X = deformation(P)
+        edges, faces = edge_crossings(X, F)
+        if len(edges) == 0 or len(keep) <= 4:
+            break
+        at = X[edges].mean(axis=1).mean(axis=0)
+        near = np.argsort(np.linalg.norm(deformation(PL[keep]) - at, axis=1))[:4]
+        D = QL[keep] - PL[keep]
+        from scipy.spatial import cKDTree
+
+        _, nb = cKDTree(PL[keep]).query(PL[keep][near], k=min(5, len(keep)))
+        odd = np.linalg.norm(D[near] - D[nb[:, 1:]].mean(axis=1), axis=1)
+        worst = int(keep[near[int(np.argmax(odd))]])
+        dropped.append(worst)
+        keep = keep[keep != worst]
+    return deformation, sorted(dropped)
 
 
 def consistent_pairs(X: np.ndarray, Q: np.ndarray, factor: float = 4.0, floor: float = 0.002) -> np.ndarray:

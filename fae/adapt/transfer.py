@@ -32,9 +32,11 @@ from fae.adapt.calibration import apply_transform, calibration_transform, outlie
 from fae.adapt.geometry import per_vertex_normals
 from fae.adapt.multilevel import fit_template
 from fae.adapt.query import MeshQuery
+from fae.adapt.untangle import untangle
 from fae.io.facemodel import FaceModel
 
 MIN_BONE_DEPTH = 0.002  # metres of soft tissue kept between skin and bone
+MAX_PUSH = 0.002  # metres a bone vertex may be pushed inwards per round (thin bones must not fold)
 
 
 def scan_landmarks_in_face_frame(template_points: dict[str, np.ndarray], scan_landmarks: dict[str, np.ndarray],
@@ -64,6 +66,49 @@ def scan_landmarks_in_face_frame(template_points: dict[str, np.ndarray], scan_la
             ignored[n] = f"{d * 1000:.1f} mm from the scan surface"
     names = [n for n in names if n not in ignored]
     return T, unit, names, ignored
+
+
+def push_under_skin(model: FaceModel, part: str, min_depth: float = MIN_BONE_DEPTH, rounds: int = 10) -> int:
+    """Push bone `part` of `model` inwards wherever less than `min_depth` metres of soft
+    tissue cover it, or a skin vertex lies inside it (the scanned face is thinner than the
+    template's). Each round moves every such bone vertex against the skin normal at its
+    closest skin point by what it lacks, spread over two rings of bone neighbours so the
+    bone dents smoothly instead of spiking. Changes `model` in place; returns how many
+    bone vertices moved."""
+    from scipy.spatial import cKDTree
+
+    from fae.adapt.geometry import adjacency_matrix
+
+    bone = model.parts[part]
+    V = bone.vertices.copy()
+    BF = np.asarray(bone.faces, dtype=np.int64)
+    A = adjacency_matrix(BF, len(V))
+    skin_q = MeshQuery(model.skin_vertices, model.skin_faces)
+    skin_n = per_vertex_normals(model.skin_vertices, model.skin_faces)
+    moved = np.zeros(len(V), dtype=bool)
+    for _ in range(rounds):
+        pts, _, face, bary = skin_q.closest_points(V)
+        ok = face >= 0
+        n = np.zeros_like(V)
+        n[ok] = np.einsum("nk,nkd->nd", bary[ok], skin_n[model.skin_faces[face[ok]]])
+        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+        depth = np.where(ok, np.sum((pts - V) * n, axis=1), np.inf)  # > 0: below the skin
+        need = np.maximum(min_depth - depth, 0.0)
+        inside = MeshQuery(V, BF).inside(model.skin_vertices)
+        if np.any(inside):  # skin inside the bone: its nearest bone vertices go below it
+            d, j = cKDTree(V).query(model.skin_vertices[inside])
+            near = d < 5 * MAX_PUSH  # farther "inside" answers come from a fold of the bone, not the skin
+            np.maximum.at(need, j[near], d[near] + min_depth)
+        need = np.minimum(need, MAX_PUSH)
+        if not np.any(need > 0):
+            break
+        for _ in range(2):  # spread to the neighbours, so the bone dents smoothly
+            spread = A.multiply(need[None, :]).max(axis=1).toarray().ravel()
+            need = np.maximum(need, 0.5 * spread)
+        V -= n * need[:, None]
+        moved |= need > 0
+    bone.vertices = V
+    return int(moved.sum())
 
 
 def visible_skin(model: FaceModel, offset: float = 1e-4) -> np.ndarray:
@@ -183,6 +228,9 @@ def adapt_facemodel(template: FaceModel, scan_V: np.ndarray, scan_F: np.ndarray,
     QL = apply_transform(T, np.array([scan_landmarks[n] for n in names]))
     fit = fit_template(template.skin_vertices, template.skin_faces, PL, SV, scan_F, QL, method=method,
                        levels=levels, progress=progress, movable=visible_skin(template))
+    for i in fit.dropped_landmarks:
+        ignored[names[i]] = "folds the skin (mouth or eyes open on the scan, closed on the template?)"
+    names = [n for i, n in enumerate(names) if i not in fit.dropped_landmarks]
     model = copy.deepcopy(template)
     model.skin_vertices = fit.vertices.copy()
     fdp_new = model.feature_point_positions()
@@ -196,8 +244,8 @@ def adapt_facemodel(template: FaceModel, scan_V: np.ndarray, scan_F: np.ndarray,
             c_old = template.eye_centers[name] if name in template.eye_centers else part.vertices.mean(axis=0)
             c_new = deform(c_old[None])[0]
             part.vertices = (part.vertices - c_old) * rigid_scale[name] + c_new
-        else:
-            part.vertices = deform(part.vertices)
+        else:  # bones follow the deformation; where it folds them, they keep their template shape
+            part.vertices, _ = untangle(part.faces, deform(part.vertices), part.vertices)
     model.eye_centers = {k: deform(np.asarray(v)[None])[0] for k, v in template.eye_centers.items()}
     eye_scale = {}
     for name in ("eye_l", "eye_r"):
@@ -207,22 +255,7 @@ def adapt_facemodel(template: FaceModel, scan_V: np.ndarray, scan_F: np.ndarray,
             model.eye_centers[name] = c
             eye_scale[name] = s
     model.jaw_pivot = deform(np.asarray(template.jaw_pivot)[None])[0]
-    # bones stay under the skin
-    skin_q = MeshQuery(model.skin_vertices, model.skin_faces)
-    skin_n = per_vertex_normals(model.skin_vertices, model.skin_faces)
-    pushed = 0
-    for name in ("cranium", "mandible"):
-        if name not in model.parts:
-            continue
-        part = model.parts[name]
-        pts, dist, face, bary = skin_q.closest_points(part.vertices)
-        ok = face >= 0
-        n = np.einsum("nk,nkd->nd", bary[ok], skin_n[model.skin_faces[face[ok]]])
-        depth = np.sum((pts[ok] - part.vertices[ok]) * n, axis=1)  # > 0: below the skin
-        bad = depth < MIN_BONE_DEPTH
-        idx = np.flatnonzero(ok)[bad]
-        part.vertices[idx] = pts[ok][bad] - n[bad] * MIN_BONE_DEPTH
-        pushed += int(bad.sum())
+    pushed = sum(push_under_skin(model, name) for name in ("cranium", "mandible") if name in model.parts)
     # soft-tissue depth
     bones = [model.parts[n] for n in ("cranium", "mandible") if n in model.parts]
     if bones:
