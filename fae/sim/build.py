@@ -16,7 +16,8 @@ Parameters (keys of `layer_params`, else these defaults): stiffness per unit mas
 ratio x stiffness); `drag` 110 1/s; `density` 1100 kg/m^3; `muscle_acceleration` 50 m/s^2
 (force per unit activation and weight, per kg). Only skin near a muscle, a pull field or
 the jaw is simulated (`active_rings` 3 edge rings around it, plus one fixed ring).
-Contact: penetrations deeper than `contact_depth` 4 mm are left to the springs (see
+Layer order: an upper-layer particle stays at least `layer_min_height` 0.25 of its rest
+height above its vertex in the next layer (fae.sim.integrate). Contact: penetrations deeper than `contact_depth` 4 mm are left to the springs (see
 fae.sim.collision).
 """
 
@@ -51,6 +52,7 @@ DEFAULTS = {
     "cfl": 0.9,
     "sdf_cell": 0.003,
     "contact_depth": 0.004,
+    "layer_min_height": 0.25,
 }
 
 
@@ -103,6 +105,40 @@ def dilate(mask: np.ndarray, A: sp.csr_matrix, rings: int) -> np.ndarray:
     for _ in range(rings):
         m = m | (A @ m.astype(np.float64) > 0)
     return m
+
+
+def max_stiffness_rate(n: int, pairs: np.ndarray, stiffness: np.ndarray, anchored: np.ndarray,
+                       anchor_stiffness: np.ndarray, mass: np.ndarray, movable: np.ndarray) -> float:
+    """1/s^2: an upper bound of the largest eigenvalue of M^-1 K of the spring network.
+
+    A spring's stiffness block k (n n^T + (1 - r/l)(I - n n^T)) is at most k I whenever it
+    is not compressed below its rest length r (compressed, the transverse term is
+    negative), so the weighted graph Laplacian (spring stiffness k_ij, plus each particle's
+    anchor on the diagonal) bounds M^-1 K in every configuration. Its largest eigenvalue,
+    over the movable particles (Lanczos, scipy eigsh), is typically 0.55 of the Gershgorin
+    row-sum bound; 2% is added for the solver's tolerance.
+    pairs (S, 2) int, stiffness (S,) N/m, anchored (A,) int, anchor_stiffness (A,) N/m,
+    mass (n,) kg, movable (n,) bool.
+    """
+    from scipy.sparse.linalg import ArpackNoConvergence, eigsh
+
+    keep = np.flatnonzero(movable)
+    if len(keep) == 0:
+        return 1.0
+    i, j = pairs[:, 0], pairs[:, 1]
+    L = sp.coo_matrix((np.concatenate([stiffness, stiffness, -stiffness, -stiffness]),
+                       (np.concatenate([i, j, i, j]), np.concatenate([i, j, j, i]))), shape=(n, n)).tocsr()
+    L = L + sp.coo_matrix((anchor_stiffness, (anchored, anchored)), shape=(n, n)).tocsr()
+    w = sp.diags(1.0 / np.sqrt(mass[keep]))
+    B = (w @ L[keep][:, keep] @ w).tocsr()
+    gershgorin = float(np.max(np.abs(B).sum(axis=1)))
+    if len(keep) < 3:
+        return gershgorin
+    try:
+        lam = float(eigsh(B, k=1, which="LA", tol=1e-6, v0=np.ones(len(keep)), return_eigenvectors=False)[0])
+    except ArpackNoConvergence:
+        return gershgorin
+    return min(1.02 * lam, gershgorin)
 
 
 def _bone_mesh(face: FaceModel, bone: str) -> tuple[np.ndarray, np.ndarray]:
@@ -293,6 +329,20 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
     inf_m = np.concatenate(inf_m) if inf_m else np.zeros(0, dtype=np.int64)
     inf_p = np.concatenate(inf_p) if inf_p else np.zeros(0, dtype=np.int64)
     inf_w = np.concatenate(inf_w) if inf_w else np.zeros(0)
+    order = np.argsort(inf_p, kind="stable")
+    inf_m, inf_p, inf_w = inf_m[order], inf_p[order], inf_w[order]
+    row_influence_start = np.concatenate([[0], np.cumsum(np.bincount(inf_p, minlength=P))])
+    particle_anchor = np.full(P, -1, dtype=np.int64)
+    particle_anchor[anchored] = np.arange(len(anchored))
+    # layer order: each upper-layer particle over its own vertex in the next layer
+    below = np.where(layer_of < LAYER_COUNT - 1, np.arange(P) + nsv, -1)
+    below[~movable] = -1
+    up = q[:-nsv] - q[nsv:]
+    height = np.linalg.norm(up, axis=1)
+    normal = np.zeros((P, 3))
+    normal[:-nsv] = up / np.maximum(height, 1e-12)[:, None]
+    min_height = np.zeros(P)
+    min_height[:-nsv] = float(p["layer_min_height"]) * height
 
     # Bone distance grids and which particles must stay outside them.
     sdf_values, sdf_origin, sdf_spacing = [], np.zeros((BONE_COUNT, 3)), np.ones(BONE_COUNT)
@@ -308,13 +358,10 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
     collide = movable & (layer_of < LAYER_COUNT - 1) & (phi_rest.min(axis=0) > 0.0005)
 
 
-    # Stable substep (Gershgorin bound on M^-1 K, see fae.sim.solver).
-    row_k = np.bincount(spr.reshape(-1), weights=np.repeat(2.0 * ks, 2), minlength=P)
-    row_k[anchored] += anchor_k
-    row_c = np.bincount(spr.reshape(-1), weights=np.repeat(2.0 * kd, 2), minlength=P)
-    rate_k = np.max(np.where(movable, row_k / mass, 0.0)) if P else 1.0
-    rate_c = np.max(np.where(movable, row_c / mass, 0.0)) if P else 0.0
-    dt_max = float(p["cfl"]) * 2.0 / (np.sqrt(max(rate_k, 1e-12)) + rate_c)
+    # Stable substep: the largest eigenvalue of M^-1 K over all configurations (see fae.sim.solver).
+    omega2 = max_stiffness_rate(P, spr, ks, anchored, anchor_k, mass, movable)
+    rate_c = float(p["spring_damping_ratio"]) * omega2
+    dt_max = float(p["cfl"]) * 2.0 / (np.sqrt(max(omega2, 1e-12)) + rate_c)
 
     def arr(x, dtype):
         return wp.array(np.ascontiguousarray(x), dtype=dtype, device=device)
@@ -348,6 +395,11 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
         muscle_axis_u=arr(np.array([m["u"] for m in ma], dtype=np.float32).reshape(-1, 3), wp.vec3),
         muscle_axis_v=arr(np.array([m["v"] for m in ma], dtype=np.float32).reshape(-1, 3), wp.vec3),
         muscle_scale=arr(np.array([m["scale"] for m in ma], dtype=np.float32), float),
+        particle_anchor=arr(particle_anchor.astype(np.int32), int),
+        particle_below=arr(below.astype(np.int32), int),
+        particle_normal=arr(normal.astype(np.float32), wp.vec3),
+        particle_height=arr(min_height.astype(np.float32), float),
+        row_influence_start=arr(row_influence_start.astype(np.int32), int),
         influence_count=len(inf_p),
         influence_muscle=arr(inf_m.astype(np.int32), int),
         influence_particle=arr(inf_p.astype(np.int32), int),

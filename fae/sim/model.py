@@ -61,7 +61,13 @@ class SkinModel:
     muscle_axis_u       (M,) vec3  sphincter horizontal axis; field direction
     muscle_axis_v       (M,) vec3  sphincter vertical axis
     muscle_scale        (M,) float metres: sphincter's larger semi-axis (else 1)
-    influence_muscle    (I,) int   one entry per (muscle, particle) with non-zero weight
+    particle_anchor     (P,) int   the particle's anchor or -1
+    particle_below      (P,) int   the same skin vertex's particle in the next layer down, or -1
+    particle_normal     (P,) vec3  unit, rest direction from that particle to this one
+    particle_height     (P,) float metres, the least height above it (`layer_min_height` x rest)
+    row_influence_start (P+1,) int the influences of particle i are start[i]:start[i+1]
+    influence_muscle    (I,) int   one entry per (muscle, particle) with non-zero weight,
+                                   sorted by particle
     influence_particle  (I,) int
     influence_weight    (I,) float N per unit activation (weight x particle mass x
                                    `muscle_acceleration`)
@@ -101,6 +107,11 @@ class SkinModel:
     muscle_axis_u: wp.array
     muscle_axis_v: wp.array
     muscle_scale: wp.array
+    particle_anchor: wp.array
+    row_influence_start: wp.array
+    particle_below: wp.array
+    particle_normal: wp.array
+    particle_height: wp.array
     influence_count: int
     influence_muscle: wp.array
     influence_particle: wp.array

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from fae.sim.model import MUSCLE_FIELD, MUSCLE_LINEAR, MUSCLE_SPHINCTER, SkinModel
+from fae.sim.collision import WRONG_SIDE_COS
 from fae.sim.sdf import sample_grid
 from fae.sim.solver import substep_count
 
@@ -68,7 +69,9 @@ class ReferenceSolver:
             R, t = bone_rotation[b], bone_translation[b]
             local = (q[col] - t) @ R
             phi, grad = sample_grid(values, self.model.sdf_origin[b], self.model.sdf_spacing[b], local)
-            hit = np.flatnonzero((phi < 0.0) & (phi >= -self.model.contact_depth))
+            to_rest = self.a["particle_q"][col].astype(np.float64) - local
+            wrong = np.sum(grad * to_rest, axis=1) < -WRONG_SIDE_COS * np.linalg.norm(grad, axis=1) * np.linalg.norm(to_rest, axis=1)
+            hit = np.flatnonzero((phi < 0.0) & (phi >= -self.model.contact_depth) & ~wrong)
             if len(hit) == 0:
                 continue
             loc, ph, gr = local[hit], phi[hit], grad[hit]
@@ -93,6 +96,22 @@ class ReferenceSolver:
             vn = np.sum(qd[idx] * n, axis=1)
             qd[idx] -= n * np.minimum(vn, 0.0)[:, None]
 
+    def layer_order(self, q: np.ndarray, qd: np.ndarray, q_prev: np.ndarray, bone_rotation: np.ndarray) -> None:
+        """Keep upper-layer particles above their vertex in the layer below (in place)."""
+        a = self.a
+        below = a["particle_below"].astype(np.int64)
+        pa = a["particle_anchor"].astype(np.int64)
+        idx = np.flatnonzero((below >= 0) & (pa >= 0))
+        if len(idx) == 0:
+            return
+        n = np.einsum("aij,aj->ai", bone_rotation[a["anchor_bone"][pa[idx]]], a["particle_normal"][idx].astype(np.float64))
+        gap = a["particle_height"][idx] - np.sum((q[idx] - q_prev[below[idx]]) * n, axis=1)
+        hit = gap > 0.0
+        idx, n, gap = idx[hit], n[hit], gap[hit]
+        q[idx] += n * gap[:, None]
+        vn = np.sum(qd[idx] * n, axis=1)
+        qd[idx] -= n * np.minimum(vn, 0.0)[:, None]
+
     def step(self, q: np.ndarray, qd: np.ndarray, activation: np.ndarray, bone_rotation: np.ndarray,
              bone_translation: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
         """Advance dt seconds; returns new (q (P, 3), qd (P, 3)) metres, metres/s; inputs unchanged."""
@@ -109,6 +128,8 @@ class ReferenceSolver:
             f = self.forces(q, qd, act, R, t)
             qd = (qd + f * w * h) / (1.0 + h * self.model.damping)
             qd[fixed] = 0.0
+            q_prev = q
             q = q + qd * h
+            self.layer_order(q, qd, q_prev, R)
             self.collide(q, qd, R, t)
         return q, qd

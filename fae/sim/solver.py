@@ -31,13 +31,12 @@ from __future__ import annotations
 
 import math
 
+
 import warp as wp
 
-from fae.sim.attachment import eval_anchor_forces
 from fae.sim.collision import collide
 from fae.sim.integrate import integrate
 from fae.sim.model import Control, SkinModel, State
-from fae.sim.muscles import eval_muscle_forces
 from fae.sim.springs import eval_spring_forces
 
 
@@ -71,9 +70,7 @@ class SkinSolver:
             dst = state_out if (n - k) % 2 == 1 else self._scratch
             self.particle_f.zero_()
             eval_spring_forces(model, src, self.particle_f)
-            eval_anchor_forces(model, src, control, self.particle_f)
-            eval_muscle_forces(model, src, control, self.particle_f)
-            integrate(model, src, dst, self.particle_f, h)
+            integrate(model, src, dst, control, self.particle_f, h)
             collide(model, dst, control)
             src = dst
         return state_out
