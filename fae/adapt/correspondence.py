@@ -16,7 +16,7 @@ import trimesh
 from scipy.spatial import Delaunay
 
 from fae.adapt.errors import Surface
-from fae.adapt.geometry import mean_curvature, per_face_normals
+from fae.adapt.geometry import boundary_vertices, mean_curvature, per_face_normals
 
 PAIR_COSINE = 0.7  # closest-point pairs: normals at most 45 degrees apart (concave folds such as behind the ears)
 
@@ -74,11 +74,14 @@ def curvature_features(scan: Surface, box_min: np.ndarray, box_max: np.ndarray, 
                        spacing: float) -> np.ndarray:
     """(<= count,) indices of scan vertices with the largest |mean curvature| inside the box,
     off the boundary, at most one per cell of size `spacing` (paper 000 §4.1, Fig. 5)."""
-    H = np.abs(mean_curvature(scan.V, scan.F))
     inside = np.all((scan.V >= box_min) & (scan.V <= box_max), axis=1) & ~scan.boundary
     cand = np.flatnonzero(inside)
     if len(cand) == 0:
         return cand
+    # curvature on the faces around the box only (the rest of the scan is not searched)
+    near = scan.F[np.any(inside[scan.F], axis=1)]
+    H = np.abs(mean_curvature(scan.V, near))
+    H[boundary_vertices(near, len(scan.V))] = 0.0  # the cut around the box is no feature
     cand = cand[np.argsort(-H[cand])][: count * 20]
     cell = np.floor(scan.V[cand] / spacing).astype(np.int64)
     _, first = np.unique(cell, axis=0, return_index=True)

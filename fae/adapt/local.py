@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.sparse.linalg import factorized
+from scipy.sparse.linalg import cg
 from scipy.spatial import cKDTree
 
 from fae.adapt.errors import Surface
@@ -96,25 +96,28 @@ class OffsetSmoother:
     L is the graph Laplacian of faces F (m, 3) over n vertices, W = diag(weights) with
     weight 1 for matched vertices and `leak` for the rest (their offset fades to zero over
     about sqrt(lam / leak) edges away from matched ones). lam: smoothing, in edges^2.
-    The factorization is redone only when the matched set changes.
+    Solved by Jacobi-preconditioned conjugate gradients from the previous solution (the
+    system changes with the matched set at every pyramid level; a factorization would be
+    redone each time).
     """
 
     def __init__(self, F: np.ndarray, n: int, lam: float = 0.1, leak: float = 1e-3):
         A = adjacency_matrix(np.asarray(F, dtype=np.int64), n)
-        self.L = (sp.diags(np.asarray(A.sum(axis=1)).ravel()) - A).tocsc()
+        self.L = (sp.diags(np.asarray(A.sum(axis=1)).ravel()) - A).tocsr()
         self.lam, self.leak, self.n = lam, leak, n
-        self._key = None
-        self._solve = None
+        self._last = np.zeros((n, 3))
 
     def __call__(self, offsets: np.ndarray, matched: np.ndarray) -> np.ndarray:
         """(n, 3) smoothed offsets from offsets (n, 3) (ignored where not matched) and matched (n,) bool."""
         w = np.where(matched, 1.0, self.leak)
-        key = matched.tobytes()
-        if key != self._key:
-            self._solve = factorized((sp.diags(w) + self.lam * self.L).tocsc())
-            self._key = key
+        M = (sp.diags(w) + self.lam * self.L).tocsr()
+        pre = sp.diags(1.0 / M.diagonal())
         rhs = np.where(matched[:, None], offsets, 0.0) * w[:, None]
-        return np.column_stack([self._solve(np.ascontiguousarray(rhs[:, a])) for a in range(3)])
+        out = np.empty((self.n, 3))
+        for a in range(3):
+            out[:, a], _ = cg(M, rhs[:, a], x0=self._last[:, a], rtol=1e-3, atol=0.0, M=pre, maxiter=200)
+        self._last = out
+        return out
 
 
 def limit_offsets(D: np.ndarray, clearance: np.ndarray, share: float = CLEARANCE_SHARE) -> np.ndarray:

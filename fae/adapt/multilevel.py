@@ -39,7 +39,7 @@ from fae.adapt.geometry import per_vertex_normals
 from fae.adapt.local import (OffsetSmoother, limit_offsets, lowpass_pyramid, nearest_neighbor_adaptation,
                              offset_clearance)
 from fae.adapt.rbf import RBF, rbf_interpolant, rbf_weights
-from fae.adapt.untangle import edge_crossings, untangle
+from fae.adapt.untangle import edge_crossings, mesh_edges, untangle
 
 METHODS = ("multilevel", "rbf", "wendland", "multiquadric")
 GLOBAL_LIMIT = 500  # paper 000 §4.3: global RBF below this many pairs, CSRBF above
@@ -88,7 +88,7 @@ class Fit:
 
 def fit_template(P: np.ndarray, F: np.ndarray, P_landmarks: np.ndarray, scan_V: np.ndarray,
                  scan_F: np.ndarray, Q_landmarks: np.ndarray, method: str = "multilevel",
-                 levels: int = 2, local_levels: int = 4, rho: float = 0.0,
+                 levels: int = 1, local_levels: int = 4, rho: float = 0.0,
                  progress: Callable[[str], None] | None = None, movable: np.ndarray | None = None) -> Fit:
     """Fit template surface P (n, 3), F (m, 3) to a scan already in the face frame.
 
@@ -128,7 +128,8 @@ def fit_template(P: np.ndarray, F: np.ndarray, P_landmarks: np.ndarray, scan_V: 
 
     kernel = {"multilevel": "biharmonic", "rbf": "biharmonic", "wendland": "wendland",
               "multiquadric": "multiquadric"}[method]
-    deformation, dropped = folding_free_rbf(P, F, PL, QL, kernel, rho)
+    E = mesh_edges(F)
+    deformation, dropped, level0_clean = folding_free_rbf(P, F, PL, QL, kernel, rho, E)
     if dropped:
         keep = np.setdiff1d(np.arange(len(PL)), dropped)
         PL, QL = PL[keep], QL[keep]
@@ -196,9 +197,9 @@ def fit_template(P: np.ndarray, F: np.ndarray, P_landmarks: np.ndarray, scan_V: 
         best = int(np.argmin([r["combined_error"] for r in report]))
     X, deformation = results[best]
     relaxed = 0
-    if len(edge_crossings(X, F)[0]):
-        safe = results[0][0] if len(edge_crossings(results[0][0], F)[0]) == 0 else P
-        X, weight = untangle(F, X, safe)
+    if best > 0 and len(edge_crossings(X, F, E)[0]):
+        safe = results[0][0] if level0_clean else P
+        X, weight = untangle(F, X, safe, edges=E)
         relaxed = int(np.sum(weight < 1.0))
     final = symmetric_rms(surface(X, F), scan, max_distance)
     final["relaxed_vertices"] = relaxed
@@ -211,9 +212,10 @@ def fit_template(P: np.ndarray, F: np.ndarray, P_landmarks: np.ndarray, scan_V: 
 
 
 def folding_free_rbf(P: np.ndarray, F: np.ndarray, PL: np.ndarray, QL: np.ndarray, kernel: str, rho: float,
-                     max_drops: int = 8) -> tuple[Deformation, list[int]]:
-    """The level-0 RBF through the feature points PL -> QL (k, 3), and the indices of those
-    left out because the surface P, F folded through itself with them.
+                     edges: np.ndarray | None = None, max_drops: int = 8) -> tuple[Deformation, list[int], bool]:
+    """The level-0 RBF through the feature points PL -> QL (k, 3), the indices of those
+    left out because the surface P, F folded through itself with them, and whether the
+    result is free of crossings (edges: mesh_edges(F), when already known).
 
     Feature points that almost coincide on the template but not on the scan (the inner lip
     contour of a face scanned with the mouth open, closed eyelids over open ones) ask the
@@ -226,10 +228,10 @@ def folding_free_rbf(P: np.ndarray, F: np.ndarray, PL: np.ndarray, QL: np.ndarra
     for _ in range(max_drops + 1):
         deformation = Deformation(rbf_weights(PL[keep], QL[keep] - PL[keep], kernel, rho=rho))
         X = deformation(P)
-        edges, faces = edge_crossings(X, F)
-        if len(edges) == 0 or len(keep) <= 4:
+        crossing, _ = edge_crossings(X, F, edges)
+        if len(crossing) == 0 or len(keep) <= 4:
             break
-        at = X[edges].mean(axis=1).mean(axis=0)
+        at = X[crossing].mean(axis=1).mean(axis=0)
         near = np.argsort(np.linalg.norm(deformation(PL[keep]) - at, axis=1))[:4]
         D = QL[keep] - PL[keep]
         from scipy.spatial import cKDTree
@@ -239,7 +241,7 @@ def folding_free_rbf(P: np.ndarray, F: np.ndarray, PL: np.ndarray, QL: np.ndarra
         worst = int(keep[near[int(np.argmax(odd))]])
         dropped.append(worst)
         keep = keep[keep != worst]
-    return deformation, sorted(dropped)
+    return deformation, sorted(dropped), len(crossing) == 0
 
 
 def consistent_pairs(X: np.ndarray, Q: np.ndarray, factor: float = 4.0, floor: float = 0.002) -> np.ndarray:

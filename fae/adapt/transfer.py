@@ -215,7 +215,7 @@ def _ratio(a: dict, b: dict, p: str, q: str) -> float | None:
 
 
 def adapt_facemodel(template: FaceModel, scan_V: np.ndarray, scan_F: np.ndarray,
-                    scan_landmarks: dict[str, np.ndarray], method: str = "multilevel", levels: int = 2,
+                    scan_landmarks: dict[str, np.ndarray], method: str = "multilevel", levels: int = 1,
                     progress: Callable[[str], None] | None = None) -> tuple[FaceModel, dict]:
     """A personalized copy of `template` fitted to the scan (V (n, 3), F (m, 3) in the scan's
     frame and unit; landmarks FDP name -> (3,) in the same). Returns (model, report dict)."""
@@ -298,7 +298,7 @@ def _fapu_ratio(old: dict, new: dict) -> float:
 
 def adapt_surface(template_V: np.ndarray, template_F: np.ndarray, template_landmarks: dict[str, np.ndarray],
                   scan_V: np.ndarray, scan_F: np.ndarray, scan_landmarks: dict[str, np.ndarray],
-                  method: str = "multilevel", levels: int = 2) -> tuple[np.ndarray, np.ndarray, dict]:
+                  method: str = "multilevel", levels: int = 1) -> tuple[np.ndarray, np.ndarray, dict]:
     """Fit a bare template surface (V (n, 3) metres, F, FDP name -> (3,)) to a scan in any
     frame and unit. Returns fitted V (n, 3) in the face frame (metres), the (4, 4) scan ->
     face frame transform, and the report dict."""

@@ -65,15 +65,15 @@ def edge_crossings(V: np.ndarray, F: np.ndarray, edges: np.ndarray | None = None
     return E[found], face[found]
 
 
-def untangle(F: np.ndarray, X: np.ndarray, X_safe: np.ndarray, rings: int = 2, rounds: int = 12
-             ) -> tuple[np.ndarray, np.ndarray]:
+def untangle(F: np.ndarray, X: np.ndarray, X_safe: np.ndarray, rings: int = 2, rounds: int = 12,
+             edges: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Blend surface X (n, 3) towards X_safe (n, 3) (same faces F, free of intersections)
     around every crossing, until none is left.
 
     Each round gives weight 0 to the vertices of crossing edges and triangles and `rings`
     rings around them, and lets the weight rise back to 1 over as many further rings.
     Returns the result (n, 3) = X_safe + weight (X - X_safe) and the weight (n,) in [0, 1]
-    (1: the fit kept, 0: the safe surface). Whatever still crosses after `rounds` rounds
+    (1: the fit kept, 0: the safe surface). edges: mesh_edges(F), when already known. Whatever still crosses after `rounds` rounds
     is left to the caller (check with edge_crossings).
     """
     F = np.asarray(F, dtype=np.int64)
@@ -81,7 +81,7 @@ def untangle(F: np.ndarray, X: np.ndarray, X_safe: np.ndarray, rings: int = 2, r
     X_safe = np.asarray(X_safe, dtype=np.float64)
     n = len(X)
     A = adjacency_matrix(F, n)
-    E = mesh_edges(F)
+    E = mesh_edges(F) if edges is None else edges
     weight = np.ones(n)
     Y = X
     for r in range(rounds + 1):

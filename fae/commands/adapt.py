@@ -1,6 +1,7 @@
 """`fae adapt SCAN [--landmarks FILE] [--template FILE] [--method M] -o HEAD.glb [--report R.json] [--plot R.png]`
 
-Fits the template head to a scan and writes the personalized FaceModel. Exit 0 on success,
+Fits the template head to a scan and writes the personalized FaceModel. Without
+--landmarks the feature points are found on the scan (fae.adapt.auto_landmarks). Exit 0 on success,
 2 on bad input (the reason, naming the file and field, on stderr).
 """
 
@@ -24,9 +25,12 @@ def register(subparsers) -> None:
     p.add_argument("scan", metavar="SCAN", help="head mesh (OBJ, PLY, STL, OFF, GLB/glTF)")
     p.add_argument("--landmarks", metavar="FILE", help="feature points: JSON {\"9.3\": [x, y, z] or vertex "
                    "index}, menpo .ljson or CSV (68 iBUG points or name,x,y,z rows)")
+    p.add_argument("--feature-search", choices=("fit", "ga"), default="fit",
+                   help="without --landmarks: refine the found feature points by the template fit (default) or "
+                   "by paper 003's genetic algorithm")
     p.add_argument("--template", metavar="FILE", default=DEFAULT_TEMPLATE, help="template FaceModel .glb")
     p.add_argument("--method", choices=METHODS, default="multilevel", help="fitting method (default: multilevel)")
-    p.add_argument("--levels", type=int, default=2, help="refinement levels after the first (multilevel)")
+    p.add_argument("--levels", type=int, default=1, help="refinement levels after the first (multilevel)")
     p.add_argument("-o", "--output", required=True, metavar="HEAD.glb", help="personalized FaceModel to write")
     p.add_argument("--report", metavar="R.json", help="write the per-level error report as JSON")
     p.add_argument("--plot", metavar="R.png", help="plot the errors per level (PNG)")
@@ -67,11 +71,7 @@ def run(args) -> int:
 
     try:
         V, F = read_scan(args.scan)
-        if not args.landmarks:
-            print(f"fae adapt: {args.scan}: automatic feature points are not available; give --landmarks FILE",
-                  file=sys.stderr)
-            return 2
-        landmarks = read_landmarks(args.landmarks, V)
+        landmarks = read_landmarks(args.landmarks, V) if args.landmarks else None
         if not os.path.isfile(args.template):
             print(f"fae adapt: template {args.template} not found (build it with `fae template`)", file=sys.stderr)
             return 2
@@ -86,6 +86,13 @@ def run(args) -> int:
         bar.set_postfix_str(msg)
 
     try:
+        auto = None
+        if landmarks is None:
+            from fae.adapt.auto_landmarks import auto_landmarks
+
+            landmarks, auto = auto_landmarks(template, V, F, method=args.feature_search)
+            print(f"fae adapt: {len(landmarks)} feature points found automatically ({args.feature_search}; "
+                  f"nose tip detected: {'9.3' in auto['detected']})", file=sys.stderr)
         model, report = adapt_facemodel(template, V, F, landmarks, method=args.method, levels=args.levels,
                                         progress=progress)
     except ValueError as exc:
@@ -93,6 +100,8 @@ def run(args) -> int:
         print(f"fae adapt: {args.scan}: {exc}", file=sys.stderr)
         return 2
     bar.close()
+    if auto is not None:
+        report["automatic_feature_points"] = auto
     write_facemodel(model, args.output)
     if args.report:
         with atomic_open(args.report, "w") as fh:
