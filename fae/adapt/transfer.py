@@ -251,7 +251,13 @@ def adapt_facemodel(template: FaceModel, scan_V: np.ndarray, scan_F: np.ndarray,
     for name in ("eye_l", "eye_r"):
         if name in model.parts and name in template.eye_centers:
             c, s = eye_in_socket(template, model, name)
-            model.parts[name].vertices = (template.parts[name].vertices - template.eye_centers[name]) * s + c
+            rel = template.parts[name].vertices - template.eye_centers[name]
+            skin_q = MeshQuery(model.skin_vertices, model.skin_faces)
+            for _ in range(20):  # the socket fit is least squares: make sure no eyelid is crossed
+                if not skin_q.inside(rel * s + c).any():
+                    break
+                s *= 0.98
+            model.parts[name].vertices = rel * s + c
             model.eye_centers[name] = c
             eye_scale[name] = s
     model.jaw_pivot = deform(np.asarray(template.jaw_pivot)[None])[0]
