@@ -10,6 +10,7 @@ template vertices to the true surface, marker error, and ratios against nricp me
 the same run. Single-threaded BLAS is advised for comparable numbers:
 
     OMP_NUM_THREADS=1 .venv/bin/python tools/bench_adapt.py [--nricp] [--subdivisions 2]
+    OMP_NUM_THREADS=1 .venv/bin/python tools/bench_adapt.py --auto    (feature point searches)
 """
 
 from __future__ import annotations
@@ -38,12 +39,42 @@ def truth_rms(X, F, scan, T, seen):
     return float(np.sqrt(np.mean(d[ok] ** 2)))
 
 
+def compare_feature_searches(seeds=(4, 5, 6)) -> None:
+    """Automatic feature points (fae.adapt.auto_landmarks) on face scans of three synthetic
+    people (turned up to 57 degrees, mm): the aligned template's points alone, refined by
+    the template fit, and by paper 003's GA; error against the true points, seconds."""
+    from fae.adapt.auto_landmarks import auto_landmarks
+
+    model = read_facemodel(TEMPLATE_PATH)
+    V, F = model.skin_vertices, model.skin_faces.astype(np.int64)
+    seen = visible_skin(model)
+    lm = {n: p for n, p in model.feature_point_positions().items() if model.feature_points[n].part == "skin"}
+    print(f"{'search':10s} {'seconds':>8s} {'median mm':>10s} {'RMS mm':>8s} {'nose tip mm':>12s}")
+    for label, method, rounds in (("aligned", "fit", 0), ("fit", "fit", 2), ("ga", "ga", 0)):
+        times, errs, nose = [], [], []
+        for seed in seeds:
+            scan = template_scan(V, F, lm, seed=seed, subdivisions=1, drop_faces=~seen[F].all(axis=1),
+                                 face_only=True, max_angle=1.0)
+            t = time.perf_counter()
+            found, _ = auto_landmarks(model, scan.vertices, scan.faces, method=method, rounds=rounds)
+            times.append(time.perf_counter() - t)
+            errs += [np.linalg.norm(found[n] - scan.landmarks[n]) for n in found]
+            nose.append(np.linalg.norm(found["9.3"] - scan.landmarks["9.3"]))
+        errs = np.array(errs)
+        print(f"{label:10s} {np.mean(times):8.2f} {np.median(errs):10.2f} {np.sqrt(np.mean(errs**2)):8.2f} "
+              f"{np.mean(nose):12.2f}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--subdivisions", type=int, default=2, help="Loop steps of the scan (2: about 90k vertices)")
     ap.add_argument("--nricp", action="store_true", help="also run trimesh nricp_amberg (minutes)")
     ap.add_argument("--repeat", type=int, default=1, help="runs per method; the fastest counts")
+    ap.add_argument("--auto", action="store_true", help="only compare the automatic feature point searches")
     args = ap.parse_args()
+    if args.auto:
+        compare_feature_searches()
+        return
     model = read_facemodel(TEMPLATE_PATH)
     V, F = model.skin_vertices, model.skin_faces.astype(np.int64)
     seen = visible_skin(model)
