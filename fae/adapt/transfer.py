@@ -1,14 +1,22 @@
 """Personalize a FaceModel: fit its skin to a scan and carry the anatomy over (paper 000 §6.2).
 
 - skin: the fitted surface (same topology, so regions, mirror, uv, FDPs and muscle ends,
-  all stored as triangle + barycentric coordinates, carry over unchanged);
+  all stored as triangle + barycentric coordinates, carry over unchanged); skin no scanner
+  sees (visible_skin: inside the mouth, between the lips, the eye sockets) gets no scan
+  target and follows its neighbours; feature points that would fold the skin (inner lip
+  points of a scan with the mouth open) are ignored and reported;
 - cranium, mandible: through the fitted deformation (global RBF + CSRBF levels, without the
-  per-vertex local step), then pushed back under the skin where they would poke through;
-- eyes, teeth, tongue: rigid (eq. 25-28): moved with the deformation of their centre and
-  scaled uniformly by the ratio of feature-point distances (eye: |3.7-3.11| for the left,
-  |3.8-3.12| for the right; teeth and tongue: mouth width |8.3-8.4|), no rotation (the scan
-  is already calibrated into the face frame);
-- jaw pivot, eye centres: through the deformation; jaw axis unchanged;
+  per-vertex local step), kept in their template shape where the deformation would fold
+  them (fae.adapt.untangle), then pushed under the skin in small smooth steps where the
+  new soft tissue is thinner than MIN_BONE_DEPTH (push_under_skin);
+- teeth, tongue: rigid (eq. 25-28): moved with the deformation of their centre and scaled
+  uniformly by the mouth-width ratio |8.3-8.4|, no rotation (the scan is already
+  calibrated into the face frame);
+- eyes: fitted into the adapted socket (eye_in_socket: centre and scale by least squares
+  on the socket's template gaps, capped so the eyelids are never crossed);
+- linear muscles whose line would leave the soft tissue get a nearby bone attachment from
+  which it does not (keep_muscles_inside);
+- jaw pivot: through the deformation; jaw axis unchanged;
 - sphincter semi-axes and linear-muscle fall-off distances: scaled by the mouth-width ratio
   (sphincters near the mouth) or the eye-width ratio (near an eye);
 - skin_thickness: recomputed as the distance to the nearest bone, capped at the template's
@@ -17,7 +25,12 @@
   distance (ES, ENS, MNS, MW) of the new face to the template's, since a FAP moves a point
   by value x FAPU;
 - fap_mapping cleared (the runtime re-derives it); scan_transform maps the face frame back
-  to the scan's frame and unit.
+  to the scan's frame and unit; meta["symmetric"] = False (a person is not symmetric; the
+  mirror pairing is kept for left/right).
+
+Not done: the template is not subdivided to the scan's resolution (paper 001), since
+FDPs, muscles and regions are bound to its triangles; the fitted skin has the template's
+resolution.
 """
 
 from __future__ import annotations
