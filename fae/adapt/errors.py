@@ -87,13 +87,19 @@ def combined_error(distance: float, marker: float) -> float:
     return float(distance + MARKER_WEIGHT * marker)
 
 
-def symmetric_rms(model: Surface, scan: Surface, max_distance: float) -> dict[str, float]:
+def symmetric_rms(model: Surface, scan: Surface, max_distance: float, scored: np.ndarray | None = None,
+                  scan_samples: int = 20000) -> dict[str, float]:
     """RMS closest-point distances both ways over compatible points, metres and / scan diagonal.
 
+    scored (n,) bool: model vertices that count (default all; a head leaves out skin no
+    scanner sees); scan_samples: at most this many scan vertices, evenly strided, are used.
     Returns scan_to_model_rms, model_to_scan_rms, *_rel, and the compatible fractions.
     """
     _, _, d_ms, ok_ms = compatible_closest_points(model.V, model.N, scan, max_distance)
-    _, _, d_sm, ok_sm = compatible_closest_points(scan.V, scan.N, model, max_distance)
+    if scored is not None:
+        ok_ms &= scored
+    step = max(1, len(scan.V) // scan_samples)
+    _, _, d_sm, ok_sm = compatible_closest_points(scan.V[::step], scan.N[::step], model, max_distance)
     ms = float(np.sqrt(np.mean(d_ms[ok_ms] ** 2))) if ok_ms.any() else float("inf")
     sm = float(np.sqrt(np.mean(d_sm[ok_sm] ** 2))) if ok_sm.any() else float("inf")
     return {

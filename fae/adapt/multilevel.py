@@ -201,7 +201,7 @@ def fit_template(P: np.ndarray, F: np.ndarray, P_landmarks: np.ndarray, scan_V: 
         safe = results[0][0] if level0_clean else P
         X, weight = untangle(F, X, safe, edges=E)
         relaxed = int(np.sum(weight < 1.0))
-    final = symmetric_rms(surface(X, F), scan, max_distance)
+    final = symmetric_rms(surface(X, F), scan, max_distance, scored)
     final["relaxed_vertices"] = relaxed
     final["marker_error"] = report[best]["marker_error"]
     final["distance_error"] = report[best]["distance_error"]
