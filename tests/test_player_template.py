@@ -35,7 +35,7 @@ def player(face):
     return Player(face)
 
 
-def settle(player, values, frames=30):
+def settle(player, values, frames=25):
     player.reset()
     for _ in range(frames):
         skin = player.step(values, dt=1 / 25)
@@ -51,10 +51,10 @@ def test_zero_faps_keep_the_face_at_rest(player):
     assert worst < 1e-5
 
 
-@pytest.mark.xfail(strict=True, reason="known bug on the shipped head: after 10,000 random frames some skin "
-                   "is still about 2 cm off rest after 2 s of zero FAPs (finite and bounded throughout)")
 def test_ten_thousand_random_frames_stay_finite_and_the_face_returns_to_rest(player):
-    """Random in-range FAPs (every 50th frame 10x out of range), one solver substep per frame."""
+    """Random in-range FAPs (every 50th frame 10x out of range), one solver substep per frame:
+    the jaw snaps open and shut, lips and lids jump; afterwards no skin is left caught on a
+    bone's far side or folded under its own lower layer."""
     player.reset()
     rng = np.random.default_rng(0)
     dt = player.sim.dt_max
@@ -69,7 +69,7 @@ def test_ten_thousand_random_frames_stay_finite_and_the_face_returns_to_rest(pla
             assert np.abs(in_head - rest).max() < 0.1, f"frame {i}"
     for _ in range(50):
         skin = player.step(np.zeros(68), dt=1 / 25)
-    assert np.abs(skin - rest).max() < 1e-4
+    assert np.linalg.norm(skin - rest, axis=1).max() < 5e-4
 
 
 def test_values_ten_times_out_of_range_are_clamped_and_stable(player):
@@ -83,15 +83,18 @@ def test_values_ten_times_out_of_range_are_clamped_and_stable(player):
     assert np.abs(inside - player.face.skin_vertices).max() > 5e-3
 
 
-def test_a_left_fap_moves_the_left_side_only(player):
+@pytest.mark.parametrize("fap, left, right", [(12, "2.4", "2.5"), (53, "8.3", "8.4"), (31, "4.1", "4.2")])
+def test_a_left_fap_moves_its_feature_point_and_leaves_the_mirror_point_still(player, fap, left, right):
+    """raise_l_cornerlip, stretch_l_cornerlip_o, raise_l_i_eyebrow at half range: the left
+    feature point moves by millimetres, its right mirror by less than 15 % of that."""
     v = np.zeros(68)
-    v[52] = FAP_LIMITS[52, 1] / 2  # stretch_l_cornerlip_o
-    skin = settle(player, v)
-    d = np.linalg.norm(skin - player.face.skin_vertices, axis=1)
-    x = player.face.skin_vertices[:, 0]
-    assert d[x > 0].max() > 2e-3
-    # the lip drags its own middle; the right cheek beyond the right corner stays
-    assert d[x < -0.035].max() < 0.1 * d[x > 0].max()
+    v[fap - 1] = FAP_LIMITS[fap - 1, 1] / 2
+    skin = settle(player, v, frames=20)
+    face = player.face
+    rest = face.feature_point_positions()
+    moved = {k: np.linalg.norm(face.surface_point_position(face.feature_points[k], skin) - rest[k]) for k in (left, right)}
+    assert moved[left] > 2e-3, moved
+    assert moved[right] < 0.15 * moved[left], moved
 
 
 def test_shipped_head_passes_the_fap_check(player):
@@ -126,9 +129,10 @@ def test_visemes_and_expressions_move_the_face_as_their_tables_say(player):
     # viseme 10 "aa" (open jaw), fully blended: the chin and lower lip go down
     aa = settle(player, _frame(viseme=Viseme(10, 0, 63, 0)))
     assert fdp(aa, "2.1")[1] < -5e-3 and fdp(aa, "8.2")[1] < -5e-3
-    # half blend with silence: the mouth opens too
+    # half blend with silence: the mouth opens too, less than the full viseme
     half = settle(player, _frame(viseme=Viseme(10, 0, 32, 0)))
     assert fdp(half, "2.1")[1] < -2e-3
+    assert fdp(half, "2.1")[1] > fdp(aa, "2.1")[1] + 1e-3
     # a low-level FAP adds to the viseme: open_jaw on top opens further
     v = np.zeros(68)
     v[2] = 300

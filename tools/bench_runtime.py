@@ -13,11 +13,15 @@ frame.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
+
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")  # one core for both (Warp's CPU kernels run on one thread)
 
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))

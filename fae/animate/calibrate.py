@@ -318,10 +318,10 @@ def settle(model, solver, controls, values: np.ndarray, rig, frames: int = 40, f
     T = rig.jaw(*jaw)
     R[1], t[1] = T[:3, :3], T[:3, 3]
     control.set(muscle_activation=activation, bone_rotation=R, bone_translation=t)
-    prev = state.particle_q.numpy()
+    prev = state.particle_q.numpy().copy()
     for i in range(frames):
         solver.step(model, state, control, 1.0 / fps, state)
-        q = state.particle_q.numpy()
+        q = state.particle_q.numpy().copy()  # on the CPU .numpy() is a view of the state
         if i > 3 and np.abs(q - prev).max() < tolerance:
             break
         prev = q

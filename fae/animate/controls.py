@@ -13,6 +13,10 @@ from fae.animate.calibrate import FORMAT_VERSION, JAW_CONTROLS
 from fae.mpeg4.faps import FAP_COUNT
 
 ACTIVATION_LIMIT = 50.0
+# rad: the widest opening; below the angle where the chin (2.1) is lowest (about 0.6 rad
+# on the generic head with its condylar glide, fae.animate.rigid), so the chin goes down
+# monotonically with open_jaw and visemes
+JAW_ANGLE_LIMIT = 0.5
 
 
 class MappingMismatch(ValueError):
@@ -68,5 +72,5 @@ class FapControls:
         act = np.clip(c[: self.muscle_count], -ACTIVATION_LIMIT, ACTIVATION_LIMIT)
         act[: self.model_muscles] = np.maximum(act[: self.model_muscles], 0.0)
         jaw = c[self.muscle_count:]
-        jaw = np.array([np.clip(jaw[0], -0.05, 0.6), np.clip(jaw[1], -0.02, 0.03), np.clip(jaw[2], -0.03, 0.03)])
+        jaw = np.array([np.clip(jaw[0], -0.05, JAW_ANGLE_LIMIT), np.clip(jaw[1], -0.02, 0.03), np.clip(jaw[2], -0.03, 0.03)])
         return act, jaw

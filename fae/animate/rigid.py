@@ -3,7 +3,12 @@
 - head (48-50): rotation about feature point 7.1, R = Ry(yaw) Rx(pitch) Rz(roll), applied to
   everything (the skin is simulated in the head's frame, then carried by this pose);
 - jaw (3, 14, 15 through calibrated controls): rotation about the hinge (jaw_pivot,
-  jaw_axis) by the opening angle, then translation (thrust along +z, shift along x);
+  jaw_axis) by the opening angle while the condyles glide forward and down the articular
+  eminence (`CONDYLE_GLIDE` metres per radian of opening, `EMINENCE_SLOPE` below the
+  horizontal), then translation (thrust along +z, shift along x). Without the glide the
+  bottom of the chin (2.1), 11 cm below and 5 cm in front of the hinge on the generic
+  head, moved down at most 10 mm (at 0.42 rad) and then back up: open_jaw could not reach
+  half its range, and a wider opening raised the chin again;
 - eyeballs (23-28): yaw about +y and pitch about +x through the eye centre, then thrust
   along +z (ES units); pupils (29-30) have no mesh of their own: their dilation is
   reported as a scale factor of the pupil diameter (1 + v IRISD / (IRISD0 / 3));
@@ -17,6 +22,9 @@ from __future__ import annotations
 import numpy as np
 
 from fae.mpeg4.faps import AU
+
+CONDYLE_GLIDE = 0.025  # metres of condylar translation per radian of opening
+EMINENCE_SLOPE = np.radians(35.0)  # the glide's angle below the forward (+z) direction
 
 
 def rotation_x(a: float) -> np.ndarray:
@@ -70,8 +78,11 @@ class RigidRig:
         self.irisd0 = fapu["IRISD"] * 1024.0
 
     def jaw(self, angle: float, thrust: float, shift: float) -> np.ndarray:
-        """(4, 4) jaw pose: opening `angle` rad about the hinge, then `thrust` (+z) and `shift` (+x) metres."""
-        return about(axis_angle(self.jaw_axis, angle), self.jaw_pivot, np.array([shift, 0.0, thrust]))
+        """(4, 4) jaw pose: opening `angle` rad about the hinge with the condylar glide, then
+        `thrust` (+z) and `shift` (+x) metres."""
+        glide = CONDYLE_GLIDE * max(float(angle), 0.0)
+        move = np.array([shift, -glide * np.sin(EMINENCE_SLOPE), thrust + glide * np.cos(EMINENCE_SLOPE)])
+        return about(axis_angle(self.jaw_axis, angle), self.jaw_pivot, move)
 
     def head(self, v: np.ndarray) -> np.ndarray:
         R = rotation_y(v[48] * AU) @ rotation_x(v[47] * AU) @ rotation_z(v[49] * AU)

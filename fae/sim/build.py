@@ -16,8 +16,9 @@ Parameters (keys of `layer_params`, else these defaults): stiffness per unit mas
 ratio x stiffness); `drag` 110 1/s; `density` 1100 kg/m^3; `muscle_acceleration` 50 m/s^2
 (force per unit activation and weight, per kg). Only skin near a muscle, a pull field or
 the jaw is simulated (`active_rings` 3 edge rings around it, plus one fixed ring).
-Layer order: an upper-layer particle stays at least `layer_min_height` 0.25 of its rest
-height above its vertex in the next layer (fae.sim.integrate). Contact: penetrations deeper than `contact_depth` 4 mm are left to the springs (see
+Layer order: an epidermis particle stays at least `layer_min_height` 0.1 of its rest
+height above its vertex in the middle layer (0.25, and the middle layer over the deepest
+too, held the lower lip's raise to 0.72 of its FAP) (fae.sim.integrate). Contact: penetrations deeper than `contact_depth` 4 mm are left to the springs (see
 fae.sim.collision).
 """
 
@@ -52,7 +53,7 @@ DEFAULTS = {
     "cfl": 0.9,
     "sdf_cell": 0.003,
     "contact_depth": 0.004,
-    "layer_min_height": 0.25,
+    "layer_min_height": 0.1,
 }
 
 
@@ -335,7 +336,7 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
     particle_anchor = np.full(P, -1, dtype=np.int64)
     particle_anchor[anchored] = np.arange(len(anchored))
     # layer order: each upper-layer particle over its own vertex in the next layer
-    below = np.where(layer_of < LAYER_COUNT - 1, np.arange(P) + nsv, -1)
+    below = np.where(layer_of == 0, np.arange(P) + nsv, -1)
     below[~movable] = -1
     up = q[:-nsv] - q[nsv:]
     height = np.linalg.norm(up, axis=1)

@@ -8,8 +8,8 @@ applied implicitly:
 
     v' = (v + dt f / m) / (1 + dt c),  x' = x + dt v'.
 
-Then the layer order: an upper-layer particle is kept at least `particle_height` above the
-previous position of its own vertex in the layer below, along its rest normal carried by
+Then the layer order: an epidermis particle is kept at least `particle_height` above the
+previous position of its own vertex in the middle layer, along its rest normal carried by
 its bone (a position projection; the inward normal velocity is removed). Without it an
 epidermis pushed through the middle layer is a stable state of the springs: the skin of
 the eyelids and brows stayed sunk 3 mm after 10,000 random frames.

@@ -62,7 +62,7 @@ class SkinModel:
     muscle_axis_v       (M,) vec3  sphincter vertical axis
     muscle_scale        (M,) float metres: sphincter's larger semi-axis (else 1)
     particle_anchor     (P,) int   the particle's anchor or -1
-    particle_below      (P,) int   the same skin vertex's particle in the next layer down, or -1
+    particle_below      (P,) int   an epidermis particle's vertex in the middle layer, or -1
     particle_normal     (P,) vec3  unit, rest direction from that particle to this one
     particle_height     (P,) float metres, the least height above it (`layer_min_height` x rest)
     row_influence_start (P+1,) int the influences of particle i are start[i]:start[i+1]
