@@ -27,8 +27,8 @@ shallow penetrations only, towards the side of the bone the particle belongs to
 (kappa_anchor 10000), the upper layers by weak tethers (kappa_tether 500), which gives the
 network a single rest shape to return to (without them, skin folded by extreme poses
 stayed folded). Kernels are compiled with fast math. On the shipped head (21,840
-particles, 163k springs) dt_max is 8.4 ms: a 25 fps frame takes 5 substeps of about 5 ms
-on one CPU core (springs ~2.5 ms, particle pass ~1 ms, contact ~1.5 ms).
+particles, 163k springs) dt_max is 8.4 ms: a 25 fps frame takes 5 substeps of 4-5 ms
+on one CPU core (the spring scatter about half of it, contact about a quarter).
 
 Schemes not taken: a per-particle gather of the springs (no atomics) measured 1.5x slower
 on the CPU than the scatter, since it evaluates each spring from both ends.
