@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import os
 import sys
+import time
 
 from fae.adapt.multilevel import METHODS
 
@@ -34,6 +35,9 @@ def register(subparsers) -> None:
     p.add_argument("-o", "--output", required=True, metavar="HEAD.glb", help="personalized FaceModel to write")
     p.add_argument("--report", metavar="R.json", help="write the per-level error report as JSON")
     p.add_argument("--plot", metavar="R.png", help="plot the errors per level (PNG)")
+    p.add_argument("--no-calibrate", action="store_true",
+                   help="skip deriving the runtime's FAP mapping for the new head (the player then "
+                   "derives it each time it loads the head, which takes minutes)")
     p.set_defaults(func=run)
 
 
@@ -102,6 +106,14 @@ def run(args) -> int:
     bar.close()
     if auto is not None:
         report["automatic_feature_points"] = auto
+    if not args.no_calibrate:
+        # Setup work belongs here, once per head: the player then loads the head at once.
+        from fae.animate.calibrate import calibrate
+
+        print("fae adapt: deriving the FAP mapping of the new head (once per head)", file=sys.stderr)
+        started = time.perf_counter()
+        model = calibrate(model)
+        report["calibration_seconds"] = time.perf_counter() - started
     write_facemodel(model, args.output)
     if args.report:
         with atomic_open(args.report, "w") as fh:
