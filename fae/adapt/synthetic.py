@@ -188,20 +188,7 @@ def synthetic_scan(seed: int = 0, subdivisions: int = 6, noise: float = 0.0, hol
             if np.min(np.linalg.norm(landmark_points - c, axis=1)) > 0.014:
                 break
         keep &= np.linalg.norm(centroids - c, axis=1) > 0.008
-    truth = trimesh.Trimesh(W, F[keep], process=False)
-    truth.remove_unreferenced_vertices()
-    Vt, Ft = np.asarray(truth.vertices), np.asarray(truth.faces, dtype=np.int32)
-    Vn = Vt.copy()
-    if noise > 0:
-        Vn = Vn + truth.vertex_normals * rng.normal(scale=noise, size=(len(Vt), 1))
-    R = _random_rotation(rng, max_angle)
-    t = rng.uniform(-0.2, 0.2, 3)
-    to_scan = np.eye(4)
-    to_scan[:3, :3] = R / unit
-    to_scan[:3, 3] = t / unit
-    scan_v = Vn @ to_scan[:3, :3].T + to_scan[:3, 3]
-    lm = {n: landmark_points[i] @ to_scan[:3, :3].T + to_scan[:3, 3] for i, n in enumerate(fdp)}
-    return SyntheticScan(scan_v, Ft, lm, Vt, Ft, warp, to_scan)
+    return _scan_of_truth(W, F[keep], landmark_points, list(fdp), warp, rng, noise, max_angle, unit)
 
 
 def template_warp(V: np.ndarray, seed: int, amplitude: float = 0.006, detail: float = 0.0005,
@@ -273,7 +260,13 @@ def template_scan(V: np.ndarray, F: np.ndarray, landmarks: dict[str, np.ndarray]
             if np.min(np.linalg.norm(WL - c, axis=1)) > 0.014:
                 break
         keep &= np.linalg.norm(centroids - c, axis=1) > 0.008
-    truth = trimesh.Trimesh(W, SF[keep], process=False)
+    return _scan_of_truth(W, SF[keep], WL, list(names), warp, rng, noise, max_angle, unit)
+
+
+def _scan_of_truth(W, F, landmark_points, names, warp, rng, noise, max_angle, unit) -> "SyntheticScan":
+    """The scan of true surface (W (n, 3) metres, F (m, 3)): unreferenced vertices dropped,
+    normal noise (metres), a random pose and the scan's unit (scan = face frame / unit)."""
+    truth = trimesh.Trimesh(W, F, process=False)
     truth.remove_unreferenced_vertices()
     Vt, Ft = np.asarray(truth.vertices), np.asarray(truth.faces, dtype=np.int32)
     Vn = Vt.copy()
@@ -285,5 +278,5 @@ def template_scan(V: np.ndarray, F: np.ndarray, landmarks: dict[str, np.ndarray]
     to_scan[:3, :3] = R / unit
     to_scan[:3, 3] = t / unit
     scan_v = Vn @ to_scan[:3, :3].T + to_scan[:3, 3]
-    lm = {n: WL[i] @ to_scan[:3, :3].T + to_scan[:3, 3] for i, n in enumerate(names)}
+    lm = {n: landmark_points[i] @ to_scan[:3, :3].T + to_scan[:3, 3] for i, n in enumerate(names)}
     return SyntheticScan(scan_v, Ft, lm, Vt, Ft, warp, to_scan)
