@@ -8,8 +8,16 @@ winding-number sign, robust for meshes that are not watertight) and only looked 
 
 from __future__ import annotations
 
+import hashlib
+from collections import OrderedDict
+
 import numpy as np
 import warp as wp
+
+# Grids already computed in this process, by mesh content and grid settings: every Player
+# (one per client in `fae serve`) of the same head reuses them instead of spending seconds.
+_GRID_CACHE: OrderedDict[bytes, tuple[np.ndarray, np.ndarray, float]] = OrderedDict()
+_GRID_CACHE_SIZE = 8
 
 
 @wp.kernel
@@ -43,6 +51,11 @@ def signed_distance_grid(V: np.ndarray, F: np.ndarray, cell: float = 0.003, padd
     F = np.asarray(F, dtype=np.int32)
     if V.ndim != 2 or V.shape[1] != 3 or F.ndim != 2 or F.shape[1] != 3 or len(F) == 0:
         raise ValueError(f"signed_distance_grid: expected V (n, 3) and F (m, 3), got {V.shape} and {F.shape}")
+    key = hashlib.blake2b(V.tobytes() + F.tobytes() + repr((V.shape, F.shape, cell, padding, max_cells,
+                                                            str(device))).encode(), digest_size=20).digest()
+    if key in _GRID_CACHE:
+        _GRID_CACHE.move_to_end(key)
+        return _GRID_CACHE[key]
     lo = V.min(axis=0) - padding
     hi = V.max(axis=0) + padding
     spacing = max(cell, float((hi - lo).max()) / (max_cells - 1))
@@ -54,7 +67,13 @@ def signed_distance_grid(V: np.ndarray, F: np.ndarray, cell: float = 0.003, padd
     max_dist = float(np.linalg.norm(hi - lo))
     wp.launch(_grid_signed_distance, dim=out.shape[0], device=device,
               inputs=[mesh.id, wp.vec3(*lo.astype(np.float32)), float(spacing), int(dims[1]), int(dims[2]), max_dist, out])
-    return out.numpy().reshape(tuple(dims)), lo, float(spacing)
+    values = out.numpy().reshape(tuple(dims)).copy()
+    values.setflags(write=False)  # shared by every caller through the cache
+    lo.setflags(write=False)
+    _GRID_CACHE[key] = (values, lo, float(spacing))
+    while len(_GRID_CACHE) > _GRID_CACHE_SIZE:
+        _GRID_CACHE.popitem(last=False)
+    return _GRID_CACHE[key]
 
 
 def sample_grid(values: np.ndarray, origin: np.ndarray, spacing: float, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
