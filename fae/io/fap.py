@@ -75,6 +75,8 @@ _VISEME_TOKENS = 4
 _EXPRESSION_TOKENS = 6
 _INT_RE = re.compile(r"[+-]?\d+\Z")
 _NUMBER_RE = re.compile(r"[+-]?(\d+\.?\d*([eE][+-]?\d+)?|\.\d+([eE][+-]?\d+)?)\Z")
+# The same numbers, each followed by one space: a whole values line checked in one match.
+_NUMBERS_RE = re.compile(r"(?:[+-]?(?:\d+\.?\d*(?:[eE][+-]?\d+)?|\.\d+(?:[eE][+-]?\d+)?) )*")
 
 
 class FapFormatError(ValueError):
@@ -306,9 +308,16 @@ class FapParser:
                                     self._integer(t[5], line, "expression_def", 0, 1))
             values[1] = expression.select1
         pos += n2
-        for index in np.flatnonzero(mask[2:]) + 2:
-            values[index] = self._number(values_tokens[pos], line, f"a value for FAP {index + 1}")
-            pos += 1
+        low_index = np.flatnonzero(mask[2:]) + 2
+        low_tokens = values_tokens[pos:]
+        low = None
+        if _NUMBERS_RE.fullmatch(" ".join(low_tokens) + " "):  # fast path: one match, one conversion
+            low = np.array(low_tokens, dtype=np.float64)
+            if not np.isfinite(low).all():
+                low = None
+        if low is None:  # find the offending token, for the error message
+            low = np.array([self._number(t, line, f"a value for FAP {i + 1}") for i, t in zip(low_index, low_tokens)])
+        values[low_index] = low
         self._last_number = number
         self.frame_count += 1
         return FapFrame(number, mask, values, viseme, expression)
