@@ -74,9 +74,12 @@ _MAX_NUMBER = 1e15  # larger frame numbers or counts are not real streams (and l
 _VISEME_TOKENS = 4
 _EXPRESSION_TOKENS = 6
 _INT_RE = re.compile(r"[+-]?\d+\Z")
-_NUMBER_RE = re.compile(r"[+-]?(\d+\.?\d*([eE][+-]?\d+)?|\.\d+([eE][+-]?\d+)?)\Z")
-# The same numbers, each followed by one space: a whole values line checked in one match.
-_NUMBERS_RE = re.compile(r"(?:[+-]?(?:\d+\.?\d*(?:[eE][+-]?\d+)?|\.\d+(?:[eE][+-]?\d+)?) )*")
+# Unambiguous (the digits before a point belong to one group), so a failing match backtracks
+# in linear, not quadratic, time on a long hostile token.
+_NUMBER_RE = re.compile(r"[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?\Z")
+# Characters a decimal number may hold: a values line made only of these is converted in one
+# call (no regex, so no backtracking on hostile input); anything else takes the per-token path.
+_NUMBER_CHARS = frozenset("0123456789+-.eE")
 
 
 class FapFormatError(ValueError):
@@ -311,9 +314,12 @@ class FapParser:
         low_index = np.flatnonzero(mask[2:]) + 2
         low_tokens = values_tokens[pos:]
         low = None
-        if _NUMBERS_RE.fullmatch(" ".join(low_tokens) + " "):  # fast path: one match, one conversion
-            low = np.array(low_tokens, dtype=np.float64)
-            if not np.isfinite(low).all():
+        if _NUMBER_CHARS.issuperset("".join(low_tokens)):  # fast path: one conversion
+            try:
+                low = np.array(low_tokens, dtype=np.float64)
+            except ValueError:
+                low = None
+            if low is not None and not np.isfinite(low).all():
                 low = None
         if low is None:  # find the offending token, for the error message
             low = np.array([self._number(t, line, f"a value for FAP {i + 1}") for i, t in zip(low_index, low_tokens)])
