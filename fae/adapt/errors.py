@@ -16,11 +16,14 @@ weights that reproduce paper 000's table 1).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from scipy.spatial import cKDTree
 
-from fae.adapt.geometry import boundary_vertices, per_vertex_normals
+import scipy.sparse as sp
+
+from fae.adapt.geometry import boundary_vertices, per_vertex_normals, vertex_face_incidence
 from fae.adapt.query import MeshQuery
 
 MARKER_WEIGHT = 0.1
@@ -30,7 +33,7 @@ MARKER_WEIGHT = 0.1
 class Surface:
     """A mesh prepared for queries: V (n, 3) metres, F (m, 3), N (n, 3) vertex normals,
     boundary (n,) bool, face_on_boundary (m,) bool, tree (KD-tree of V), query (BVH),
-    diagonal (bounding-box diagonal, metres)."""
+    diagonal (bounding-box diagonal, metres), incidence (built when first asked for)."""
 
     V: np.ndarray
     F: np.ndarray
@@ -41,14 +44,19 @@ class Surface:
     query: MeshQuery
     diagonal: float
 
+    @cached_property
+    def incidence(self) -> sp.csr_matrix:
+        """(n, m) vertex-face incidence (fae.adapt.geometry.vertex_face_incidence), built on first use."""
+        return vertex_face_incidence(self.F, len(self.V))
+
 
 def surface(V: np.ndarray, F: np.ndarray) -> Surface:
     """Prepare mesh V (n, 3), F (m, 3) for closest-point and ray queries."""
     V = np.asarray(V, dtype=np.float64)
     F = np.asarray(F, dtype=np.int64)
     b = boundary_vertices(F, len(V))
-    return Surface(V, F, per_vertex_normals(V, F), b, b[F].any(axis=1), cKDTree(V), MeshQuery(V, F),
-                   float(np.linalg.norm(np.ptp(V, axis=0))))
+    return Surface(V, F, per_vertex_normals(V, F), b, b[F].any(axis=1), cKDTree(V, balanced_tree=False),
+                   MeshQuery(V, F), float(np.linalg.norm(np.ptp(V, axis=0))))
 
 
 def compatible_closest_points(X: np.ndarray, NX: np.ndarray, target: Surface, max_distance: float

@@ -27,7 +27,7 @@ from scipy.sparse.linalg import cg
 from scipy.spatial import cKDTree
 
 from fae.adapt.errors import Surface
-from fae.adapt.geometry import adjacency_matrix, per_vertex_normals
+from fae.adapt.geometry import adjacency_matrix, per_vertex_normals_at
 
 CLEARANCE_SHARE = 0.4  # of the gap to the facing surface one vertex may move
 FACING_COSINE = -0.3  # normals at least this opposed: the other side of an opening
@@ -65,7 +65,7 @@ def nearest_neighbor_adaptation(X: np.ndarray, NX: np.ndarray, scan: Surface, le
     if movable is not None:
         ok &= movable
     j = np.where(ok, j, 0)
-    N = per_vertex_normals(level_V, scan.F)[j]
+    N = scan.N[j] if level_V is scan.V else per_vertex_normals_at(level_V, scan.F, scan.incidence, j)
     ok &= np.sum(N * NX, 1) > 0.0
     ok &= ~scan.boundary[j]
     Y = X.copy()

@@ -89,14 +89,16 @@ class Fit:
 def fit_template(P: np.ndarray, F: np.ndarray, P_landmarks: np.ndarray, scan_V: np.ndarray,
                  scan_F: np.ndarray, Q_landmarks: np.ndarray, method: str = "multilevel",
                  levels: int = 1, local_levels: int = 4, rho: float = 0.0,
-                 progress: Callable[[str], None] | None = None, movable: np.ndarray | None = None) -> Fit:
+                 progress: Callable[[str], None] | None = None, movable: np.ndarray | None = None,
+                 scan: Surface | None = None) -> Fit:
     """Fit template surface P (n, 3), F (m, 3) to a scan already in the face frame.
 
     P_landmarks (k, 3) and Q_landmarks (k, 3): the same feature points on template and scan,
     metres. levels: refinement levels after the first (multilevel only); local_levels:
     pyramid levels of the local step (multilevel, wendland; 0 disables it). movable (n,)
     bool: template vertices the local step may match to the scan (default all; a head
-    passes False for surfaces no scanner sees, such as the inside of the mouth).
+    passes False for surfaces no scanner sees, such as the inside of the mouth). scan: the
+    scan already prepared by fae.adapt.errors.surface(scan_V, scan_F), when it is.
     """
     if method not in METHODS:
         raise ValueError(f"unknown adaptation method {method!r}; expected one of {METHODS}")
@@ -105,7 +107,8 @@ def fit_template(P: np.ndarray, F: np.ndarray, P_landmarks: np.ndarray, scan_V: 
     F = np.asarray(F, dtype=np.int64)
     PL = np.asarray(P_landmarks, dtype=np.float64)
     QL = np.asarray(Q_landmarks, dtype=np.float64)
-    scan = surface(scan_V, scan_F)
+    if scan is None:
+        scan = surface(scan_V, scan_F)
     width = float(np.ptp(P[:, 0]))  # the face frame's x: ear to ear
     max_distance = width / 10.0
     NP = per_vertex_normals(P, F)

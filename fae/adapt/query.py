@@ -59,6 +59,55 @@ def _sign_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), max_dist: flo
         out_sign[i] = 1.0
 
 
+@wp.kernel
+def _segment_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32),
+                    ends: wp.array(dtype=wp.int32), same: float, out_face: wp.array(dtype=int)):
+    # segment e joins mesh vertices ends[2e], ends[2e+1]; the first triangle it passes through,
+    # among those overlapping its bounding box that share no corner with it, or -1
+    e = wp.tid()
+    ia = ends[2 * e]
+    ib = ends[2 * e + 1]
+    a = points[ia]
+    b = points[ib]
+    d = b - a
+    tol = same * wp.length(d)
+    out_face[e] = -1
+    if wp.length(d) <= 1.0e-9:
+        return
+    q = wp.mesh_query_aabb(mesh, wp.min(a, b), wp.max(a, b))
+    for f in q:
+        i0 = indices[3 * f]
+        i1 = indices[3 * f + 1]
+        i2 = indices[3 * f + 2]
+        if i0 == ia or i0 == ib or i1 == ia or i1 == ib or i2 == ia or i2 == ib:
+            continue
+        p0 = points[i0]
+        p1 = points[i1]
+        p2 = points[i2]
+        near_a = wp.min(wp.min(wp.length(p0 - a), wp.length(p1 - a)), wp.length(p2 - a))
+        near_b = wp.min(wp.min(wp.length(p0 - b), wp.length(p1 - b)), wp.length(p2 - b))
+        if near_a <= tol or near_b <= tol:  # a corner at an end's position (duplicated vertex)
+            continue
+        e1 = p1 - p0
+        e2 = p2 - p0
+        h = wp.cross(d, e2)
+        det = wp.dot(e1, h)
+        if wp.abs(det) < 1.0e-30:  # segment parallel to the triangle's plane
+            continue
+        s = a - p0
+        u = wp.dot(s, h) / det
+        if u < 0.0 or u > 1.0:
+            continue
+        c = wp.cross(s, e1)
+        v = wp.dot(d, c) / det
+        if v < 0.0 or u + v > 1.0:
+            continue
+        t = wp.dot(e2, c) / det
+        if t > same and t < 1.0 - same:
+            out_face[e] = f
+            return
+
+
 class MeshQuery:
     """A BVH over one triangle mesh: V (n, 3) float64, F (m, 3) int, any consistent unit."""
 
@@ -70,9 +119,12 @@ class MeshQuery:
         self._indices = wp.array(self.F.reshape(-1), dtype=wp.int32, device="cpu")
         self._mesh = wp.Mesh(points=self._points, indices=self._indices)
 
-    def _bary_order(self, face: np.ndarray, bary: np.ndarray) -> np.ndarray:
-        # Warp reports (u, v, w) with point = u*p0 + v*p1 + w*p2.
-        return bary
+    def move(self, V: np.ndarray) -> None:
+        """New positions V (n, 3) for the same vertices and faces: the BVH is refitted (a few
+        ms), not rebuilt."""
+        self.V = np.asarray(V, dtype=np.float64)
+        self._points.numpy()[:] = self.V
+        self._mesh.refit()
 
     def ray_hits(self, origins: np.ndarray, directions: np.ndarray, max_t: float
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -92,6 +144,23 @@ class MeshQuery:
         wp.launch(_ray_kernel, dim=n, inputs=[self._mesh.id, o, d, float(max_t), t, f, b], device="cpu")
         face = f.numpy().astype(np.int64)
         return face >= 0, t.numpy().astype(np.float64), face, b.numpy().astype(np.float64)
+
+    def edge_crossings(self, edges: np.ndarray, end_gap: float = 1e-3) -> np.ndarray:
+        """(e,) int: for each edge (e, 2) between this mesh's own vertices, a triangle it passes
+        through that shares no corner with it, or -1.
+
+        Exact segment-triangle tests over the triangles whose bounding boxes overlap the
+        edge's. end_gap (share of the edge length): crossings this close to either end do
+        not count, and a corner this close to an end is that end (duplicated vertices).
+        """
+        E = np.ascontiguousarray(edges, dtype=np.int32).reshape(-1)
+        n = len(E) // 2
+        out = wp.zeros(n, dtype=int, device="cpu")
+        if n:
+            ends = wp.array(E, dtype=wp.int32, device="cpu")
+            wp.launch(_segment_kernel, dim=n, inputs=[self._mesh.id, self._points, self._indices, ends,
+                                                         float(end_gap), out], device="cpu")
+        return out.numpy().astype(np.int64)
 
     def closest_points(self, X: np.ndarray, max_dist: float = 1e6
                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
