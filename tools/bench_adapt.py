@@ -82,7 +82,7 @@ def main() -> None:
     scan = template_scan(V, F, lm, seed=11, subdivisions=args.subdivisions, drop_faces=~seen[F].all(axis=1),
                          face_only=True, noise=0.0001, holes=3)
     print(f"template {len(V)} vertices, scan {len(scan.vertices)} vertices")
-    T, unit, names, ignored = scan_landmarks_in_face_frame(lm, scan.landmarks, scan.vertices, scan.faces)
+    T, unit, names, ignored, _ = scan_landmarks_in_face_frame(lm, scan.landmarks, scan.vertices, scan.faces)
     SV = apply_transform(T, scan.vertices)
     PL = np.array([lm[n] for n in names])
     QL = apply_transform(T, np.array([scan.landmarks[n] for n in names]))

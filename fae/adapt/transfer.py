@@ -5,18 +5,21 @@
   sees (visible_skin: inside the mouth, between the lips, the eye sockets) gets no scan
   target and follows its neighbours; feature points that would fold the skin (inner lip
   points of a scan with the mouth open) are ignored and reported;
-- cranium, mandible: through the fitted deformation (global RBF + CSRBF levels, without the
-  per-vertex local step), kept in their template shape where the deformation would fold
-  them (fae.adapt.untangle), then pushed under the skin in small smooth steps where the
-  new soft tissue is thinner than MIN_BONE_DEPTH (push_under_skin);
-- teeth, tongue: rigid (eq. 25-28): moved with the deformation of their centre and scaled
+- cranium, mandible: through interior_field, a global biharmonic RBF through the fitted
+  skin's displacement (the local step included, which on a real face moves the skin by
+  centimetres at the jaw: the fit's level functions alone would leave the bone outside a
+  thinner chin); blended towards the field's affine part wherever that would fold them or
+  make them cut through themselves (fae.adapt.untangle), then pushed under the skin where
+  the new soft tissue is thinner than MIN_BONE_DEPTH, by pushes spread in space so both
+  sides of a thin bone move together (push_under_skin);
+- teeth, tongue: rigid (eq. 25-28): moved with interior_field at their centre and scaled
   uniformly by the mouth-width ratio |8.3-8.4|, no rotation (the scan is already
   calibrated into the face frame);
 - eyes: fitted into the adapted socket (eye_in_socket: centre and scale by least squares
   on the socket's template gaps, capped so the eyelids are never crossed);
 - linear muscles whose line would leave the soft tissue get a nearby bone attachment from
   which it does not (keep_muscles_inside);
-- jaw pivot: through the deformation; jaw axis unchanged;
+- jaw pivot: through interior_field; jaw axis unchanged;
 - sphincter semi-axes and linear-muscle fall-off distances: scaled by the mouth-width ratio
   (sphincters near the mouth) or the eye-width ratio (near an eye);
 - skin_thickness: recomputed as the distance to the nearest bone, capped at the template's
@@ -42,20 +45,28 @@ from typing import Callable
 import numpy as np
 
 from fae.adapt.calibration import apply_transform, calibration_transform, outlier_landmarks
+from fae.adapt.correspondence import grid_sample
+from fae.adapt.csrbf import wendland_c2
+from fae.adapt.errors import Surface, surface
 from fae.adapt.geometry import per_vertex_normals
 from fae.adapt.multilevel import fit_template
 from fae.adapt.query import MeshQuery
+from fae.adapt.rbf import RBF, rbf_interpolant, rbf_weights
 from fae.adapt.untangle import untangle
 from fae.io.facemodel import FaceModel
 
 MIN_BONE_DEPTH = 0.002  # metres of soft tissue kept between skin and bone
-MAX_PUSH = 0.002  # metres a bone vertex may be pushed inwards per round (thin bones must not fold)
+MAX_PUSH = 0.002  # metres a bone vertex may be pushed inwards per round
+PUSH_RADIUS = 0.025  # metres over which a push spreads through the bone (12.5 x MAX_PUSH: no fold)
+PUSH_TOLERANCE = 1e-4  # metres of missing depth left unpushed
+FIELD_SPACING = 0.025  # metres between the skin samples of interior_field (about 400 on a head)
 
 
 def scan_landmarks_in_face_frame(template_points: dict[str, np.ndarray], scan_landmarks: dict[str, np.ndarray],
                                  scan_V: np.ndarray, scan_F: np.ndarray
-                                 ) -> tuple[np.ndarray, str, list[str], dict[str, str]]:
-    """Calibrate: (4, 4) scan -> face frame, unit name, names used, ignored name -> reason."""
+                                 ) -> tuple[np.ndarray, str, list[str], dict[str, str], Surface]:
+    """Calibrate: (4, 4) scan -> face frame, unit name, names used, ignored name -> reason,
+    and the scan in the face frame prepared for the fit's queries (fae.adapt.errors.surface)."""
     ignored: dict[str, str] = {}
     for n in scan_landmarks:
         if n not in template_points:
@@ -72,32 +83,86 @@ def scan_landmarks_in_face_frame(template_points: dict[str, np.ndarray], scan_la
     T, unit = calibration_transform(np.array([scan_landmarks[n] for n in names]),
                                     np.array([template_points[n] for n in names]))
     width = float(np.max(np.ptp(B, axis=0)))
-    q = MeshQuery(apply_transform(T, scan_V), scan_F)
-    _, dist, _, _ = q.closest_points(apply_transform(T, np.array([scan_landmarks[n] for n in names])))
+    scan = surface(apply_transform(T, scan_V), scan_F)
+    _, dist, _, _ = scan.query.closest_points(apply_transform(T, np.array([scan_landmarks[n] for n in names])))
     for n, d in zip(list(names), dist):
         if d > max(0.1 * width, 0.01):
             ignored[n] = f"{d * 1000:.1f} mm from the scan surface"
     names = [n for n in names if n not in ignored]
-    return T, unit, names, ignored
+    return T, unit, names, ignored, scan
 
 
-def push_under_skin(model: FaceModel, part: str, min_depth: float = MIN_BONE_DEPTH, rounds: int = 10) -> int:
+def interior_field(P: np.ndarray, X: np.ndarray, spacing: float = FIELD_SPACING) -> RBF:
+    """The fitted skin's displacement carried into the head: a global biharmonic RBF
+    (paper 000 §3.2) through X - P at the template skin vertices P (n, 3) spread every
+    `spacing` metres (fae.adapt.correspondence.grid_sample); X (n, 3) is the fitted skin,
+    metres. Unlike the fit's level functions (Fit.deformation) it includes the local step,
+    which on a real face moves the skin by centimetres at the jaw and chin: bones carried
+    by it keep their depth under the new skin, and a global biharmonic field is smooth
+    enough not to fold a bone a few millimetres thick."""
+    P = np.asarray(P, dtype=np.float64)
+    s = grid_sample(P, spacing)
+    return rbf_weights(P[s], np.asarray(X, dtype=np.float64)[s] - P[s], "biharmonic")
+
+
+def carried(field: RBF, X: np.ndarray) -> np.ndarray:
+    """(n, 3) metres: template-frame points X (n, 3) moved by `field`."""
+    X = np.asarray(X, dtype=np.float64)
+    return X + rbf_interpolant(field, X)
+
+
+def carried_affinely(field: RBF, X: np.ndarray) -> np.ndarray:
+    """(n, 3) metres: points X (n, 3) moved by the affine part of `field` only (folds
+    nothing while its determinant stays positive)."""
+    X = np.asarray(X, dtype=np.float64)
+    return X + X @ field.affine[:3] + field.affine[3]
+
+
+def carry_bone(field: RBF, V: np.ndarray, F: np.ndarray) -> np.ndarray:
+    """(n, 3) metres: bone V (n, 3), F (m, 3) moved by `field`; wherever that makes it cut
+    through itself or fold against its template shape V, it is blended towards the affinely
+    moved bone (fae.adapt.untangle)."""
+    X, _ = untangle(F, carried(field, V), carried_affinely(field, V), reference=V)
+    return X
+
+
+def smooth_push(V: np.ndarray, push: np.ndarray, at: np.ndarray, radius: float) -> np.ndarray:
+    """(n, 3) metres: offsets of all points V (n, 3) from pushes push (k, 3) metres applied at
+    V[at] (k,), spread in space: D(x) = sum_j w_j push_j / max(1, sum_j w_j) with Wendland
+    weights w_j = phi(|x - V[at_j]| / radius). Points near a pushed one move with it, whichever
+    side of a thin bone they lie on, so a push cannot fold the bone; the offsets fade to zero
+    `radius` metres away."""
+    from scipy.spatial import cKDTree
+
+    V = np.asarray(V, dtype=np.float64)
+    if len(at) == 0:
+        return np.zeros_like(V)
+    S = cKDTree(V).sparse_distance_matrix(cKDTree(V[at]), radius, output_type="coo_matrix")
+    w = wendland_c2(S.data / radius)
+    i, j = S.row, S.col
+    total = np.maximum(np.bincount(i, w, minlength=len(V)), 1.0)
+    return np.column_stack([np.bincount(i, w * push[j, a], minlength=len(V)) for a in range(3)]) / total[:, None]
+
+
+def push_under_skin(model: FaceModel, part: str, min_depth: float = MIN_BONE_DEPTH, rounds: int = 10,
+                    reference: np.ndarray | None = None) -> int:
     """Push bone `part` of `model` inwards wherever less than `min_depth` metres of soft
     tissue cover it, or a skin vertex lies inside it (the scanned face is thinner than the
     template's). Each round moves every such bone vertex against the skin normal at its
-    closest skin point by what it lacks, spread over two rings of bone neighbours so the
-    bone dents smoothly instead of spiking. Changes `model` in place; returns how many
-    bone vertices moved."""
+    closest skin point by what it lacks (at most MAX_PUSH), spread in space over
+    PUSH_RADIUS (smooth_push) so that the bone dents smoothly and both of its sides move
+    together. Should that still fold the bone against `reference` (its template shape,
+    (n, 3); default: the bone before the push), the fold is blended back (untangle).
+    Changes `model` in place; returns how many bone vertices moved."""
     from scipy.spatial import cKDTree
-
-    from fae.adapt.geometry import adjacency_matrix
 
     bone = model.parts[part]
     V = bone.vertices.copy()
     BF = np.asarray(bone.faces, dtype=np.int64)
-    A = adjacency_matrix(BF, len(V))
-    skin_q = MeshQuery(model.skin_vertices, model.skin_faces)
-    skin_n = per_vertex_normals(model.skin_vertices, model.skin_faces)
+    S = model.skin_vertices
+    skin_q = MeshQuery(S, model.skin_faces)
+    skin_n = per_vertex_normals(S, model.skin_faces)
+    bone_q = MeshQuery(V, BF)
     moved = np.zeros(len(V), dtype=bool)
     for _ in range(rounds):
         pts, _, face, bary = skin_q.closest_points(V)
@@ -107,20 +172,21 @@ def push_under_skin(model: FaceModel, part: str, min_depth: float = MIN_BONE_DEP
         n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
         depth = np.where(ok, np.sum((pts - V) * n, axis=1), np.inf)  # > 0: below the skin
         need = np.maximum(min_depth - depth, 0.0)
-        inside = MeshQuery(V, BF).inside(model.skin_vertices)
-        if np.any(inside):  # skin inside the bone: its nearest bone vertices go below it
-            d, j = cKDTree(V).query(model.skin_vertices[inside])
-            near = d < 5 * MAX_PUSH  # farther "inside" answers come from a fold of the bone, not the skin
-            np.maximum.at(need, j[near], d[near] + min_depth)
+        near = np.flatnonzero(np.all((S > V.min(axis=0) - min_depth) & (S < V.max(axis=0) + min_depth), axis=1))
+        bone_q.move(V)
+        inside = near[bone_q.inside(S[near])]
+        if len(inside):  # skin inside the bone: its nearest bone vertices go below it
+            d, j = cKDTree(V).query(S[inside])
+            close = d < 5 * MAX_PUSH  # farther "inside" answers come from a fold of the bone, not the skin
+            np.maximum.at(need, j[close], d[close] + min_depth)
         need = np.minimum(need, MAX_PUSH)
-        if not np.any(need > 0):
+        at = np.flatnonzero(need > PUSH_TOLERANCE)
+        if len(at) == 0:
             break
-        for _ in range(2):  # spread to the neighbours, so the bone dents smoothly
-            spread = A.multiply(need[None, :]).max(axis=1).toarray().ravel()
-            need = np.maximum(need, 0.5 * spread)
-        V -= n * need[:, None]
-        moved |= need > 0
-    bone.vertices = V
+        D = smooth_push(V, -n[at] * need[at, None], at, PUSH_RADIUS)
+        V += D
+        moved |= np.linalg.norm(D, axis=1) > 1e-6
+    bone.vertices, _ = untangle(BF, V, bone.vertices, reference=bone.vertices if reference is None else reference)
     return int(moved.sum())
 
 
@@ -235,12 +301,11 @@ def adapt_facemodel(template: FaceModel, scan_V: np.ndarray, scan_F: np.ndarray,
     t0 = time.perf_counter()
     fdp_old = template.feature_point_positions()
     skin_fdp = {n: p for n, p in fdp_old.items() if template.feature_points[n].part == "skin"}
-    T, unit, names, ignored = scan_landmarks_in_face_frame(skin_fdp, scan_landmarks, scan_V, scan_F)
-    SV = apply_transform(T, scan_V)
+    T, unit, names, ignored, scan = scan_landmarks_in_face_frame(skin_fdp, scan_landmarks, scan_V, scan_F)
     PL = np.array([skin_fdp[n] for n in names])
     QL = apply_transform(T, np.array([scan_landmarks[n] for n in names]))
-    fit = fit_template(template.skin_vertices, template.skin_faces, PL, SV, scan_F, QL, method=method,
-                       levels=levels, progress=progress, movable=visible_skin(template))
+    fit = fit_template(template.skin_vertices, template.skin_faces, PL, scan.V, scan.F, QL, method=method,
+                       levels=levels, progress=progress, movable=visible_skin(template), scan=scan)
     for i in fit.dropped_landmarks:
         ignored[names[i]] = "folds the skin (mouth or eyes open on the scan, closed on the template?)"
     names = [n for i, n in enumerate(names) if i not in fit.dropped_landmarks]
@@ -251,15 +316,15 @@ def adapt_facemodel(template: FaceModel, scan_V: np.ndarray, scan_F: np.ndarray,
     eye_l = _ratio(fdp_old, fdp_new, "3.7", "3.11") or mouth
     eye_r = _ratio(fdp_old, fdp_new, "3.8", "3.12") or mouth
     rigid_scale = {"eye_l": eye_l, "eye_r": eye_r, "upper_teeth": mouth, "lower_teeth": mouth, "tongue": mouth}
-    deform = fit.deformation
+    field = interior_field(template.skin_vertices, fit.vertices)
     for name, part in model.parts.items():
         if name in rigid_scale:
             c_old = template.eye_centers[name] if name in template.eye_centers else part.vertices.mean(axis=0)
-            c_new = deform(c_old[None])[0]
+            c_new = carried(field, c_old[None])[0]
             part.vertices = (part.vertices - c_old) * rigid_scale[name] + c_new
-        else:  # bones follow the deformation; where it folds them, they keep their template shape
-            part.vertices, _ = untangle(part.faces, deform(part.vertices), part.vertices)
-    model.eye_centers = {k: deform(np.asarray(v)[None])[0] for k, v in template.eye_centers.items()}
+        else:
+            part.vertices = carry_bone(field, part.vertices, part.faces)
+    model.eye_centers = {k: carried(field, np.asarray(v)[None])[0] for k, v in template.eye_centers.items()}
     eye_scale = {}
     for name in ("eye_l", "eye_r"):
         if name in model.parts and name in template.eye_centers:
@@ -273,8 +338,9 @@ def adapt_facemodel(template: FaceModel, scan_V: np.ndarray, scan_F: np.ndarray,
             model.parts[name].vertices = rel * s + c
             model.eye_centers[name] = c
             eye_scale[name] = s
-    model.jaw_pivot = deform(np.asarray(template.jaw_pivot)[None])[0]
-    pushed = sum(push_under_skin(model, name) for name in ("cranium", "mandible") if name in model.parts)
+    model.jaw_pivot = carried(field, np.asarray(template.jaw_pivot)[None])[0]
+    pushed = sum(push_under_skin(model, name, reference=template.parts[name].vertices)
+                 for name in ("cranium", "mandible") if name in model.parts)
     # soft-tissue depth
     bones = [model.parts[n] for n in ("cranium", "mandible") if n in model.parts]
     if bones:
@@ -321,9 +387,9 @@ def adapt_surface(template_V: np.ndarray, template_F: np.ndarray, template_landm
     """Fit a bare template surface (V (n, 3) metres, F, FDP name -> (3,)) to a scan in any
     frame and unit. Returns fitted V (n, 3) in the face frame (metres), the (4, 4) scan ->
     face frame transform, and the report dict."""
-    T, unit, names, ignored = scan_landmarks_in_face_frame(template_landmarks, scan_landmarks, scan_V, scan_F)
-    fit = fit_template(template_V, template_F, np.array([template_landmarks[n] for n in names]),
-                       apply_transform(T, scan_V), scan_F,
-                       apply_transform(T, np.array([scan_landmarks[n] for n in names])), method=method, levels=levels)
+    T, unit, names, ignored, scan = scan_landmarks_in_face_frame(template_landmarks, scan_landmarks, scan_V, scan_F)
+    fit = fit_template(template_V, template_F, np.array([template_landmarks[n] for n in names]), scan.V, scan.F,
+                       apply_transform(T, np.array([scan_landmarks[n] for n in names])), method=method, levels=levels,
+                       scan=scan)
     return fit.vertices, T, {"method": method, "scan_unit": unit, "landmarks_used": names,
                              "ignored_landmarks": ignored, "levels": fit.levels, "final": fit.final}
