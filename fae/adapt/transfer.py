@@ -145,7 +145,7 @@ def smooth_push(V: np.ndarray, push: np.ndarray, at: np.ndarray, radius: float) 
 
 
 def push_under_skin(model: FaceModel, part: str, min_depth: float = MIN_BONE_DEPTH, rounds: int = 10,
-                    reference: np.ndarray | None = None) -> int:
+                    reference: np.ndarray | None = None, skin: Surface | None = None) -> int:
     """Push bone `part` of `model` inwards wherever less than `min_depth` metres of soft
     tissue cover it, or a skin vertex lies inside it (the scanned face is thinner than the
     template's). Each round moves every such bone vertex against the skin normal at its
@@ -153,41 +153,66 @@ def push_under_skin(model: FaceModel, part: str, min_depth: float = MIN_BONE_DEP
     PUSH_RADIUS (smooth_push) so that the bone dents smoothly and both of its sides move
     together. Should that still fold the bone against `reference` (its template shape,
     (n, 3); default: the bone before the push), the fold is blended back (untangle).
+    skin: surface(model.skin_vertices, model.skin_faces), when already prepared.
     Changes `model` in place; returns how many bone vertices moved."""
     from scipy.spatial import cKDTree
 
     bone = model.parts[part]
     V = bone.vertices.copy()
     BF = np.asarray(bone.faces, dtype=np.int64)
-    S = model.skin_vertices
-    skin_q = MeshQuery(S, model.skin_faces)
-    skin_n = per_vertex_normals(S, model.skin_faces)
+    if skin is None:
+        skin = surface(model.skin_vertices, model.skin_faces)
+    S, SF = skin.V, skin.F
+    skin_q, skin_n, skin_tree = skin.query, skin.N, skin.tree
     bone_q = MeshQuery(V, BF)
+    reach = rounds * MAX_PUSH + min_depth  # bone deeper than this under the skin needs nothing
+    inside_reach = 5 * MAX_PUSH  # skin "inside" farther from the bone's surface is a fold of the bone, not skin
+    edge = 2.0 * float(np.max(np.linalg.norm(V[BF[:, 1]] - V[BF[:, 0]], axis=1)))  # bone faces stretch under pushes
+    depth = np.full(len(V), np.inf)  # > 0: below the skin, along the skin normal there
+    normal = np.zeros_like(V)
+    stale = np.full(len(V), np.inf)  # how far each bone vertex moved since its depth was measured
+    inside = np.zeros(len(S), dtype=bool)
+    check = np.flatnonzero(np.all((S > V.min(axis=0) - reach) & (S < V.max(axis=0) + reach), axis=1))
     moved = np.zeros(len(V), dtype=bool)
     for _ in range(rounds):
-        pts, _, face, bary = skin_q.closest_points(V)
-        ok = face >= 0
-        n = np.zeros_like(V)
-        n[ok] = np.einsum("nk,nkd->nd", bary[ok], skin_n[model.skin_faces[face[ok]]])
-        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-        depth = np.where(ok, np.sum((pts - V) * n, axis=1), np.inf)  # > 0: below the skin
-        need = np.maximum(min_depth - depth, 0.0)
-        near = np.flatnonzero(np.all((S > V.min(axis=0) - min_depth) & (S < V.max(axis=0) + min_depth), axis=1))
+        redo = np.flatnonzero(stale > 0.5 * PUSH_TOLERANCE)
+        depth[redo], normal[redo] = depth_under(skin_q, skin_n, SF, V[redo], reach)
+        stale[redo] = 0.0
         bone_q.move(V)
-        inside = near[bone_q.inside(S[near])]
-        if len(inside):  # skin inside the bone: its nearest bone vertices go below it
-            d, j = cKDTree(V).query(S[inside])
-            close = d < 5 * MAX_PUSH  # farther "inside" answers come from a fold of the bone, not the skin
+        inside[check] = bone_q.inside(S[check], inside_reach)
+        need = np.maximum(min_depth - depth, 0.0)
+        if np.any(inside):  # skin inside the bone: its nearest bone vertices go below it
+            d, j = cKDTree(V).query(S[inside], distance_upper_bound=inside_reach)
+            close = np.isfinite(d)
             np.maximum.at(need, j[close], d[close] + min_depth)
         need = np.minimum(need, MAX_PUSH)
         at = np.flatnonzero(need > PUSH_TOLERANCE)
         if len(at) == 0:
             break
-        D = smooth_push(V, -n[at] * need[at, None], at, PUSH_RADIUS)
+        D = smooth_push(V, -normal[at] * need[at, None], at, PUSH_RADIUS)
         V += D
-        moved |= np.linalg.norm(D, axis=1) > 1e-6
+        step = np.linalg.norm(D, axis=1)
+        stale += step
+        moved |= step > 1e-6
+        # skin whose inside answer can change: near bone that moved (within PUSH_RADIUS of a
+        # push), or inside until now
+        near = skin_tree.query_ball_point(V[at], PUSH_RADIUS + edge, return_sorted=False)
+        check = np.union1d(np.flatnonzero(inside), np.concatenate([np.zeros(0, np.int64)] + [np.asarray(k, dtype=np.int64) for k in near]))
     bone.vertices, _ = untangle(BF, V, bone.vertices, reference=bone.vertices if reference is None else reference)
     return int(moved.sum())
+
+
+def depth_under(skin_q: MeshQuery, skin_n: np.ndarray, skin_F: np.ndarray, X: np.ndarray, reach: float
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Depth (k,) metres of points X (k, 3) under the skin along the skin's normal at their
+    closest skin point (> 0: below it; inf: no skin within `reach` metres), and that unit
+    normal (k, 3). skin_q: the skin's MeshQuery, skin_n (n, 3) its vertex normals."""
+    pts, _, face, bary = skin_q.closest_points(X, reach)
+    ok = face >= 0
+    n = np.zeros_like(X)
+    n[ok] = np.einsum("nk,nkd->nd", bary[ok], skin_n[skin_F[face[ok]]])
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    return np.where(ok, np.sum((pts - X) * n, axis=1), np.inf), n
 
 
 def visible_skin(model: FaceModel, offset: float = 1e-4) -> np.ndarray:
@@ -255,14 +280,15 @@ def eye_in_socket(template: FaceModel, model: FaceModel, name: str) -> tuple[np.
 MUSCLE_SEARCH_RADIUS = 0.015  # m: how far a linear muscle's attachment may move on its bone
 
 
-def keep_muscles_inside(model: FaceModel) -> list[str]:
+def keep_muscles_inside(model: FaceModel, skin: MeshQuery | None = None) -> list[str]:
     """Move the bone attachment of every linear muscle whose line leaves the soft tissue of
     `model` (skin changed, bones did not follow exactly) to the nearest bone vertex, within
     MUSCLE_SEARCH_RADIUS, from which the line to its (unchanged) skin insertion stays inside
-    the skin. Changes `model` in place; returns the names of the muscles moved."""
+    the skin (skin: its MeshQuery, when already built). Changes `model` in place; returns
+    the names of the muscles moved."""
     from fae.io.facemodel import SurfacePoint
 
-    q = MeshQuery(model.skin_vertices, model.skin_faces)
+    q = MeshQuery(model.skin_vertices, model.skin_faces) if skin is None else skin
     ts = np.array([0.1, 0.3, 0.5, 0.7, 0.9])
     moved = []
     for mus in model.muscles:
@@ -326,26 +352,26 @@ def adapt_facemodel(template: FaceModel, scan_V: np.ndarray, scan_F: np.ndarray,
             part.vertices = carry_bone(field, part.vertices, part.faces)
     model.eye_centers = {k: carried(field, np.asarray(v)[None])[0] for k, v in template.eye_centers.items()}
     eye_scale = {}
+    skin = surface(model.skin_vertices, model.skin_faces)  # the skin is final from here on
     for name in ("eye_l", "eye_r"):
         if name in model.parts and name in template.eye_centers:
             c, s = eye_in_socket(template, model, name)
             rel = template.parts[name].vertices - template.eye_centers[name]
-            skin_q = MeshQuery(model.skin_vertices, model.skin_faces)
             for _ in range(20):  # the socket fit is least squares: make sure no eyelid is crossed
-                if not skin_q.inside(rel * s + c).any():
+                if not skin.query.inside(rel * s + c).any():
                     break
                 s *= 0.98
             model.parts[name].vertices = rel * s + c
             model.eye_centers[name] = c
             eye_scale[name] = s
     model.jaw_pivot = carried(field, np.asarray(template.jaw_pivot)[None])[0]
-    pushed = sum(push_under_skin(model, name, reference=template.parts[name].vertices)
+    pushed = sum(push_under_skin(model, name, reference=template.parts[name].vertices, skin=skin)
                  for name in ("cranium", "mandible") if name in model.parts)
     # soft-tissue depth
     bones = [model.parts[n] for n in ("cranium", "mandible") if n in model.parts]
     if bones:
-        d = np.min([MeshQuery(b.vertices, b.faces).closest_points(model.skin_vertices)[1] for b in bones], axis=0)
-        cap = float(np.max(template.skin_thickness)) if len(template.skin_thickness) else float(np.max(d))
+        cap = float(np.max(template.skin_thickness)) if len(template.skin_thickness) else 1.0
+        d = np.min([MeshQuery(b.vertices, b.faces).closest_points(model.skin_vertices, cap)[1] for b in bones], axis=0)
         model.skin_thickness = np.minimum(d, cap)
     for m in model.muscles:
         near_eye = m.kind == "sphincter" and ("oculi" in m.name or "eye" in m.name)
@@ -354,7 +380,7 @@ def adapt_facemodel(template: FaceModel, scan_V: np.ndarray, scan_F: np.ndarray,
             m.semi_axes = np.asarray(m.semi_axes) * s
         m.fall_start *= s
         m.fall_end *= s
-    moved_muscles = keep_muscles_inside(model)
+    moved_muscles = keep_muscles_inside(model, skin.query)
     fapu_ratio = _fapu_ratio(fdp_old, model.feature_point_positions())  # eyes, teeth placed
     for t in model.face_def_tables:
         t.displacements = np.asarray(t.displacements) * fapu_ratio

@@ -107,17 +107,19 @@ def untangle(F: np.ndarray, X: np.ndarray, X_safe: np.ndarray, rings: int = 2, r
     X = np.asarray(X, dtype=np.float64)
     X_safe = np.asarray(X_safe, dtype=np.float64)
     n = len(X)
-    A = adjacency_matrix(F, n)
     E = mesh_edges(F) if edges is None else edges
     pairs = None if reference is None else face_pairs(F)
     weight = np.ones(n)
     Y = X
     query = MeshQuery(X, F)
+    A = None
     for r in range(rounds + 1):
         bad_e, bad_f = edge_crossings(Y, F, E, query)
         folded = np.zeros((0, 2), dtype=np.int64) if pairs is None else folded_pairs(reference, Y, F, pairs)
         if len(bad_e) == 0 and len(folded) == 0:
             break
+        if A is None:
+            A = adjacency_matrix(F, n)
         bad = np.zeros(n, dtype=bool)
         bad[bad_e.ravel()] = True
         bad[F[bad_f].ravel()] = True
