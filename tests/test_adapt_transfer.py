@@ -61,6 +61,11 @@ def test_the_adapted_head_is_valid(adapted, template):
     for eye in ("eye_l", "eye_r"):
         assert not skin.inside(model.parts[eye].vertices).any()
         assert 0.8 < report["eye_scale"][eye] < 1.2
+    # vertices that coincide on the template (the mouth cavity's seams) stay welded
+    from scipy.spatial import cKDTree
+
+    seam = cKDTree(template.skin_vertices).query_pairs(1e-7, output_type="ndarray")
+    assert len(seam) and np.abs(model.skin_vertices[seam[:, 0]] - model.skin_vertices[seam[:, 1]]).max() < 1e-12
 
 
 def test_skin_feature_points_and_fapu_follow_the_scan(adapted, template):

@@ -77,7 +77,8 @@ class CSRBF:
     """A fitted compactly supported offset function.
 
     centers (m, 3) metres; frames (m, 3, 3); quadrics (m, 6, 3) metres; density (m,)
-    weights (m, 3) metres; support metres; iterations of the CG solve.
+    weights (m, 3) metres; support metres; iterations of the CG solve; tree: KD-tree of
+    the centres.
     """
 
     centers: np.ndarray
@@ -87,6 +88,7 @@ class CSRBF:
     weights: np.ndarray
     support: float
     iterations: int
+    tree: cKDTree | None = None  # of the centres, kept for evaluation
 
 
 def _pairs(X: np.ndarray, P: np.ndarray, support: float, tree_p: cKDTree | None = None):
@@ -119,7 +121,7 @@ def csrbf_weights(P: np.ndarray, N: np.ndarray, D: np.ndarray, support: float, r
     phi = wendland_c2(r / support)
     Phi = sp.csr_matrix((phi, (i, j)), shape=(m, m))
     density = np.asarray(Phi.sum(axis=1)).ravel()
-    c = CSRBF(P, frames, quad, density, np.zeros((m, 3)), support, 0)
+    c = CSRBF(P, frames, quad, density, np.zeros((m, 3)), support, 0, tree)
     gv = _quadric_values(c, P, i, j) * phi[:, None]
     G = np.column_stack([np.bincount(i, gv[:, a], minlength=m) for a in range(3)])
     A = (Phi + rho * sp.identity(m, format="csr")).tocsr()
@@ -147,7 +149,7 @@ def csrbf_interpolant(c: CSRBF, X: np.ndarray) -> np.ndarray:
     n = len(X)
     if len(c.centers) == 0 or n == 0:
         return np.zeros((n, 3))
-    i, j, r = _pairs(X, c.centers, c.support)
+    i, j, r = _pairs(X, c.centers, c.support, c.tree)
     phi = wendland_c2(r / c.support)
     val = (_quadric_values(c, X, i, j) + c.weights[j]) * phi[:, None]
     return np.column_stack([np.bincount(i, val[:, a], minlength=n) for a in range(3)])

@@ -16,14 +16,11 @@ weights that reproduce paper 000's table 1).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import cached_property
 
 import numpy as np
 from scipy.spatial import cKDTree
 
-import scipy.sparse as sp
-
-from fae.adapt.geometry import boundary_vertices, per_vertex_normals, vertex_face_incidence
+from fae.adapt.geometry import boundary_vertices, per_vertex_normals
 from fae.adapt.query import MeshQuery
 
 MARKER_WEIGHT = 0.1
@@ -33,7 +30,7 @@ MARKER_WEIGHT = 0.1
 class Surface:
     """A mesh prepared for queries: V (n, 3) metres, F (m, 3), N (n, 3) vertex normals,
     boundary (n,) bool, face_on_boundary (m,) bool, tree (KD-tree of V), query (BVH),
-    diagonal (bounding-box diagonal, metres), incidence (built when first asked for)."""
+    diagonal (bounding-box diagonal, metres)."""
 
     V: np.ndarray
     F: np.ndarray
@@ -43,11 +40,6 @@ class Surface:
     tree: cKDTree
     query: MeshQuery
     diagonal: float
-
-    @cached_property
-    def incidence(self) -> sp.csr_matrix:
-        """(n, m) vertex-face incidence (fae.adapt.geometry.vertex_face_incidence), built on first use."""
-        return vertex_face_incidence(self.F, len(self.V))
 
 
 def surface(V: np.ndarray, F: np.ndarray) -> Surface:
@@ -96,14 +88,20 @@ def combined_error(distance: float, marker: float) -> float:
 
 
 def symmetric_rms(model: Surface, scan: Surface, max_distance: float, scored: np.ndarray | None = None,
-                  scan_samples: int = 20000) -> dict[str, float]:
+                  scan_samples: int = 20000, model_match: tuple[np.ndarray, np.ndarray] | None = None
+                  ) -> dict[str, float]:
     """RMS closest-point distances both ways over compatible points, metres and / scan diagonal.
 
     scored (n,) bool: model vertices that count (default all; a head leaves out skin no
-    scanner sees); scan_samples: at most this many scan vertices, evenly strided, are used.
+    scanner sees); scan_samples: at most this many scan vertices, evenly strided, are used;
+    model_match: distance (n,) and compatible (n,) of the model's vertices on the scan when
+    already known (compatible_closest_points over the scored ones).
     Returns scan_to_model_rms, model_to_scan_rms, *_rel, and the compatible fractions.
     """
-    _, _, d_ms, ok_ms = compatible_closest_points(model.V, model.N, scan, max_distance)
+    if model_match is None:
+        _, _, d_ms, ok_ms = compatible_closest_points(model.V, model.N, scan, max_distance)
+    else:
+        d_ms, ok_ms = model_match[0], model_match[1].copy()
     if scored is not None:
         ok_ms &= scored
     step = max(1, len(scan.V) // scan_samples)

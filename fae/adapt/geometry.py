@@ -1,12 +1,69 @@
 """Mesh quantities the fitting needs: normals, boundary, cotangent Laplacian, mean curvature.
 
-libigl-style: arrays in, arrays out. V (n, 3) float64 metres, F (m, 3) int.
+libigl-style: arrays in, arrays out. V (n, 3) float64 metres, F (m, 3) int. The per-face
+sums (vertex normals, cotangent Laplacian, vertex areas) run as float64 Warp kernels on the
+CPU: a scan has 100k+ faces, and numpy's gathers and bincounts cost 10-20x as much.
 """
 
 from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
+import warp as wp
+
+from fae.adapt.query import init_warp
+
+
+@wp.kernel
+def _face_sums_kernel(V: wp.array(dtype=wp.vec3d), F: wp.array(dtype=wp.int32), normal: wp.array(dtype=wp.vec3d),
+                      laplacian: wp.array(dtype=wp.vec3d), area: wp.array(dtype=wp.float64), cotangents: int):
+    # face f adds its normal vector (twice its area) to its corners; with cotangents, also a
+    # third of its area and, for each edge ij, w (V_j - V_i) to i and w (V_i - V_j) to j,
+    # w half the cotangent of the angle opposite
+    f = wp.tid()
+    a = F[3 * f]
+    b = F[3 * f + 1]
+    c = F[3 * f + 2]
+    n = wp.cross(V[b] - V[a], V[c] - V[a])
+    wp.atomic_add(normal, a, n)
+    wp.atomic_add(normal, b, n)
+    wp.atomic_add(normal, c, n)
+    if cotangents == 0:
+        return
+    area2 = wp.max(wp.length(n), wp.float64(1.0e-300))
+    third = area2 / wp.float64(6.0)
+    wp.atomic_add(area, a, third)
+    wp.atomic_add(area, b, third)
+    wp.atomic_add(area, c, third)
+    ea = V[c] - V[b]  # opposite corner a
+    eb = V[a] - V[c]  # opposite corner b
+    ec = V[b] - V[a]  # opposite corner c
+    half = wp.float64(0.5) / area2
+    wa = -wp.dot(eb, ec) * half
+    wb = -wp.dot(ec, ea) * half
+    wc = -wp.dot(ea, eb) * half
+    wp.atomic_add(laplacian, b, wa * ea)
+    wp.atomic_sub(laplacian, c, wa * ea)
+    wp.atomic_add(laplacian, c, wb * eb)
+    wp.atomic_sub(laplacian, a, wb * eb)
+    wp.atomic_add(laplacian, a, wc * ec)
+    wp.atomic_sub(laplacian, b, wc * ec)
+
+
+def _face_sums(V: np.ndarray, F: np.ndarray, cotangents: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per-vertex sums over faces: normal vectors (n, 3), cotangent Laplacian L V (n, 3) and
+    barycentric areas (n,) (the last two zero unless `cotangents`)."""
+    init_warp()
+    n = len(V)
+    v = wp.array(np.ascontiguousarray(V, dtype=np.float64), dtype=wp.vec3d, device="cpu")
+    f = wp.array(np.ascontiguousarray(F, dtype=np.int32).reshape(-1), dtype=wp.int32, device="cpu")
+    normal = wp.zeros(n, dtype=wp.vec3d, device="cpu")
+    laplacian = wp.zeros(n if cotangents else 0, dtype=wp.vec3d, device="cpu")
+    area = wp.zeros(n if cotangents else 0, dtype=wp.float64, device="cpu")
+    if len(F):
+        wp.launch(_face_sums_kernel, dim=len(F), inputs=[v, f, normal, laplacian, area, int(cotangents)],
+                  device="cpu")
+    return normal.numpy(), laplacian.numpy(), area.numpy()
 
 
 def face_normal_vectors(V: np.ndarray, F: np.ndarray) -> np.ndarray:
@@ -18,7 +75,7 @@ def face_normal_vectors(V: np.ndarray, F: np.ndarray) -> np.ndarray:
 
 def per_vertex_normals(V: np.ndarray, F: np.ndarray) -> np.ndarray:
     """(n, 3) unit area-weighted vertex normals (zero for unreferenced vertices)."""
-    return _unit_rows(_vertex_sums(face_normal_vectors(V, F), F, len(V)))
+    return _unit_rows(_face_sums(V, F, cotangents=False)[0])
 
 
 def per_face_normals(V: np.ndarray, F: np.ndarray) -> np.ndarray:
@@ -30,30 +87,23 @@ def _unit_rows(X: np.ndarray) -> np.ndarray:
     return X / np.maximum(np.sqrt(np.einsum("nd,nd->n", X, X)), 1e-300)[:, None]
 
 
-def _vertex_sums(face_values: np.ndarray, F: np.ndarray, n: int) -> np.ndarray:
-    """(n, 3): each face's value (m, 3) added to its three corners."""
-    corners = F.ravel()
-    return np.column_stack([np.bincount(corners, np.repeat(face_values[:, a], 3), minlength=n) for a in range(3)])
+def coincident_groups(V: np.ndarray, tol: float = 1e-7) -> tuple[int, np.ndarray]:
+    """Groups of points of V (n, 3) closer than `tol` metres (chained): the number of groups
+    k and each point's group label (n,) in 0..k-1."""
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    V = np.asarray(V, dtype=np.float64)
+    pairs = cKDTree(V).query_pairs(tol, output_type="ndarray") if len(V) > 1 else np.zeros((0, 2), int)
+    g = sp.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(V), len(V)))
+    return connected_components(g, directed=False)
 
 
-def vertex_face_incidence(F: np.ndarray, n: int) -> sp.csr_matrix:
-    """(n, m) sparse 0/1: vertex i is a corner of face f."""
-    F = np.asarray(F, dtype=np.int64)
-    m = len(F)
-    return sp.csr_matrix((np.ones(3 * m), (F.ravel(), np.repeat(np.arange(m), 3))), shape=(n, m))
-
-
-def per_vertex_normals_at(V: np.ndarray, F: np.ndarray, incidence: sp.csr_matrix, idx: np.ndarray) -> np.ndarray:
-    """(k, 3) unit area-weighted normals of the vertices idx (k,) only, from the faces around
-    them (incidence: vertex_face_incidence(F, len(V)))."""
-    idx = np.asarray(idx, dtype=np.int64)
-    start = incidence.indptr[idx]
-    count = incidence.indptr[idx + 1] - start
-    owner = np.repeat(np.arange(len(idx)), count)
-    first = np.cumsum(count) - count
-    faces = incidence.indices[np.arange(len(owner)) - np.repeat(first - start, count)]
-    fn = face_normal_vectors(V, np.asarray(F)[faces])
-    return _unit_rows(np.column_stack([np.bincount(owner, fn[:, a], minlength=len(idx)) for a in range(3)]))
+def group_means(X: np.ndarray, label: np.ndarray, k: int) -> np.ndarray:
+    """(k, d): the mean of the rows of X (n, d) in each group of `label` (n,)."""
+    X = np.asarray(X, dtype=np.float64).reshape(len(X), -1)
+    count = np.bincount(label, minlength=k)[:, None]
+    return np.column_stack([np.bincount(label, X[:, a], minlength=k) for a in range(X.shape[1])]) / count
 
 
 def boundary_vertices(F: np.ndarray, n: int) -> np.ndarray:
@@ -83,28 +133,13 @@ def adjacency_matrix(F: np.ndarray, n: int) -> sp.csr_matrix:
 
 def cotangent_laplacian_of(V: np.ndarray, F: np.ndarray) -> np.ndarray:
     """(n, 3) L V for the cotangent Laplacian L of mesh V (n, 3), F (m, 3)
-    (L_ij = (cot a_ij + cot b_ij) / 2, rows summing to 0), without forming L: each face
-    adds w (V_j - V_i) to i and w (V_i - V_j) to j for each of its edges ij, w half the
-    cotangent of the angle opposite."""
-    V = np.asarray(V, dtype=np.float64)
-    F = np.asarray(F, dtype=np.int64)
-    C = [V[F[:, k]] for k in range(3)]
-    E = [C[2] - C[1], C[0] - C[2], C[1] - C[0]]  # the edge opposite corner k, from corner k+1 to k+2
-    area2 = np.linalg.norm(np.cross(E[2], -E[1]), axis=1)
-    half_inv = 0.5 / np.maximum(area2, 1e-300)
-    parts = []
-    for k in range(3):
-        w = -np.einsum("md,md->m", E[(k + 1) % 3], E[(k + 2) % 3]) * half_inv  # cot at corner k / 2
-        parts += [E[k] * w[:, None], -E[k] * w[:, None]]
-    ends = np.concatenate([F[:, 1], F[:, 2], F[:, 2], F[:, 0], F[:, 0], F[:, 1]])
-    vals = np.concatenate(parts)
-    return np.column_stack([np.bincount(ends, vals[:, a], minlength=len(V)) for a in range(3)])
+    (L_ij = (cot a_ij + cot b_ij) / 2, rows summing to 0), without forming L."""
+    return _face_sums(V, F, cotangents=True)[1]
 
 
 def massmatrix(V: np.ndarray, F: np.ndarray) -> np.ndarray:
     """(n,) barycentric vertex areas (one third of the incident triangle areas)."""
-    area = 0.5 * np.linalg.norm(face_normal_vectors(V, F), axis=1)
-    return np.bincount(np.asarray(F).ravel(), np.repeat(area / 3.0, 3), minlength=len(V))
+    return _face_sums(V, F, cotangents=True)[2]
 
 
 def mean_curvature(V: np.ndarray, F: np.ndarray) -> np.ndarray:
@@ -112,13 +147,9 @@ def mean_curvature(V: np.ndarray, F: np.ndarray) -> np.ndarray:
 
     Positive where the surface bulges outwards along the vertex normal, negative in folds.
     """
-    V = np.asarray(V, dtype=np.float64)
-    F = np.asarray(F, dtype=np.int64)
-    fn = face_normal_vectors(V, F)
-    mass = np.bincount(F.ravel(), np.repeat(np.linalg.norm(fn, axis=1) / 6.0, 3), minlength=len(V))
-    HN = -cotangent_laplacian_of(V, F) / np.maximum(mass, 1e-300)[:, None]
-    outward = np.einsum("nd,nd->n", HN, _vertex_sums(fn, F, len(V)))
-    return 0.5 * np.sign(outward) * np.linalg.norm(HN, axis=1)
+    normal, LV, mass = _face_sums(V, F, cotangents=True)
+    HN = -LV / np.maximum(mass, 1e-300)[:, None]
+    return 0.5 * np.sign(np.einsum("nd,nd->n", HN, normal)) * np.linalg.norm(HN, axis=1)
 
 
 def laplacian_lowpass(V: np.ndarray, F: np.ndarray, lam: float = 0.75, iterations: int = 1) -> np.ndarray:

@@ -27,7 +27,7 @@ from scipy.sparse.linalg import cg
 from scipy.spatial import cKDTree
 
 from fae.adapt.errors import Surface
-from fae.adapt.geometry import adjacency_matrix, per_vertex_normals_at
+from fae.adapt.geometry import adjacency_matrix, per_vertex_normals
 
 CLEARANCE_SHARE = 0.4  # of the gap to the facing surface one vertex may move
 FACING_COSINE = -0.3  # normals at least this opposed: the other side of an opening
@@ -60,20 +60,22 @@ def nearest_neighbor_adaptation(X: np.ndarray, NX: np.ndarray, scan: Surface, le
     bool: vertices allowed a target (default all).
     Returns the new positions (n, 3) and the moved mask (n,).
     """
-    dist, j = scan.tree.query(X, distance_upper_bound=max_distance)
-    ok = np.isfinite(dist)
-    if movable is not None:
-        ok &= movable
-    j = np.where(ok, j, 0)
-    N = scan.N[j] if level_V is scan.V else per_vertex_normals_at(level_V, scan.F, scan.incidence, j)
-    ok &= np.sum(N * NX, 1) > 0.0
-    ok &= ~scan.boundary[j]
+    cand = np.arange(len(X)) if movable is None else np.flatnonzero(movable)
+    dist, j = scan.tree.query(X[cand], distance_upper_bound=max_distance)
+    keep = np.isfinite(dist)
+    keep[keep] &= ~scan.boundary[j[keep]]
+    cand, j = cand[keep], j[keep]
+    N = (scan.N if level_V is scan.V else per_vertex_normals(level_V, scan.F))[j]
+    facing = np.einsum("nd,nd->n", N, NX[cand]) > 0.0
+    cand, j, N = cand[facing], j[facing], N[facing]
+    ok = np.zeros(len(X), dtype=bool)
+    ok[cand] = True
     Y = X.copy()
     if project == "vertex":
-        Y[ok] = level_V[j[ok]]
+        Y[cand] = level_V[j]
     else:
-        off = np.sum((level_V[j[ok]] - X[ok]) * N[ok], axis=1)
-        Y[ok] = X[ok] + off[:, None] * N[ok]
+        off = np.einsum("nd,nd->n", level_V[j] - X[cand], N)
+        Y[cand] = X[cand] + off[:, None] * N
     return Y, ok
 
 

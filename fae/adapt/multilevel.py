@@ -35,9 +35,10 @@ from fae.adapt.correspondence import (closest_pairs, curvature_features, feature
 from fae.adapt.csrbf import CSRBF, csrbf_interpolant, csrbf_weights
 from fae.adapt.errors import (Surface, combined_error, compatible_closest_points, distance_error,
                               marker_error, surface, symmetric_rms)
-from fae.adapt.geometry import per_vertex_normals
+from fae.adapt.geometry import coincident_groups, group_means, per_vertex_normals
 from fae.adapt.local import (OffsetSmoother, limit_offsets, lowpass_pyramid, nearest_neighbor_adaptation,
                              offset_clearance)
+from fae.adapt.query import MeshQuery
 from fae.adapt.rbf import RBF, rbf_interpolant, rbf_weights
 from fae.adapt.untangle import edge_crossings, mesh_edges, untangle
 
@@ -46,6 +47,7 @@ GLOBAL_LIMIT = 500  # paper 000 §4.3: global RBF below this many pairs, CSRBF a
 CSRBF_RHO = 1e-2  # diagonal regularization of each CSRBF level (Phi's diagonal is 1)
 CSRBF_TOL = 1e-3  # relative CG residual: finer detail is the local step's job
 SURFACE_SPACING = 0.01  # m: closest-point pairs every 10 mm at level 1, halved per level
+SUPPORT_MAX = 4.0  # CSRBF support at most this many times the pairs' median spacing
 
 
 @dataclass
@@ -117,9 +119,14 @@ def fit_template(P: np.ndarray, F: np.ndarray, P_landmarks: np.ndarray, scan_V: 
     report: list[dict] = []
     results: list[tuple[np.ndarray, Deformation]] = []
 
+    matches: list[tuple[np.ndarray, np.ndarray]] = []  # per level: distance (n,) and compatibility (n,) of X
+
     def evaluate(X: np.ndarray, deformation: Deformation, pairs: int, lm_now: np.ndarray) -> None:
         NX = per_vertex_normals(X, F)
         _, _, dist, ok = compatible_closest_points(X[scored], NX[scored], scan, max_distance)
+        full_dist, full_ok = np.full(len(X), np.inf), np.zeros(len(X), dtype=bool)
+        full_dist[scored], full_ok[scored] = dist, ok
+        matches.append((full_dist, full_ok))
         de = distance_error(dist, ok.astype(float))
         me = marker_error(lm_now, QL)
         report.append({"level": len(report), "pairs": int(pairs), "distance_error": de, "marker_error": me,
@@ -129,6 +136,7 @@ def fit_template(P: np.ndarray, F: np.ndarray, P_landmarks: np.ndarray, scan_V: 
         if progress:
             progress(f"level {len(report) - 1}: {pairs} pairs, combined error {report[-1]['combined_error']:.3g} m")
 
+    seams, seam = coincident_groups(P)
     kernel = {"multilevel": "biharmonic", "rbf": "biharmonic", "wendland": "wendland",
               "multiquadric": "multiquadric"}[method]
     E = mesh_edges(F)
@@ -176,7 +184,7 @@ def fit_template(P: np.ndarray, F: np.ndarray, P_landmarks: np.ndarray, scan_V: 
                 resid = q_all - deformation(p_all)
                 from scipy.spatial import cKDTree
                 spacing_pairs = float(np.median(cKDTree(p_all).query(p_all, k=2)[0][:, 1]))
-                support = max(min(support / 2.0, 6.0 * spacing_pairs), 3.0 * spacing_pairs)
+                support = max(min(support / 2.0, SUPPORT_MAX * spacing_pairs), 3.0 * spacing_pairs)
                 off = csrbf_weights(p_all, n_all, resid, support, rho=CSRBF_RHO, tol=CSRBF_TOL)
                 deformation = Deformation(deformation.base, deformation.offsets + [off])
                 X, XL = X + csrbf_interpolant(off, P), XL + csrbf_interpolant(off, PL)
@@ -199,12 +207,14 @@ def fit_template(P: np.ndarray, F: np.ndarray, P_landmarks: np.ndarray, scan_V: 
             evaluate(X, deformation, int(moved.sum()), lm_now)
         best = int(np.argmin([r["combined_error"] for r in report]))
     X, deformation = results[best]
+    if seams < len(P):  # vertices that coincide on the template (seams) coincide on the fit
+        X = group_means(X, seam, seams)[seam]
     relaxed = 0
-    if best > 0 and len(edge_crossings(X, F, E)[0]):
-        safe = results[0][0] if level0_clean else P
-        X, weight = untangle(F, X, safe, edges=E)
+    if best > 0:  # blend back wherever the chosen level cuts through itself
+        X, weight = untangle(F, X, results[0][0] if level0_clean else P, edges=E)
         relaxed = int(np.sum(weight < 1.0))
-    final = symmetric_rms(surface(X, F), scan, max_distance, scored)
+    final = symmetric_rms(surface(X, F), scan, max_distance, scored,
+                          model_match=None if relaxed else matches[best])
     final["relaxed_vertices"] = relaxed
     final["marker_error"] = report[best]["marker_error"]
     final["distance_error"] = report[best]["distance_error"]
@@ -266,7 +276,6 @@ def _nearest(P: np.ndarray, L: np.ndarray) -> np.ndarray:
 
 def _landmark_anchors(X: np.ndarray, F: np.ndarray, L: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Faces (k,) and barycentric coordinates (k, 3) of the points of X's surface closest to L."""
-    s = surface(X, F)
-    _, _, face, bary = s.query.closest_points(L)
+    _, _, face, bary = MeshQuery(X, F).closest_points(L)
     face = np.where(face < 0, 0, face)
     return face, bary

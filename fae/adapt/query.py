@@ -14,7 +14,8 @@ import warp as wp
 _initialized = False
 
 
-def _init() -> None:
+def init_warp() -> None:
+    """Initialize Warp once (quietly: warnings and errors only)."""
     global _initialized
     if not _initialized:
         wp.config.log_level = 30  # warnings and above
@@ -112,7 +113,7 @@ class MeshQuery:
     """A BVH over one triangle mesh: V (n, 3) float64, F (m, 3) int, any consistent unit."""
 
     def __init__(self, V: np.ndarray, F: np.ndarray):
-        _init()
+        init_warp()
         self.V = np.asarray(V, dtype=np.float64)
         self.F = np.asarray(F, dtype=np.int32)
         self._points = wp.array(self.V.astype(np.float32), dtype=wp.vec3, device="cpu")

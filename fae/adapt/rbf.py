@@ -22,6 +22,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from fae.adapt.geometry import coincident_groups, group_means
+
 KERNELS = ("biharmonic", "wendland", "multiquadric")
 
 
@@ -95,19 +97,10 @@ def unique_centers(P: np.ndarray, D: np.ndarray, tol: float = 1e-7) -> tuple[np.
     """
     P = np.asarray(P, dtype=np.float64)
     D = np.asarray(D, dtype=np.float64)
-    if len(P) < 2:
+    k, label = coincident_groups(P, tol)
+    if k == len(P):
         return P, D
-    pairs = cKDTree(P).query_pairs(tol, output_type="ndarray")
-    if len(pairs) == 0:
-        return P, D
-    import scipy.sparse as sp
-    from scipy.sparse.csgraph import connected_components
-
-    g = sp.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(P), len(P)))
-    k, label = connected_components(g, directed=False)
-    count = np.bincount(label, minlength=k)[:, None]
-    mean = lambda X: np.column_stack([np.bincount(label, X[:, a], minlength=k) for a in range(3)]) / count
-    return mean(P), mean(D)
+    return group_means(P, label, k), group_means(D, label, k)
 
 
 def rbf_weights(P: np.ndarray, D: np.ndarray, kernel: str = "biharmonic", rho: float = 0.0,
