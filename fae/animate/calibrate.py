@@ -4,19 +4,20 @@ Choice per FAP group (every low-level FAP 3-68 drives something):
 - jaw (3, 14, 15): mandible pose. open_jaw combines the hinge rotation with a forward slide
   of the condyles (least squares, the slide penalized) so that the chin 2.1 moves straight
   down; thrust_jaw slides it forward (+z), shift_jaw sideways (x). The skin follows
-  through its bone anchors.
+  through its holds (fae.sim.build.jaw_weights).
 - lips, chin, cheeks, brows, nose (4-13, 16-18, 31-42, 51-64): a least-squares combination of
   the head's muscles (contractions >= 0) plus one directional pull field of the FAP's own
   (centred on its feature point, along the standard direction, Wendland fall-off over the
   skin's geodesic distance, radius a fraction of ES0), the field's use penalized so that
   muscles do what they can; the field supplies what no muscle can (lip protrusion 16/17,
   lip lowering, nostrils, the off-axis remainder).
-- eyelids (19-22) and ears (65-68): the pull field only (no muscle in the model moves them).
+- eyelids (19-22): the pull field only (no muscle in the model moves them).
+- ears (65-68): FaceDefTables derived from the head (fae.animate.ears), exact, not simulated.
 - eyeballs, pupils, tongue, head (23-30, 43-50): rigid poses, see fae.animate.rigid.
 
 Procedure: (1) linear response: the skin's stiffness matrix at rest (springs k n n^T plus
-bone anchors) is factorized once (scipy splu); each control's rest force field gives the
-feature points' displacement per unit control. (2) per FAP and side, bounded least squares
+anchors) is factorized once (scipy splu); each control's rest force field gives the skin's
+displacement per unit control (with the unsimulated skin carried by its hold). (2) per FAP and side, bounded least squares
 (scipy lsq_linear) for the controls moving its feature point by one metre along the
 standard direction. (3) nonlinear correction: the real solver is run at +-half range (the
 operating amplitude verify-faps checks) for FAPs in batches whose footprints, grown by two
@@ -44,30 +45,37 @@ from scipy.optimize import lsq_linear
 from scipy.sparse.csgraph import dijkstra
 from scipy.sparse.linalg import splu
 
+from fae.animate.ears import EAR_FAPS
 from fae.animate.faptables import (FAP_DIRECTION, FAP_FEATURE_POINT, FAP_LIMITS, JAW_FAPS,
                                    SKIN_TRANSLATION_FAPS, fap_unit_scale, fapu_of)
 from fae.mpeg4.faps import FAP_COUNT
+from fae.mpeg4.fdps import mirror_point
 from fae.sim.build import PullField, mesh_edges, skin_model, skin_positions
 from fae.sim.reference import ReferenceSolver
 
 FORMAT_VERSION = 1
 JAW_CONTROLS = 3
-FIELD_ONLY_FAPS = (19, 20, 21, 22, 65, 66, 67, 68)
+FIELD_ONLY_FAPS = (19, 20, 21, 22)
 # pull-field radius per FAP, in units of ES0
 _FIELD_RADIUS_ES = {**{k: 0.16 for k in (4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 16, 17)},
                     **{k: 0.18 for k in range(51, 61)}, 18: 0.3,
                     **{k: 0.15 for k in (19, 20, 21, 22)}, **{k: 0.3 for k in range(31, 39)},
-                    **{k: 0.45 for k in (39, 40, 41, 42)}, **{k: 0.2 for k in (61, 62, 63, 64)},
-                    **{k: 0.5 for k in (65, 66, 67, 68)}}
+                    **{k: 0.45 for k in (39, 40, 41, 42)}, **{k: 0.2 for k in (61, 62, 63, 64)}}
 MUSCLE_COST = 0.05
+# a sided FAP's mirror point should stay still: its motion counts like the FAP's own error
+# when the two are at least MIRROR_FAR x ES0 apart, not at all below MIRROR_NEAR x ES0 (the
+# lower lip's 8.7 and 8.8, 0.42 ES0 apart, are one piece of tissue)
+MIRROR_NEAR = 0.4
+MIRROR_FAR = 0.7
 FIELD_COST = 0.2
 CONTROL_SCALE = 0.01  # metres
 
 
 def field_faps(face) -> list[int]:
-    """FAPs that get a pull field on this head: skin-bound translations except the jaw's."""
+    """FAPs that get a pull field on this head: skin-bound translations except the jaw's and
+    the ears' (fae.animate.ears)."""
     return [k for k in SKIN_TRANSLATION_FAPS
-            if k not in JAW_FAPS and FAP_FEATURE_POINT[k - 1] in face.feature_points
+            if k not in JAW_FAPS and k not in EAR_FAPS and FAP_FEATURE_POINT[k - 1] in face.feature_points
             and face.feature_points[FAP_FEATURE_POINT[k - 1]].part == "skin"]
 
 
@@ -128,18 +136,18 @@ def _stiffness(ref: ReferenceSolver) -> tuple[sp.csc_matrix, np.ndarray]:
                 rows.append(3 * x + r)
                 cols.append(3 * y + c)
                 vals.append(s * blocks[:, r, c])
-    ap = a["anchor_particle"].astype(np.int64)
+    ap = np.arange(P)
     for r in range(3):
         rows.append(3 * ap + r)
         cols.append(3 * ap + r)
-        vals.append(a["anchor_stiffness"].astype(np.float64))
+        vals.append(a["particle_anchor_stiffness"].astype(np.float64))
     K = sp.coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(3 * P, 3 * P)).tocsc()
     free = np.repeat(a["particle_inv_mass"] > 0, 3)
     return K[free][:, free].tocsc(), free
 
 
 class _Probe:
-    """Linear response and settled measurements of a head's simulation."""
+    """Linear response of a head's simulation, as skin displacement fields (V, 3)."""
 
     def __init__(self, face, model):
         self.face, self.model = face, model
@@ -147,37 +155,38 @@ class _Probe:
         K, self.free = _stiffness(self.ref)
         self.lu = splu(K)
         self.q0 = self.ref.a["particle_q"].astype(np.float64)
-        P = model.particle_count
-        self.zero_v = np.zeros((P, 3))
+        self.fixed = self.ref.inv_mass == 0.0
         self.eye = np.tile(np.eye(3), (2, 1, 1))
-        # feature point -> (particles (3,), bary (3,)) on the epidermis
-        self.fdp = {}
-        for name, sp_ in face.feature_points.items():
-            if sp_.part != "skin":
-                continue
-            tri = np.asarray(face.skin_faces)[sp_.triangle]
-            self.fdp[name] = (model.skin_particle[tri], np.asarray(sp_.bary, dtype=np.float64))
+        self.rest = np.asarray(face.skin_vertices, dtype=np.float64)
+        faces = np.asarray(face.skin_faces)
+        # feature point -> (skin vertices (3,), bary (3,))
+        self.fdp = {name: (faces[p.triangle], np.asarray(p.bary, dtype=np.float64))
+                    for name, p in face.feature_points.items() if p.part == "skin"}
 
-    def displacement(self, force: np.ndarray) -> np.ndarray:
+    def _skin_response(self, force: np.ndarray, q: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
         u = np.zeros(3 * self.model.particle_count)
         u[self.free] = self.lu.solve(force.reshape(-1)[self.free])
-        return u.reshape(-1, 3)
+        return skin_positions(self.model, q + u.reshape(-1, 3), R, t) - self.rest
 
     def fdp_motion(self, u: np.ndarray, name: str) -> np.ndarray:
-        parts, bary = self.fdp[name]
-        return sum(b * u[p] for p, b in zip(parts, bary) if p >= 0) if np.any(parts >= 0) else np.zeros(3)
+        verts, bary = self.fdp[name]
+        return bary @ u[verts]
 
     def muscle_response(self, m: int) -> np.ndarray:
         act = np.zeros(self.model.muscle_count)
         act[m] = 1.0
-        return self.displacement(self.ref.forces(self.q0, self.zero_v, act, self.eye, np.zeros((2, 3))))
+        t = np.zeros((2, 3))
+        return self._skin_response(self.ref.forces(self.q0, act, self.eye, t), self.q0, self.eye, t)
 
     def jaw_response(self, rig, which: int, eps: float) -> np.ndarray:
         T = rig.jaw(*(eps if i == which else 0.0 for i in range(3)))
         R, t = self.eye.copy(), np.zeros((2, 3))
         R[1], t[1] = T[:3, :3], T[:3, 3]
-        f = self.ref.forces(self.q0, self.zero_v, np.zeros(self.model.muscle_count), R, t)
-        return self.displacement(f) / eps
+        # the fixed ring sits on its hold; the free particles respond to it and to their anchors
+        q = self.q0.copy()
+        q[self.fixed] = self.ref.holds(R, t)[self.fixed]
+        f = self.ref.forces(q, np.zeros(self.model.muscle_count), R, t)
+        return self._skin_response(f, q, R, t) / eps
 
 
 def _solve(J: np.ndarray, target: np.ndarray, cost: np.ndarray, lower: np.ndarray) -> np.ndarray:
@@ -216,6 +225,8 @@ def calibrate(face, device: str = "cpu", passes: int = 3, settle_frames: int = 3
     responses += [probe.jaw_response(rig, 0, 1e-3), probe.jaw_response(rig, 1, 1e-4), probe.jaw_response(rig, 2, 1e-4)]
 
     gain_pos, gain_neg = np.zeros((FAP_COUNT, C)), np.zeros((FAP_COUNT, C))
+    fdp_pos = face.feature_point_positions()
+    es0 = fapu["ES"] * 1024.0
     for k in SKIN_TRANSLATION_FAPS:
         fdp = FAP_FEATURE_POINT[k - 1]
         if fdp not in probe.fdp or (k not in JAW_FAPS and k not in field_of):
@@ -232,9 +243,18 @@ def calibrate(face, device: str = "cpu", passes: int = 3, settle_frames: int = 3
             lower_pos = np.array([0.0] * nm + [-np.inf])
         J = np.column_stack([probe.fdp_motion(responses[c], fdp) for c in cols])
         d = FAP_DIRECTION[k - 1]
-        gain_pos[k - 1, cols] = _solve(J, d, cost, lower_pos) * unit[k - 1]
+        mirror = mirror_point(fdp)
+        if mirror != fdp and mirror in probe.fdp:
+            # a left FAP moves the left side only: its mirror point is asked to stay still, the
+            # less so the nearer it is (points near the midline share their tissue)
+            apart = np.linalg.norm(fdp_pos[fdp] - fdp_pos[mirror]) / es0
+            weight = float(np.clip((apart - MIRROR_NEAR) / (MIRROR_FAR - MIRROR_NEAR), 0.0, 1.0))
+            J = np.vstack([J, weight * np.column_stack([probe.fdp_motion(responses[c], mirror) for c in cols])])
+        target = np.zeros(len(J))
+        target[:3] = d
+        gain_pos[k - 1, cols] = _solve(J, target, cost, lower_pos) * unit[k - 1]
         if FAP_LIMITS[k - 1, 0] < 0:
-            gain_neg[k - 1, cols] = _solve(J, -d, cost, lower_pos) * unit[k - 1]
+            gain_neg[k - 1, cols] = _solve(J, -target, cost, lower_pos) * unit[k - 1]
 
     half = FAP_LIMITS[:, 1] / 2.0
     table_values = np.column_stack([-2 * half, -half, np.zeros(FAP_COUNT), half, 2 * half])
@@ -254,7 +274,6 @@ def calibrate(face, device: str = "cpu", passes: int = 3, settle_frames: int = 3
     batches = _disjoint_batches(face, model, faps, responses, gain_pos, gain_neg, unit)
     controls_face = copy.copy(face)
     solver = SkinSolver(model)
-    fdp_pos = face.feature_point_positions()
     for _ in range(passes):
         controls_face.fap_mapping = mapping
         ctl = FapControls(controls_face, model)
@@ -288,15 +307,12 @@ def _disjoint_batches(face, model, faps, responses, gain_pos, gain_neg, unit) ->
 
     V = len(face.skin_vertices)
     A = adjacency(V, mesh_edges(np.asarray(face.skin_faces)))
-    sim = model.skin_particle >= 0
     footprint = {}
     for k in faps:
         g = (np.abs(gain_pos[k - 1]) + np.abs(gain_neg[k - 1])) / np.maximum(unit[k - 1], 1e-12)
         u = sum(g[c] * np.abs(responses[c]) for c in np.flatnonzero(g))
         mag = np.linalg.norm(u, axis=1)
-        verts = np.zeros(V, dtype=bool)
-        verts[sim] = mag[model.skin_particle[sim]] > 0.02 * mag.max()
-        footprint[k] = dilate(verts, A, 2)
+        footprint[k] = dilate(mag > 0.02 * mag.max(), A, 2)
     batches: list[list[int]] = []
     for k in faps:
         for b in batches:
@@ -325,4 +341,4 @@ def settle(model, solver, controls, values: np.ndarray, rig, frames: int = 40, f
         if i > 3 and np.abs(q - prev).max() < tolerance:
             break
         prev = q
-    return skin_positions(model, state.particle_q.numpy().astype(np.float64))
+    return skin_positions(model, state.particle_q.numpy().astype(np.float64), R, t)

@@ -21,13 +21,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from fae.animate.calibrate import calibrate, pull_fields
+from fae.animate.calibrate import calibrate, edge_length_graph, pull_fields
+from fae.animate.ears import ear_tables
 from fae.animate.controls import FapControls, MappingMismatch
 from fae.animate.facedef import FaceDefOffsets
 from fae.animate.faptables import FAP_COUNT, clamp_values, fapu_of
 from fae.animate.highlevel import highlevel_values
 from fae.animate.rigid import RigidRig
-from fae.sim.build import skin_model, skin_positions
+from fae.sim.build import skin_model
+from fae.sim.skin import SkinOutput
 from fae.sim.solver import SkinSolver
 
 DEFAULT_FPS = 25.0
@@ -71,8 +73,10 @@ class Player:
         self.face = face
         self.fapu = fapu_of(face)
         self.rig = RigidRig(face, self.fapu)
-        self.facedef = FaceDefOffsets(face.face_def_tables, face.skin_vertex_count)
+        tables = list(face.face_def_tables) + ear_tables(face, self.fapu, edge_length_graph(face))
+        self.facedef = FaceDefOffsets(tables, face.skin_vertex_count)
         self.solver = SkinSolver(self.sim)
+        self.skin = SkinOutput(self.sim)
         self._R = np.tile(np.eye(3), (2, 1, 1))
         self._t = np.zeros((2, 3))
         self.fps = DEFAULT_FPS
@@ -91,7 +95,7 @@ class Player:
         self.pupil_scale = {"eye_l": 1.0, "eye_r": 1.0}
         self.values = np.zeros(FAP_COUNT)
         self.frame_index = 0
-        self._q = self.sim.particle_q.numpy().astype(np.float64)
+        self._q = self.sim.particle_q.numpy().copy()
         self._settled = True
         self._last_dt = None
 
@@ -120,17 +124,16 @@ class Player:
             # a held frame on settled skin needs no step (SETTLED_MOTION: its fixed point)
             self.control.set(muscle_activation=activation, bone_rotation=self._R, bone_translation=self._t)
             self.solver.step(self.sim, self.state, self.control, dt, self.state)
-            q = self.state.particle_q.numpy().astype(np.float64)
+            q = self.state.particle_q.numpy()
             self._settled = bool(np.abs(q - self._q).max() < SETTLED_MOTION) if len(q) else True
-            self._q = q
+            self._q[:] = q
         self._last_dt = dt
-        skin = skin_positions(self.sim, self._q)
-        offsets = self.facedef.offsets(v)
-        if offsets is not None:
-            skin += offsets
         bones = self.rig.poses(v, J)
         H = bones["head"]
-        skin = skin @ H[:3, :3].T + H[:3, 3]
+        skin = self.skin.positions(self.state, self.control, H)
+        offsets = self.facedef.offsets(v)
+        if offsets is not None:
+            skin += offsets @ H[:3, :3].T
         self.bone_transforms = bones
         self.pupil_scale = self.rig.pupil_scale(v)
         self.values = v

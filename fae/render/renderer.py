@@ -46,6 +46,9 @@ from fae.render.normals import per_vertex_normals  # noqa: E402
 # Colours are linear RGB; the shader applies gamma 2.2. The background is used as-is.
 BACKGROUND = (0.80, 0.82, 0.85)
 CAVITY_COLOR = (0.05, 0.012, 0.014)  # inside of the mouth and head, seen through openings
+MOUTH_COLOR = (0.10, 0.022, 0.025)  # the mouth's lining seen through the lips: mucosa in shade
+MOUTH_REGION = "mouth_cavity"
+MOUTH_BLEND_RINGS = 2  # edge rings over which the lips' inner side darkens into the mouth
 BONE_COLOR = (0.80, 0.75, 0.62)  # cranium and mandible when shown
 AMBIENT = 0.22
 # Anatomy under the skin: not drawn unless show_bones.
@@ -162,6 +165,28 @@ def _compile_program(vertex_source: str, fragment_source: str) -> int:
         GL.glDetachShader(program, shader)
         GL.glDeleteShader(shader)
     return program
+
+
+def skin_colors(model: FaceModel) -> np.ndarray:
+    """(V, 3) float32 linear RGB of the skin's vertices: the skin colour, and inside the mouth
+    (the skin region MOUTH_REGION, where the head has one) the lining's darker colour,
+    blended over MOUTH_BLEND_RINGS edge rings so that the lips' inner side darkens into it."""
+    nv = len(model.skin_vertices)
+    skin = np.asarray(model.skin_color, dtype=np.float32).reshape(-1)[:3]
+    names = list(model.region_names)
+    region = np.asarray(model.skin_region)
+    if MOUTH_REGION not in names or region.shape != (nv,):
+        return np.tile(skin, (nv, 1))
+    w = (region == names.index(MOUTH_REGION)).astype(np.float64)
+    faces = np.asarray(model.skin_faces, dtype=np.int64)
+    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    valence = np.bincount(e[:, 0], minlength=nv) + np.bincount(e[:, 1], minlength=nv)
+    for _ in range(MOUTH_BLEND_RINGS):
+        mean = (np.bincount(e[:, 0], weights=w[e[:, 1]], minlength=nv)
+                + np.bincount(e[:, 1], weights=w[e[:, 0]], minlength=nv)) / np.maximum(valence, 1)
+        w = np.maximum(w, mean)
+    mouth = np.asarray(MOUTH_COLOR, dtype=np.float32)
+    return (skin[None, :] * (1.0 - w[:, None]) + mouth[None, :] * w[:, None]).astype(np.float32)
 
 
 def boundary_components(F: np.ndarray, n: int) -> list[np.ndarray]:
@@ -305,8 +330,7 @@ class FaceRenderer:
 
         # Vertex arrays: the skin, then each drawn rigid part. The skin's inner side (the
         # cavity) is the same vertices drawn again with front faces culled.
-        skin_rgb = np.asarray(model.skin_color, dtype=np.float32).reshape(-1)[:3]
-        colors = [np.tile(skin_rgb, (nv, 1))]
+        colors = [skin_colors(model)]
         gloss = [np.tile(np.asarray(GLOSS["skin"], dtype=np.float32), (nv, 1))]
         tris = [faces]
         offset = nv

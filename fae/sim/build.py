@@ -1,25 +1,39 @@
-"""Build a SkinModel from any FaceModel: the 3-layer skin, springs, bone anchors, muscle
+"""Build a SkinModel from any FaceModel: the 3-layer skin, springs, anchors, muscle
 influences and bone distance grids (all setup work; nothing here runs per frame).
 
 Layers: the epidermis is the skin mesh; the middle and deepest layers are the skin moved
 inward along the vertex normals by skin_thickness x layer fraction (default fractions
 [0, 0.5, 1], `layer_params["layer_depth_fractions"]`). Springs join the ends of every
 mesh edge within each layer, each vertex to itself in the next layer, and crosswise each
-edge's ends to the other end in the next layer. Every deepest-layer particle is held with a
-stiff zero-length spring to an anchor on the skull or the mandible, whichever mesh (with
-its teeth) is nearer. Muscles act on the middle layer; pull fields on the two upper layers.
+edge's ends to the other end in the next layer. Muscles act on the middle layer; pull
+fields on the two upper layers.
+
+Holds: every particle is anchored by a zero-length spring to its hold, its rest place
+carried by the skull, the mandible or a blend of both (`jaw_weights`: the nearer bone to
+the deepest layer, lower lip and chin on the jaw, upper lip on the skull, the neck fading
+off the jaw, averaged over a few edge rings so that the skin between skull and jaw
+stretches over a band): the deepest layer stiffly, the upper layers weakly (tethers).
+
+Only skin near a muscle or a pull field is simulated (`active_rings` 3 edge rings around
+it, plus one ring that sits on its hold); the rest (scalp, neck, the inside of the mouth,
+the ears, 3,200 of the generic head's 9,000 vertices with a hold on the jaw) moves with its
+hold (`skin_positions`). The ears' FAPs move them directly (fae.animate.ears).
 
 Parameters (keys of `layer_params`, else these defaults): stiffness per unit mass kappa
-(1/s^2) `kappa_epidermis` 2500, `kappa_middle` 1250, `kappa_deep` 1250, `kappa_vertical`
-2500, `kappa_cross` 800, `kappa_anchor` 10000 (deepest layer to its bone), `kappa_tether`
-500 (upper layers to their rest place on the bone); `spring_damping_ratio` 0.0005 s (damping =
-ratio x stiffness); `drag` 110 1/s; `density` 1100 kg/m^3; `muscle_acceleration` 50 m/s^2
-(force per unit activation and weight, per kg). Only skin near a muscle, a pull field or
-the jaw is simulated (`active_rings` 3 edge rings around it, plus one fixed ring).
+(1/s^2) `kappa_epidermis` 1250, `kappa_middle` 625, `kappa_deep` 625, `kappa_vertical`
+1250, `kappa_cross` 400, `kappa_anchor` 10000 (deepest layer to its hold), `kappa_tether`
+250 (upper layers to theirs); `drag` 130 1/s; `density` 1100 kg/m^3;
+`muscle_acceleration` 50 m/s^2 (force per unit activation and weight, per kg);
+`jaw_reach` 15 mm (the jaw's hold fades out between this distance from the mandible and
+twice it), `jaw_blend_rings` 8. Springs twice as stiff needed 5 explicit
+substeps per 25 fps frame; at these, with the drag and anchors implicit (fae.sim.solver),
+the stable substep is 20 ms, two per 25 fps frame, and the skin still settles within two
+frames (equilibria depend on the ratios only, and calibration sets the amplitudes).
 Layer order: an epidermis particle stays at least `layer_min_height` 0.1 of its rest
 height above its vertex in the middle layer (0.25, and the middle layer over the deepest
-too, held the lower lip's raise to 0.72 of its FAP) (fae.sim.integrate). Contact: penetrations deeper than `contact_depth` 4 mm are left to the springs (see
-fae.sim.collision).
+too, held the lower lip's raise to 0.72 of its FAP) (fae.sim.integrate). Contact:
+penetrations of skin the bone moved onto deeper than `contact_depth` 4 mm are left to
+the springs (see fae.sim.collision).
 """
 
 from __future__ import annotations
@@ -35,18 +49,18 @@ from fae.io.facemodel import FaceModel
 from fae.sim.model import (BONE_COUNT, BONE_NAMES, LAYER_COUNT, MUSCLE_FIELD, MUSCLE_LINEAR, MUSCLE_SPHINCTER,
                            SkinModel)
 from fae.sim.sdf import sample_grid, signed_distance_grid
+from fae.sim.solver import stable_substep
 
 DEFAULTS = {
     "layer_depth_fractions": [0.0, 0.5, 1.0],
-    "kappa_epidermis": 2500.0,
-    "kappa_middle": 1250.0,
-    "kappa_deep": 1250.0,
-    "kappa_vertical": 2500.0,
-    "kappa_cross": 800.0,
+    "kappa_epidermis": 1250.0,
+    "kappa_middle": 625.0,
+    "kappa_deep": 625.0,
+    "kappa_vertical": 1250.0,
+    "kappa_cross": 400.0,
     "kappa_anchor": 10000.0,
-    "kappa_tether": 500.0,
-    "spring_damping_ratio": 0.0005,
-    "drag": 110.0,
+    "kappa_tether": 250.0,
+    "drag": 130.0,
     "density": 1100.0,
     "muscle_acceleration": 50.0,
     "active_rings": 3,
@@ -54,7 +68,10 @@ DEFAULTS = {
     "sdf_cell": 0.003,
     "contact_depth": 0.004,
     "layer_min_height": 0.1,
+    "jaw_reach": 0.015,
+    "jaw_blend_rings": 8,
 }
+
 
 
 @dataclass
@@ -108,18 +125,16 @@ def dilate(mask: np.ndarray, A: sp.csr_matrix, rings: int) -> np.ndarray:
     return m
 
 
-def max_stiffness_rate(n: int, pairs: np.ndarray, stiffness: np.ndarray, anchored: np.ndarray,
-                       anchor_stiffness: np.ndarray, mass: np.ndarray, movable: np.ndarray) -> float:
+def max_stiffness_rate(n: int, pairs: np.ndarray, stiffness: np.ndarray, mass: np.ndarray,
+                       movable: np.ndarray) -> float:
     """1/s^2: an upper bound of the largest eigenvalue of M^-1 K of the spring network.
 
     A spring's stiffness block k (n n^T + (1 - r/l)(I - n n^T)) is at most k I whenever it
     is not compressed below its rest length r (compressed, the transverse term is
-    negative), so the weighted graph Laplacian (spring stiffness k_ij, plus each particle's
-    anchor on the diagonal) bounds M^-1 K in every configuration. Its largest eigenvalue,
-    over the movable particles (Lanczos, scipy eigsh), is typically 0.55 of the Gershgorin
-    row-sum bound; 2% is added for the solver's tolerance.
-    pairs (S, 2) int, stiffness (S,) N/m, anchored (A,) int, anchor_stiffness (A,) N/m,
-    mass (n,) kg, movable (n,) bool.
+    negative), so the weighted graph Laplacian (spring stiffness k_ij) bounds M^-1 K in
+    every configuration. Its largest eigenvalue, over the movable particles (Lanczos, scipy
+    eigsh), is typically 0.55 of the Gershgorin row-sum bound; 2% is added for the solver's
+    tolerance. pairs (S, 2) int, stiffness (S,) N/m, mass (n,) kg, movable (n,) bool.
     """
     from scipy.sparse.linalg import ArpackNoConvergence, eigsh
 
@@ -129,7 +144,6 @@ def max_stiffness_rate(n: int, pairs: np.ndarray, stiffness: np.ndarray, anchore
     i, j = pairs[:, 0], pairs[:, 1]
     L = sp.coo_matrix((np.concatenate([stiffness, stiffness, -stiffness, -stiffness]),
                        (np.concatenate([i, j, i, j]), np.concatenate([i, j, j, i]))), shape=(n, n)).tocsr()
-    L = L + sp.coo_matrix((anchor_stiffness, (anchored, anchored)), shape=(n, n)).tocsr()
     w = sp.diags(1.0 / np.sqrt(mass[keep]))
     B = (w @ L[keep][:, keep] @ w).tocsr()
     gershgorin = float(np.max(np.abs(B).sum(axis=1)))
@@ -140,6 +154,40 @@ def max_stiffness_rate(n: int, pairs: np.ndarray, stiffness: np.ndarray, anchore
     except ArpackNoConvergence:
         return gershgorin
     return min(1.02 * lam, gershgorin)
+
+
+def jaw_weights(face: FaceModel, deep: np.ndarray, A: sp.csr_matrix, params: dict) -> np.ndarray:
+    """(V,) float in [0, 1]: how much the hold of each skin vertex follows the mandible.
+
+    deep (V, 3) metres: the deepest layer; A (V, V) the skin's vertex adjacency. Start from
+    the nearer bone (skull with upper teeth, or mandible with lower teeth) to the deepest
+    layer, the lower lip and chin on the jaw and the upper lip on the skull (their regions,
+    where the head has them: both lips lie over both rows of teeth); fade the jaw's hold out
+    between `jaw_reach` and twice that distance from the mandible (the neck hangs from the
+    skull and the body, not from the jaw); then average over `jaw_blend_rings` edge rings so
+    that the skin between skull and jaw stretches over a band instead of tearing along a
+    line. Without a mandible, 0 everywhere.
+    """
+    meshes = [_bone_mesh(face, b) for b in BONE_NAMES]
+    if len(meshes[1][0]) == 0:
+        return np.zeros(len(deep))
+    dist = [cKDTree(_surface_samples(bv, bf)).query(deep)[0] if len(bv) else np.full(len(deep), np.inf)
+            for bv, bf in meshes]
+    reach = float(params["jaw_reach"])
+    w = np.where(dist[1] < dist[0], 1.0, 0.0) * np.clip(2.0 - dist[1] / reach, 0.0, 1.0)
+    names = list(face.region_names)
+    region = np.asarray(face.skin_region)
+    fixed = np.zeros(len(deep), dtype=bool)
+    for name, value in (("lip_lower", 1.0), ("chin", 1.0), ("lip_upper", 0.0)):
+        if name in names:
+            on = region == names.index(name)
+            w[on], fixed[on] = value, True
+    pinned = w[fixed]
+    valence = np.maximum(np.asarray(A.sum(axis=1)).ravel(), 1.0)
+    for _ in range(int(params["jaw_blend_rings"])):
+        w = 0.5 * (w + (A @ w) / valence)
+        w[fixed] = pinned
+    return np.clip(w, 0.0, 1.0)
 
 
 def _bone_mesh(face: FaceModel, bone: str) -> tuple[np.ndarray, np.ndarray]:
@@ -235,13 +283,8 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
     edges = mesh_edges(F)
     A = adjacency(nv, edges)
 
-    # Which bone holds each deepest-layer particle: the nearer one.
-    bone_meshes = [_bone_mesh(face, b) for b in BONE_NAMES]
-    dist = np.full((BONE_COUNT, nv), np.inf)
-    for b, (bv, bf) in enumerate(bone_meshes):
-        if len(bv):
-            dist[b] = cKDTree(_surface_samples(bv, bf)).query(layers[-1])[0]
-    vertex_bone = np.argmin(dist, axis=0)
+    # How much each skin vertex's hold follows the jaw (0: skull, 1: mandible).
+    jaw = jaw_weights(face, layers[-1], A, p)
 
     # Muscle and field weights on skin vertices.
     muscle_arrays, muscle_w, muscle_names, muscle_layers = [], [], [], []
@@ -261,8 +304,10 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
         muscle_names.append(fld.name)
         muscle_layers.append((0, 1))
 
-    # The simulated set: near any influence or on the jaw; plus one fixed ring.
-    touched = vertex_bone == BONE_NAMES.index("jaw")
+    # The simulated set: near any muscle or field, plus one ring that sits on its hold;
+    # elsewhere the skin moves with its hold (`skin_positions`): the neck, the scalp and the
+    # inside of the mouth, which no muscle of the model moves.
+    touched = np.zeros(nv, dtype=bool)
     for w in muscle_w:
         touched |= w > 0
     active = dilate(touched, A, int(p["active_rings"]))
@@ -306,16 +351,14 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
     # vertex) next to a heavy one is not made stiffer than kappa, so the stable substep
     # depends on kappa and the valence only (see fae.sim.solver)
     ks = kap * np.minimum(mass[spr[:, 0]], mass[spr[:, 1]])
-    kd = ks * float(p["spring_damping_ratio"])
 
     # Anchors: every movable deepest-layer particle, stiffly; the upper layers weakly
     # (tethers: the tissue's hold on what lies beneath, which gives the skin a single rest
     # shape to return to after any pose; without them, skin folded by extreme poses stayed
-    # folded).
-    anchored = np.flatnonzero(movable)
-    anchor_bone = vertex_bone[sim_vertices[anchored % nsv]]
-    anchor_k = np.where(layer_of[anchored] == LAYER_COUNT - 1, float(p["kappa_anchor"]), float(p["kappa_tether"]))
-    anchor_k = anchor_k * mass[anchored]
+    # folded). The fixed ring follows its hold exactly.
+    particle_jaw = np.tile(jaw[sim_vertices], LAYER_COUNT)
+    anchor_k = np.where(layer_of == LAYER_COUNT - 1, float(p["kappa_anchor"]), float(p["kappa_tether"])) * mass
+    anchor_k[~movable] = 0.0
 
     # Muscle influences on the particles.
     inf_m, inf_p, inf_w = [], [], []
@@ -333,8 +376,6 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
     order = np.argsort(inf_p, kind="stable")
     inf_m, inf_p, inf_w = inf_m[order], inf_p[order], inf_w[order]
     row_influence_start = np.concatenate([[0], np.cumsum(np.bincount(inf_p, minlength=P))])
-    particle_anchor = np.full(P, -1, dtype=np.int64)
-    particle_anchor[anchored] = np.arange(len(anchored))
     # layer order: each upper-layer particle over its own vertex in the next layer
     below = np.where(layer_of == 0, np.arange(P) + nsv, -1)
     below[~movable] = -1
@@ -348,7 +389,7 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
     # Bone distance grids and which particles must stay outside them.
     sdf_values, sdf_origin, sdf_spacing = [], np.zeros((BONE_COUNT, 3)), np.ones(BONE_COUNT)
     phi_rest = np.full((BONE_COUNT, P), np.inf)
-    for b, (bv, bf) in enumerate(bone_meshes):
+    for b, (bv, bf) in enumerate(_bone_mesh(face, name) for name in BONE_NAMES):
         if len(bf) == 0:
             sdf_values.append(None)
             continue
@@ -357,17 +398,22 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
         sdf_origin[b], sdf_spacing[b] = origin, spacing
         phi_rest[b] = sample_grid(vals, origin, spacing, q)[0]
     collide = movable & (layer_of < LAYER_COUNT - 1) & (phi_rest.min(axis=0) > 0.0005)
+    # a particle closer to its rest place (in a bone's frame) than this cannot be inside that
+    # bone (a distance field changes by at most the distance moved; 1 mm spare for the grid)
+    clearance = np.clip(phi_rest - 0.001, 0.0, 1.0).T
 
 
-    # Stable substep: the largest eigenvalue of M^-1 K over all configurations (see fae.sim.solver).
-    omega2 = max_stiffness_rate(P, spr, ks, anchored, anchor_k, mass, movable)
-    rate_c = float(p["spring_damping_ratio"]) * omega2
-    dt_max = float(p["cfl"]) * 2.0 / (np.sqrt(max(omega2, 1e-12)) + rate_c)
+    # Stable substep: the springs' largest eigenvalue of M^-1 K over all configurations and
+    # the weakest (implicit) anchor (see fae.sim.solver).
+    omega2 = max_stiffness_rate(P, spr, ks, mass, movable)
+    anchor_rate = float(np.min(anchor_k[movable] / mass[movable])) if np.any(movable) else 0.0
+    dt_max = stable_substep(omega2, anchor_rate, float(p["drag"]), float(p["cfl"]))
 
     def arr(x, dtype):
         return wp.array(np.ascontiguousarray(x), dtype=dtype, device=device)
 
     skin_particle = np.where(active, local, -1)
+    kinematic = np.flatnonzero((skin_particle < 0) & (jaw > 0.0))
     ma = muscle_arrays
     return SkinModel(
         device=device,
@@ -378,16 +424,14 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
         particle_layer=arr(layer_of.astype(np.int32), int),
         collider_count=int(collide.sum()),
         collider_particle=arr(np.flatnonzero(collide).astype(np.int32), int),
+        particle_collider=arr(collide.astype(np.int32), int),
+        particle_clearance=arr(clearance.astype(np.float32), wp.vec2),
         spring_count=len(spr),
         spring_indices=arr(spr.reshape(-1).astype(np.int32), int),
         spring_rest_length=arr(rest_len.astype(np.float32), float),
         spring_stiffness=arr(ks.astype(np.float32), float),
-        spring_damping=arr(kd.astype(np.float32), float),
-        anchor_count=len(anchored),
-        anchor_particle=arr(anchored.astype(np.int32), int),
-        anchor_bone=arr(anchor_bone.astype(np.int32), int),
-        anchor_rest=arr(q32[anchored], wp.vec3),
-        anchor_stiffness=arr(anchor_k.astype(np.float32), float),
+        particle_jaw=arr(particle_jaw.astype(np.float32), float),
+        particle_anchor_stiffness=arr(anchor_k.astype(np.float32), float),
         muscle_count=len(ma),
         muscle_names=muscle_names,
         muscle_kind=arr(np.array([m["kind"] for m in ma], dtype=np.int32), int),
@@ -396,7 +440,6 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
         muscle_axis_u=arr(np.array([m["u"] for m in ma], dtype=np.float32).reshape(-1, 3), wp.vec3),
         muscle_axis_v=arr(np.array([m["v"] for m in ma], dtype=np.float32).reshape(-1, 3), wp.vec3),
         muscle_scale=arr(np.array([m["scale"] for m in ma], dtype=np.float32), float),
-        particle_anchor=arr(particle_anchor.astype(np.int32), int),
         particle_below=arr(below.astype(np.int32), int),
         particle_normal=arr(normal.astype(np.float32), wp.vec3),
         particle_height=arr(min_height.astype(np.float32), float),
@@ -410,6 +453,11 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
         sdf_origin=sdf_origin,
         sdf_spacing=sdf_spacing,
         skin_particle=skin_particle,
+        skin_jaw=jaw,
+        skin_simulated=np.flatnonzero(skin_particle >= 0),
+        skin_kinematic=kinematic,
+        skin_kinematic_rest=V[kinematic],
+        skin_kinematic_jaw=jaw[kinematic, None],
         skin_rest=V.copy(),
         dt_max=dt_max,
         damping=float(p["drag"]),
@@ -418,9 +466,15 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
     )
 
 
-def skin_positions(model: SkinModel, particle_q: np.ndarray) -> np.ndarray:
-    """(V, 3) float64 metres: skin vertices from epidermis particle positions (P, 3)."""
+def skin_positions(model: SkinModel, particle_q: np.ndarray, bone_rotation: np.ndarray | None = None,
+                   bone_translation: np.ndarray | None = None) -> np.ndarray:
+    """(V, 3) float64 metres: skin vertices from epidermis particle positions (P, 3) and the
+    bone poses (BONE_COUNT, 3, 3), (BONE_COUNT, 3) (None: at rest). Skin that is not
+    simulated moves with its hold: rest + jaw weight x (jaw pose applied to rest - rest)."""
     out = model.skin_rest.copy()
-    sim = model.skin_particle >= 0
-    out[sim] = particle_q[model.skin_particle[sim]]
+    if bone_rotation is not None and len(model.skin_kinematic):
+        k, rest = model.skin_kinematic, model.skin_kinematic_rest
+        R, t = np.asarray(bone_rotation[1]), np.asarray(bone_translation[1])
+        out[k] += model.skin_kinematic_jaw * (rest @ (R - np.eye(3)).T + t)
+    out[model.skin_simulated] = particle_q[model.skin_particle[model.skin_simulated]]
     return out

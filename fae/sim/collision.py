@@ -1,22 +1,32 @@
 """Skull and mandible non-penetration through signed-distance grids.
 
 Each bone's grid is sampled in the bone's rest frame (the mandible's grid therefore moves
-with the jaw). A particle found inside but less than `contact_depth` deep (-depth < phi < 0)
-is projected back onto the surface along the distance gradient (twice at most, since the
-grid is trilinear) and loses its inward normal velocity: a position projection, which
-stays stable for any contact (penalty springs on contact blew up with explicit integration).
+with the jaw). Contact is a position projection, which stays stable for any contact
+(penalty springs on contact blew up with explicit integration), and the particle loses its
+inward normal velocity. The solver's particle pass calls `bone_contact` for each bone
+(fae.sim.integrate) with the particle's positions before and after its step:
 
-A particle deeper than `contact_depth` is left to its springs. A substep moves skin far
+A particle that was outside before the step and is inside after it entered during the
+step: where it entered is found by bisection of its path in the grid, and the particle is
+projected onto the surface's tangent plane there (then once along the gradient), however
+deep it got: a long step cannot carry skin through a bone, and skin slides along a bone
+instead of sticking where it touched it. If it entered from the bone's far side (see
+below), it passes on towards its rest place.
+
+A particle that was already inside (the bone moved onto it) and is less than
+`contact_depth` deep (-depth < phi < 0) is projected onto the surface along the distance
+gradient (twice at most, since the grid is trilinear). Deeper, it is left to its springs. A substep moves skin far
 less than that depth, so only a bone that jumps (a jaw opened in one frame) can bury
 skin so deep; projecting it would push it out on the nearest side, which may be the wrong
 one (skin pushed behind the mandible stayed caught there after the pose relaxed), while
 its springs and bone anchors always pull it back to rest.
 
-Nor is a particle projected out on the far side of a bone from its rest place (the surface
-normal more than 120 degrees from the direction to its rest position, in the bone's frame):
-a jaw snapped open in one step can carry chin skin through the thin mandible; projected
-onto the mandible's inner face, it stayed trapped there, 2 cm off rest, while its springs
-pulled it into the bone (after 10,000 random frames). Left to the springs, it passes back.
+Nor is a particle held on the far side of a bone from its rest place (the surface normal
+more than 120 degrees from the direction to its rest position, in the bone's frame): a jaw
+snapped open in one step can carry chin skin through the thin mandible, extreme lip poses
+can tuck the upper lip behind the teeth; held on the bone's inner face, such skin stayed
+trapped there, 2 cm off rest, while its springs pulled it into the bone (after 10,000
+random frames). Left to the springs, it passes back.
 """
 
 from __future__ import annotations
@@ -29,6 +39,8 @@ wp.set_module_options({"fast_math": True})
 # cosine: skin whose rest place lies more than 120 degrees away from the surface normal is
 # on the bone's wrong side (it passed through a thin bone) and is left to its springs
 WRONG_SIDE_COS = 0.5
+# halvings of a step's path to find where a particle entered a bone (1/32 of the step)
+ENTRY_BISECTIONS = 5
 
 
 @wp.func
@@ -69,53 +81,73 @@ def grid_sample(values: wp.array3d(dtype=float), origin: wp.vec3, spacing: float
     return phi, wp.vec3(gx, gy, gz) / spacing
 
 
-@wp.kernel
-def collide_bone(particle_q: wp.array(dtype=wp.vec3), particle_qd: wp.array(dtype=wp.vec3),
-                 particle_rest: wp.array(dtype=wp.vec3), collider_particle: wp.array(dtype=int), sdf_values: wp.array3d(dtype=float),
-                 sdf_origin: wp.vec3, sdf_spacing: float, bone: int, contact_depth: float,
-                 bone_rotation: wp.array(dtype=wp.mat33), bone_translation: wp.array(dtype=wp.vec3)):
-    tid = collider_particle[wp.tid()]
-    R = bone_rotation[bone]
-    t = bone_translation[bone]
-    x = particle_q[tid]
-    local = wp.transpose(R) * (x - t)
+@wp.func
+def bone_contact(x_prev: wp.vec3, x: wp.vec3, v: wp.vec3, rest: wp.vec3, clearance: float,
+                 sdf_values: wp.array3d(dtype=float), sdf_origin: wp.vec3, sdf_spacing: float, R: wp.mat33,
+                 t: wp.vec3, contact_depth: float):
+    """(x, v) of a particle that moved from x_prev to x with velocity v, after contact with one
+    bone (pose R, t) whose signed-distance grid is in the bone's rest frame; `rest` is the
+    particle's rest position, `clearance` how far from it it cannot reach the bone."""
+    Rt = wp.transpose(R)
+    local = Rt * (x - t)
+    away = local - rest
+    if wp.dot(away, away) < clearance * clearance:
+        return x, v
     phi, grad = grid_sample(sdf_values, sdf_origin, sdf_spacing, local)
-    if phi >= 0.0 or phi < -contact_depth:
-        return
-    # a bone pushes skin out only towards the side the skin belongs to (its rest place)
-    to_rest = particle_rest[tid] - local
-    if wp.dot(grad, to_rest) < -WRONG_SIDE_COS * wp.length(grad) * wp.length(to_rest):
-        return
+    if phi >= 0.0:
+        return x, v
+    start = Rt * (x_prev - t)
+    phi_start, grad_start = grid_sample(sdf_values, sdf_origin, sdf_spacing, start)
     n_local = wp.vec3(0.0, 0.0, 0.0)
-    moved = int(0)
-    for _it in range(2):
-        if phi < 0.0:
-            glen = wp.length(grad)
-            if glen > 1.0e-9:
-                n_local = grad / glen
-                local = local - n_local * phi
-                moved = 1
-                phi, grad = grid_sample(sdf_values, sdf_origin, sdf_spacing, local)
+    if phi_start >= 0.0:
+        # entered the bone during this step: back along its path to where it entered
+        lo = float(0.0)
+        hi = float(1.0)
+        for _it in range(ENTRY_BISECTIONS):
+            mid = 0.5 * (lo + hi)
+            phi_mid, grad_mid = grid_sample(sdf_values, sdf_origin, sdf_spacing, start + (local - start) * mid)
+            if phi_mid >= 0.0:
+                lo = mid
             else:
-                phi = 0.0
-    if moved == 0:
-        return
-    particle_q[tid] = R * local + t
+                hi = mid
+        entry = start + (local - start) * lo
+        phi, grad = grid_sample(sdf_values, sdf_origin, sdf_spacing, entry)
+        glen = wp.length(grad)
+        if glen > 1.0e-9:
+            n_local = grad / glen
+        # a particle on the bone's far side from its rest place passes back through it
+        to_rest = rest - entry
+        if wp.dot(n_local, to_rest) < -WRONG_SIDE_COS * wp.length(to_rest):
+            return x, v
+        # onto the surface's tangent plane where it entered: it slides, it does not stick
+        local = local + n_local * wp.max(wp.dot(entry - local, n_local), 0.0)
+        phi, grad = grid_sample(sdf_values, sdf_origin, sdf_spacing, local)
+        glen = wp.length(grad)
+        if phi < 0.0 and glen > 1.0e-9:
+            local = local - grad * (phi / glen)
+    else:
+        # inside at the start too: the bone came onto it (a jaw that jumped)
+        if phi < -contact_depth:
+            return x, v
+        # a bone pushes skin out only towards the side the skin belongs to (its rest place)
+        to_rest = rest - local
+        if wp.dot(grad, to_rest) < -WRONG_SIDE_COS * wp.length(grad) * wp.length(to_rest):
+            return x, v
+        moved = int(0)
+        for _it in range(2):
+            if phi < 0.0:
+                glen = wp.length(grad)
+                if glen > 1.0e-9:
+                    n_local = grad / glen
+                    local = local - n_local * phi
+                    moved = 1
+                    phi, grad = grid_sample(sdf_values, sdf_origin, sdf_spacing, local)
+                else:
+                    phi = 0.0
+        if moved == 0:
+            return x, v
     n = R * n_local
-    v = particle_qd[tid]
     vn = wp.dot(v, n)
     if vn < 0.0:
-        particle_qd[tid] = v - n * vn
-
-
-def collide(model, state, control) -> None:
-    """Project particles of `state` that entered a bone back onto its surface (in place)."""
-    for bone, values in enumerate(model.sdf_values):
-        colliders = model.collider_particle
-        if values is None or model.collider_count == 0:
-            continue
-        o = model.sdf_origin[bone]
-        wp.launch(collide_bone, dim=colliders.shape[0], device=model.device,
-                  inputs=[state.particle_q, state.particle_qd, model.particle_q, colliders, values,
-                          wp.vec3(float(o[0]), float(o[1]), float(o[2])), float(model.sdf_spacing[bone]), bone,
-                          float(model.contact_depth), control.bone_rotation, control.bone_translation])
+        v = v - n * vn
+    return R * local + t, v

@@ -46,22 +46,24 @@ class SkinModel:
     particle_inv_mass   (P,) float 1/kg; 0 for particles held fixed (the border ring)
     particle_layer      (P,) int   0 epidermis, 1 middle, 2 deepest
     collider_particle   (C,) int   particles that must stay outside the bones
+    particle_collider   (P,) int   1 for those particles, else 0
+    particle_clearance  (P,) vec2  metres, per bone: no closer to its rest place in the bone's
+                                   frame than this, the particle cannot be inside the bone
     contact_depth       metres: deeper penetrations are left to the springs (fae.sim.collision)
     spring_indices      (S*2,) int particle pairs
     spring_rest_length  (S,) float metres
     spring_stiffness    (S,) float N/m
-    spring_damping      (S,) float N s/m, along the spring
-    anchor_particle     (A,) int   particles held to a bone (deepest layer stiffly, the others weakly)
-    anchor_bone         (A,) int   0 head, 1 jaw
-    anchor_rest         (A,) vec3  metres, anchor position at rest (= particle rest)
-    anchor_stiffness    (A,) float N/m
+    particle_jaw        (P,) float in [0, 1]: how much the particle's hold follows the jaw; the
+                                   hold is (1 - w) x (head pose of rest) + w x (jaw pose of rest)
+    particle_anchor_stiffness (P,) float N/m, zero-length spring to the hold (deepest layer
+                                   stiffly, the others weakly; 0 for fixed particles, which
+                                   sit on their hold)
     muscle_kind         (M,) int   MUSCLE_LINEAR / MUSCLE_SPHINCTER / MUSCLE_FIELD
     muscle_bone         (M,) int   bone carrying a linear muscle's attachment (else 0)
     muscle_point        (M,) vec3  metres: linear attachment at rest; sphincter centre
     muscle_axis_u       (M,) vec3  sphincter horizontal axis; field direction
     muscle_axis_v       (M,) vec3  sphincter vertical axis
     muscle_scale        (M,) float metres: sphincter's larger semi-axis (else 1)
-    particle_anchor     (P,) int   the particle's anchor or -1
     particle_below      (P,) int   an epidermis particle's vertex in the middle layer, or -1
     particle_normal     (P,) vec3  unit, rest direction from that particle to this one
     particle_height     (P,) float metres, the least height above it (`layer_min_height` x rest)
@@ -76,6 +78,11 @@ class SkinModel:
     sdf_origin          (BONE_COUNT, 3) numpy float64 metres, grid corner
     sdf_spacing         (BONE_COUNT,) numpy float64 metres, cell size
     skin_particle       (V,) numpy int, epidermis particle of each skin vertex or -1
+    skin_jaw            (V,) numpy float, jaw weight of each skin vertex's hold
+    skin_simulated      (S,) numpy int, skin vertices with an epidermis particle
+    skin_kinematic      (K,) numpy int, unsimulated skin vertices whose hold follows the jaw
+    skin_kinematic_rest (K, 3) numpy float64 metres, their rest positions
+    skin_kinematic_jaw  (K, 1) numpy float64, their jaw weights
     skin_rest           (V, 3) numpy float64 metres, skin at rest
     dt_max              seconds: the largest stable substep (see solver)
     damping             1/s: velocity drag applied implicitly each substep
@@ -89,16 +96,14 @@ class SkinModel:
     particle_layer: wp.array
     collider_count: int
     collider_particle: wp.array
+    particle_collider: wp.array
+    particle_clearance: wp.array
     spring_count: int
     spring_indices: wp.array
     spring_rest_length: wp.array
     spring_stiffness: wp.array
-    spring_damping: wp.array
-    anchor_count: int
-    anchor_particle: wp.array
-    anchor_bone: wp.array
-    anchor_rest: wp.array
-    anchor_stiffness: wp.array
+    particle_jaw: wp.array
+    particle_anchor_stiffness: wp.array
     muscle_count: int
     muscle_names: list[str]
     muscle_kind: wp.array
@@ -107,7 +112,6 @@ class SkinModel:
     muscle_axis_u: wp.array
     muscle_axis_v: wp.array
     muscle_scale: wp.array
-    particle_anchor: wp.array
     row_influence_start: wp.array
     particle_below: wp.array
     particle_normal: wp.array
@@ -121,6 +125,11 @@ class SkinModel:
     sdf_origin: np.ndarray
     sdf_spacing: np.ndarray
     skin_particle: np.ndarray
+    skin_jaw: np.ndarray
+    skin_simulated: np.ndarray
+    skin_kinematic: np.ndarray
+    skin_kinematic_rest: np.ndarray
+    skin_kinematic_jaw: np.ndarray
     skin_rest: np.ndarray
     dt_max: float
     damping: float
@@ -179,9 +188,12 @@ class Control:
     def set(self, muscle_activation: np.ndarray | None = None, bone_rotation: np.ndarray | None = None,
             bone_translation: np.ndarray | None = None) -> None:
         """Copy numpy values in: (M,), (BONE_COUNT, 3, 3), (BONE_COUNT, 3)."""
-        if muscle_activation is not None:
-            self.muscle_activation.assign(np.asarray(muscle_activation, dtype=np.float32))
-        if bone_rotation is not None:
-            self.bone_rotation.assign(np.asarray(bone_rotation, dtype=np.float32))
-        if bone_translation is not None:
-            self.bone_translation.assign(np.asarray(bone_translation, dtype=np.float32))
+        for array, value in ((self.muscle_activation, muscle_activation), (self.bone_rotation, bone_rotation),
+                             (self.bone_translation, bone_translation)):
+            if value is None:
+                continue
+            if array.device.is_cpu:
+                # the array's own memory: no temporary Warp array per frame
+                np.copyto(array.numpy(), np.reshape(value, array.numpy().shape), casting="unsafe")
+            else:
+                array.assign(np.asarray(value, dtype=np.float32))

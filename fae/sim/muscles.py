@@ -11,7 +11,11 @@ masked by skin regions), so a step only multiplies activation x weight x directi
 - field:     along a fixed direction of the bone's frame.
 
 The solver's particle pass (fae.sim.integrate) gathers each particle's influences and calls
-`muscle_direction`.
+`muscle_direction`. A contracted sphincter or linear muscle is also a stiffness (its force
+turns with the particle: activation x weight / semi-axis, or / distance to the
+attachment); the pass treats it implicitly like the anchors, so that a strong contraction
+cannot make the explicit substep unstable (the orbicularis oris at its limit is stiffer than
+all the springs).
 """
 
 from __future__ import annotations
@@ -25,21 +29,26 @@ wp.set_module_options({"fast_math": True})
 @wp.func
 def muscle_direction(x: wp.vec3, kind: int, b: int, point: wp.vec3, axis_u: wp.vec3, axis_v: wp.vec3,
                      scale: float, bone_rotation: wp.array(dtype=wp.mat33), bone_translation: wp.array(dtype=wp.vec3)):
-    """Force per unit activation and weight on a particle at x (see module docstring)."""
+    """(force, stiffness) per unit activation and weight on a particle at x: the force (see the
+    module docstring) and the largest eigenvalue of minus its Jacobian in x (1/m), which the
+    particle pass makes implicit."""
     R = bone_rotation[b]
     f = wp.vec3(0.0, 0.0, 0.0)
+    k = float(0.0)
     if kind == 0:
         target = R * point + bone_translation[b]
         d = target - x
         length = wp.length(d)
         if length > 1.0e-9:
             f = d / length
+            k = 1.0 / wp.max(length, 1.0e-3)
     elif kind == 1:
         c = R * point + bone_translation[b]
         u = R * axis_u
         v = R * axis_v
         d = x - c
         f = -(u * wp.dot(d, u) + v * wp.dot(d, v)) / scale
+        k = 1.0 / scale
     else:
         f = R * axis_u
-    return f
+    return f, k

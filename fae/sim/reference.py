@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from fae.sim.model import MUSCLE_FIELD, MUSCLE_LINEAR, MUSCLE_SPHINCTER, SkinModel
-from fae.sim.collision import WRONG_SIDE_COS
+from fae.sim.collision import ENTRY_BISECTIONS, WRONG_SIDE_COS
 from fae.sim.sdf import sample_grid
 from fae.sim.solver import substep_count
 
@@ -25,73 +25,111 @@ class ReferenceSolver:
         self.i = a["spring_indices"][0::2].astype(np.int64)
         self.j = a["spring_indices"][1::2].astype(np.int64)
         self.inv_mass = a["particle_inv_mass"].astype(np.float64)
+        # per particle: anchor stiffness / mass (1/s^2), the implicit part of a substep
+        self.anchor_rate = a["particle_anchor_stiffness"] * self.inv_mass
+        self.rest = a["particle_q"].astype(np.float64)
+        self.jaw = a["particle_jaw"].astype(np.float64)[:, None]
 
-    def forces(self, q: np.ndarray, qd: np.ndarray, activation: np.ndarray, bone_rotation: np.ndarray,
+    def holds(self, bone_rotation: np.ndarray, bone_translation: np.ndarray) -> np.ndarray:
+        """(P, 3) metres: each particle's hold, its rest place carried by skull and jaw."""
+        head = self.rest @ bone_rotation[0].T + bone_translation[0]
+        jaw = self.rest @ bone_rotation[1].T + bone_translation[1]
+        return head * (1.0 - self.jaw) + jaw * self.jaw
+
+    def forces(self, q: np.ndarray, activation: np.ndarray, bone_rotation: np.ndarray,
                bone_translation: np.ndarray) -> np.ndarray:
-        """(P, 3) N: springs + anchors + muscles at positions q, velocities qd."""
+        """(P, 3) N: springs + anchors + muscles at positions q (P, 3) metres."""
         a, P = self.a, self.model.particle_count
         d = q[self.i] - q[self.j]
-        length = np.linalg.norm(d, axis=1)
-        ok = length > 1e-9
-        dirn = np.where(ok[:, None], d / np.where(ok, length, 1.0)[:, None], 0.0)
-        c = length - a["spring_rest_length"]
-        dcdt = np.sum(dirn * (qd[self.i] - qd[self.j]), axis=1)
-        fs = dirn * (a["spring_stiffness"] * c + a["spring_damping"] * dcdt)[:, None]
+        length = np.maximum(np.linalg.norm(d, axis=1), 1e-9)
+        fs = d * (a["spring_stiffness"] * (1.0 - a["spring_rest_length"] / length))[:, None]
         f = _accumulate(P, self.j, fs) - _accumulate(P, self.i, fs)
-        if self.model.anchor_count:
-            ap, ab = a["anchor_particle"], a["anchor_bone"]
-            target = np.einsum("aij,aj->ai", bone_rotation[ab], a["anchor_rest"]) + bone_translation[ab]
-            f += _accumulate(P, ap, (target - q[ap]) * a["anchor_stiffness"][:, None])
-        if self.model.influence_count:
-            m, p = a["influence_muscle"], a["influence_particle"]
-            kind, b = a["muscle_kind"][m], a["muscle_bone"][m]
-            R = bone_rotation[b]
-            point = np.einsum("aij,aj->ai", R, a["muscle_point"][m]) + bone_translation[b]
-            u = np.einsum("aij,aj->ai", R, a["muscle_axis_u"][m])
-            v = np.einsum("aij,aj->ai", R, a["muscle_axis_v"][m])
-            x = q[p]
-            dvec = point - x
-            dl = np.linalg.norm(dvec, axis=1)
-            lin = np.where((dl > 1e-9)[:, None], dvec / np.maximum(dl, 1e-300)[:, None], 0.0)
-            off = x - point
-            sph = -(u * np.sum(off * u, axis=1)[:, None] + v * np.sum(off * v, axis=1)[:, None]) / a["muscle_scale"][m][:, None]
-            dirs = np.where((kind == MUSCLE_LINEAR)[:, None], lin, np.where((kind == MUSCLE_SPHINCTER)[:, None], sph, u))
-            assert np.all((kind >= MUSCLE_LINEAR) & (kind <= MUSCLE_FIELD))
-            f += _accumulate(P, p, dirs * (activation[m] * a["influence_weight"])[:, None])
+        f += (self.holds(bone_rotation, bone_translation) - q) * a["particle_anchor_stiffness"][:, None]
+        f += self.muscles(q, activation, bone_rotation, bone_translation)[0]
         return f
 
-    def collide(self, q: np.ndarray, qd: np.ndarray, bone_rotation: np.ndarray, bone_translation: np.ndarray) -> None:
-        """Project particles inside a bone grid onto its surface, in place."""
+    def muscles(self, q: np.ndarray, activation: np.ndarray, bone_rotation: np.ndarray,
+                bone_translation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(force (P, 3) N, stiffness (P,) N/m) of the muscles at positions q (fae.sim.muscles)."""
+        a, P = self.a, self.model.particle_count
+        if not self.model.influence_count:
+            return np.zeros((P, 3)), np.zeros(P)
+        m, p = a["influence_muscle"], a["influence_particle"]
+        kind, b = a["muscle_kind"][m], a["muscle_bone"][m]
+        R = bone_rotation[b]
+        point = np.einsum("aij,aj->ai", R, a["muscle_point"][m]) + bone_translation[b]
+        u = np.einsum("aij,aj->ai", R, a["muscle_axis_u"][m])
+        v = np.einsum("aij,aj->ai", R, a["muscle_axis_v"][m])
+        x = q[p]
+        dvec = point - x
+        dl = np.linalg.norm(dvec, axis=1)
+        lin = np.where((dl > 1e-9)[:, None], dvec / np.maximum(dl, 1e-300)[:, None], 0.0)
+        off = x - point
+        scale = a["muscle_scale"][m]
+        sph = -(u * np.sum(off * u, axis=1)[:, None] + v * np.sum(off * v, axis=1)[:, None]) / scale[:, None]
+        assert np.all((kind >= MUSCLE_LINEAR) & (kind <= MUSCLE_FIELD))
+        dirs = np.where((kind == MUSCLE_LINEAR)[:, None], lin, np.where((kind == MUSCLE_SPHINCTER)[:, None], sph, u))
+        rate = np.where(kind == MUSCLE_LINEAR, np.where(dl > 1e-9, 1.0 / np.maximum(dl, 1e-3), 0.0),
+                        np.where(kind == MUSCLE_SPHINCTER, 1.0 / scale, 0.0))
+        act = activation[m] * a["influence_weight"]
+        return _accumulate(P, p, dirs * act[:, None]), np.bincount(p, weights=rate * np.abs(act), minlength=P)
+
+    def collide(self, q: np.ndarray, qd: np.ndarray, q_prev: np.ndarray, bone_rotation: np.ndarray,
+                bone_translation: np.ndarray) -> None:
+        """Particles that entered a bone go back along their path from q_prev; particles that were
+        inside already are projected onto its surface (in place, fae.sim.collision)."""
+        col = np.flatnonzero(self.a["particle_collider"])
         for b, values in enumerate(self.a["sdf_values"]):
-            col = self.a["collider_particle"].astype(np.int64)
             if values is None or len(col) == 0:
                 continue
+            origin, spacing = self.model.sdf_origin[b], self.model.sdf_spacing[b]
             R, t = bone_rotation[b], bone_translation[b]
             local = (q[col] - t) @ R
-            phi, grad = sample_grid(values, self.model.sdf_origin[b], self.model.sdf_spacing[b], local)
-            to_rest = self.a["particle_q"][col].astype(np.float64) - local
-            wrong = np.sum(grad * to_rest, axis=1) < -WRONG_SIDE_COS * np.linalg.norm(grad, axis=1) * np.linalg.norm(to_rest, axis=1)
-            hit = np.flatnonzero((phi < 0.0) & (phi >= -self.model.contact_depth) & ~wrong)
-            if len(hit) == 0:
-                continue
-            loc, ph, gr = local[hit], phi[hit], grad[hit]
-            moved = np.zeros(len(hit), dtype=bool)
-            n_local = np.zeros((len(hit), 3))
-            active = np.ones(len(hit), dtype=bool)
+            phi, grad = sample_grid(values, origin, spacing, local)
+            inside = phi < 0.0
+            idx, loc, ph, gr = col[inside], local[inside], phi[inside], grad[inside]
+            start = (q_prev[idx] - t) @ R
+            ph0 = sample_grid(values, origin, spacing, start)[0]
+            entered = ph0 >= 0.0
+            n_local = np.zeros((len(idx), 3))
+            moved = entered.copy()
+            # entered during the step: bisect the path back to the entry point
+            lo, hi = np.zeros(len(idx)), np.ones(len(idx))
+            for _ in range(ENTRY_BISECTIONS):
+                mid = 0.5 * (lo + hi)
+                out = sample_grid(values, origin, spacing, start + (loc - start) * mid[:, None])[0] >= 0.0
+                lo, hi = np.where(out, mid, lo), np.where(out, hi, mid)
+            entry = start + (loc - start) * lo[:, None]
+            g = sample_grid(values, origin, spacing, entry)[1]
+            glen = np.linalg.norm(g, axis=1)
+            n_local = np.where((entered & (glen > 1e-9))[:, None], g / np.maximum(glen, 1e-300)[:, None], n_local)
+            # entered from the bone's far side from its rest place: passes on
+            to_entry_rest = self.a["particle_q"][idx].astype(np.float64) - entry
+            far = np.sum(n_local * to_entry_rest, axis=1) < -WRONG_SIDE_COS * np.linalg.norm(to_entry_rest, axis=1)
+            moved &= ~far
+            slid = loc + n_local * np.maximum(np.sum((entry - loc) * n_local, axis=1), 0.0)[:, None]
+            ph_s, gr_s = sample_grid(values, origin, spacing, slid)
+            gl_s = np.linalg.norm(gr_s, axis=1)
+            fix = (ph_s < 0.0) & (gl_s > 1e-9)
+            slid = np.where(fix[:, None], slid - gr_s * (ph_s / np.maximum(gl_s, 1e-300))[:, None], slid)
+            loc = np.where((entered & ~far)[:, None], slid, loc)
+            # inside at the start too: shallow ones on the side they belong to are projected out
+            to_rest = self.a["particle_q"][idx].astype(np.float64) - loc
+            wrong = np.sum(gr * to_rest, axis=1) < -WRONG_SIDE_COS * np.linalg.norm(gr, axis=1) * np.linalg.norm(to_rest, axis=1)
+            active = ~entered & (ph >= -self.model.contact_depth) & ~wrong
             for _ in range(2):
+                active &= ph < 0.0
                 glen = np.linalg.norm(gr, axis=1)
                 active &= glen >= 1e-9
                 nl = gr / np.maximum(glen, 1e-300)[:, None]
                 n_local = np.where(active[:, None], nl, n_local)
                 loc = np.where(active[:, None], loc - nl * ph[:, None], loc)
                 moved |= active
-                ph2, gr2 = sample_grid(values, self.model.sdf_origin[b], self.model.sdf_spacing[b], loc)
+                ph2, gr2 = sample_grid(values, origin, spacing, loc)
                 ph = np.where(active, ph2, ph)
                 gr = np.where(active[:, None], gr2, gr)
-                active &= ph < 0.0
-            hit, n_local = hit[moved], n_local[moved]
-            idx = col[hit]
-            q[idx] = loc[moved] @ R.T + t
+            idx, loc, n_local = idx[moved], loc[moved], n_local[moved]
+            q[idx] = loc @ R.T + t
             n = n_local @ R.T
             vn = np.sum(qd[idx] * n, axis=1)
             qd[idx] -= n * np.minimum(vn, 0.0)[:, None]
@@ -100,11 +138,12 @@ class ReferenceSolver:
         """Keep upper-layer particles above their vertex in the layer below (in place)."""
         a = self.a
         below = a["particle_below"].astype(np.int64)
-        pa = a["particle_anchor"].astype(np.int64)
-        idx = np.flatnonzero((below >= 0) & (pa >= 0))
+        idx = np.flatnonzero(below >= 0)
         if len(idx) == 0:
             return
-        n = np.einsum("aij,aj->ai", bone_rotation[a["anchor_bone"][pa[idx]]], a["particle_normal"][idx].astype(np.float64))
+        n0 = a["particle_normal"][idx].astype(np.float64)
+        n = n0 @ bone_rotation[0].T * (1.0 - self.jaw[idx]) + n0 @ bone_rotation[1].T * self.jaw[idx]
+        n /= np.linalg.norm(n, axis=1, keepdims=True)
         gap = a["particle_height"][idx] - np.sum((q[idx] - q_prev[below[idx]]) * n, axis=1)
         hit = gap > 0.0
         idx, n, gap = idx[hit], n[hit], gap[hit]
@@ -124,12 +163,16 @@ class ReferenceSolver:
         h = dt / n
         w = self.inv_mass[:, None]
         fixed = self.inv_mass == 0.0
+        hold = self.holds(R, t)
         for _ in range(n):
-            f = self.forces(q, qd, act, R, t)
-            qd = (qd + f * w * h) / (1.0 + h * self.model.damping)
+            f = self.forces(q, act, R, t)
+            k_muscle = self.muscles(q, act, R, t)[1]
+            implicit = 1.0 + h * self.model.damping + h * h * (self.anchor_rate + k_muscle * self.inv_mass)
+            qd = (qd + f * w * h) / implicit[:, None]
             qd[fixed] = 0.0
             q_prev = q
             q = q + qd * h
+            q[fixed] = hold[fixed]
             self.layer_order(q, qd, q_prev, R)
-            self.collide(q, qd, R, t)
+            self.collide(q, qd, q_prev, R, t)
         return q, qd

@@ -1,50 +1,60 @@
-"""The skin solver: explicit substeps with implicit drag, bone anchors and contact projection.
+"""The skin solver: symplectic Euler with implicit drag and anchors, contact projection.
 
-Choice of scheme. The skin is a mass-spring-damper network whose stiffness is
-proportional to mass (stiffness = kappa x the lighter end's mass, kappa in 1/s^2, see
-:mod:`fae.sim.build`; with the mean mass a sliver triangle's nearly massless vertex made
-the shipped head need 0.17 ms substeps). Symplectic Euler is stable while dt < 2 / omega_max;
-omega_max^2, the largest eigenvalue of M^-1 K in any configuration without compressed
-springs, is bounded by that of the springs' weighted graph Laplacian plus the anchors,
-computed once at build (Lanczos; 0.55 of the Gershgorin row-sum bound used before, which
-made 7 substeps per 25 fps frame instead of 5):
-
-    dt_max = cfl * 2 / (omega_max + spring_damping_ratio * omega_max^2),   cfl = 0.9.
-
-A frame of length dt is split into n = ceil(dt / dt_max) equal substeps (a CFL-like
-bound, so every step is stable whatever the frame rate); each substep is
+Scheme. A frame of length dt is split into n = ceil(dt / dt_max) equal substeps h; each is
 
     f = springs (a scatter over springs, fae.sim.springs);
-    one pass over particles (fae.sim.integrate): f += bone anchor + muscles;
-        v' = (v + dt f/m) / (1 + dt c);  x' = x + dt v';  upper layers kept above the next;
-    then particles inside the skull or mandible grid are projected onto their surface.
+    one pass over particles (fae.sim.integrate): f += muscles;
+        v' = (v + h/m (f + k_a (target - x))) / (1 + h c + h^2 k_a / m);  x' = x + h v';
+        upper layers kept above the next; particles inside the skull or mandible projected out.
 
-The drag c (1/s) is implicit, hence unconditionally stable, and sized near critical
-damping of the slowest mode (the skin moving against its bone anchors) so that the skin
-settles within one or two frames. Contact is a projection (no stiff penalty springs) of
-shallow penetrations only, towards the side of the bone the particle belongs to
-(fae.sim.collision). Every skin particle is held to its bone: the deepest layer stiffly
-(kappa_anchor 10000), the upper layers by weak tethers (kappa_tether 500), which gives the
-network a single rest shape to return to (without them, skin folded by extreme poses
-stayed folded). Kernels are compiled with fast math. On the shipped head (21,840
-particles, 163k springs) dt_max is 8.4 ms: a 25 fps frame takes 5 substeps of 4-5 ms
-on one CPU core (the spring scatter about half of it, contact about a quarter).
+Stability. The drag c (1/s) and each particle's bone anchor k_a are implicit, the springs
+explicit. For one mode of the springs of frequency w (w^2 an eigenvalue of M^-1 K_s) on a
+particle with anchor rate kappa_a = k_a / m, the step's amplification matrix has
+determinant 1 / (1 + h c + h^2 kappa_a) < 1 and its eigenvalues stay inside the unit
+circle while
+
+    h^2 w^2 < 4 + 2 h c + h^2 kappa_a.
+
+The drag therefore buys a much longer step than the undamped bound h w < 2, and the
+anchors (the stiffest part of the skin, kappa_anchor 10000 1/s^2) cost none. `dt_max` is
+the largest h that satisfies this for the springs' largest w^2 (Lanczos over the spring
+network's weighted graph Laplacian, which bounds M^-1 K_s in every configuration without
+compressed springs, see fae.sim.build) and the weakest anchor, with a safety factor
+cfl = 0.9 on w. On the shipped head one substep covers a 25 fps frame.
+
+Contact is a projection (no stiff penalty springs) of shallow penetrations only, towards
+the side of the bone the particle belongs to (fae.sim.collision). Every skin particle is
+held to its bone: the deepest layer stiffly, the upper layers by weak tethers, which gives
+the network a single rest shape to return to. Kernels are compiled with fast math.
+
+Per frame the solver replays a recorded graph of its launches (Warp's graph capture: CUDA
+graphs on a GPU, Warp's own replay on the CPU): one call instead of a Python launch per
+kernel and substep, whose argument packing cost about as much as the springs themselves.
+A graph is recorded once per (substeps, step length, states, control) and kept.
 
 Schemes not taken: a per-particle gather of the springs (no atomics) measured 1.5x slower
-on the CPU than the scatter, since it evaluates each spring from both ends.
+on the CPU than the scatter, since it evaluates each spring from both ends; a prefactored
+implicit (projective dynamics) step needs a sparse triangular solve of about 2 million
+non-zeros on the shipped head, 7.5 ms per frame in C on one core, more than the whole
+explicit frame.
 """
 
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 
-
+import numpy as np
 import warp as wp
 
-from fae.sim.collision import collide
-from fae.sim.integrate import integrate
+import fae.sim.integrate as _integrate
+import fae.sim.springs as _springs
 from fae.sim.model import Control, SkinModel, State
-from fae.sim.springs import eval_spring_forces
+
+# consecutive springs / particles per Warp thread on the CPU (see fae.sim.springs)
+CPU_SPRING_CHUNK = 32
+CPU_PARTICLE_CHUNK = 64
+_GRAPH_CACHE_SIZE = 8
 
 
 def substep_count(model: SkinModel, dt: float) -> int:
@@ -54,13 +64,67 @@ def substep_count(model: SkinModel, dt: float) -> int:
     return max(1, int(math.ceil(dt / model.dt_max - 1e-9)))
 
 
+def stable_substep(spring_rate: float, anchor_rate: float, damping: float, cfl: float = 0.9) -> float:
+    """Seconds: the largest h with (cfl w)^2 ... see module docstring:
+    h^2 w^2 <= cfl^2 (4 + 2 h c + h^2 kappa_a), w^2 = `spring_rate` (1/s^2), kappa_a =
+    `anchor_rate` (1/s^2, the weakest anchor), c = `damping` (1/s). At most 1 s."""
+    a = float(spring_rate) - cfl * cfl * float(anchor_rate)
+    b = cfl * cfl * float(damping)
+    if a <= 0.0:
+        return 1.0
+    return min(1.0, (b + math.sqrt(b * b + 4.0 * cfl * cfl * a)) / a)
+
+
 class SkinSolver:
     """Advances a SkinModel's State under a Control; allocates its scratch arrays once."""
 
     def __init__(self, model: SkinModel):
         self.model = model
+        cpu = wp.get_device(model.device).is_cpu
+        self.spring_chunk = CPU_SPRING_CHUNK if cpu else 1
+        self.particle_chunk = CPU_PARTICLE_CHUNK if cpu else 1
         self.particle_f = wp.zeros(model.particle_count, dtype=wp.vec3, device=model.device)
-        self._scratch = model.state()
+        self._scratch = (model.state(), model.state())
+        no_grid = wp.full((2, 2, 2), 1.0, dtype=float, device=model.device)  # far outside everywhere
+        self._grids = []
+        for b in range(2):
+            values = model.sdf_values[b] if b < len(model.sdf_values) else None
+            o = model.sdf_origin[b] if values is not None else np.zeros(3)
+            self._grids += [no_grid if values is None else values, wp.vec3(*(float(c) for c in o)),
+                            float(model.sdf_spacing[b]) if values is not None else 1.0]
+        self._graphs: OrderedDict[tuple, tuple] = OrderedDict()
+        self._capture = True
+
+    def _launch_substep(self, src: State, dst: State, control: Control, h: float) -> None:
+        m = self.model
+        self.particle_f.zero_()
+        if m.spring_count:
+            wp.launch(_springs.eval_springs, dim=-(-m.spring_count // self.spring_chunk), device=m.device,
+                      inputs=[src.particle_q, m.spring_indices, m.spring_rest_length, m.spring_stiffness,
+                              m.spring_count, self.spring_chunk],
+                      outputs=[self.particle_f])
+        wp.launch(_integrate.step_particles, dim=-(-m.particle_count // self.particle_chunk), device=m.device,
+                  inputs=[src.particle_q, src.particle_qd, self.particle_f, m.particle_inv_mass, m.particle_q,
+                          m.particle_jaw, m.particle_anchor_stiffness,
+                          m.row_influence_start, m.influence_muscle, m.influence_weight,
+                          m.muscle_kind, m.muscle_bone, m.muscle_point, m.muscle_axis_u, m.muscle_axis_v,
+                          m.muscle_scale, control.muscle_activation, control.bone_rotation,
+                          control.bone_translation, m.particle_below, m.particle_normal, m.particle_height,
+                          m.particle_collider, m.particle_clearance, *self._grids, float(m.contact_depth), float(m.damping), float(h),
+                          m.particle_count, self.particle_chunk],
+                  outputs=[dst.particle_q, dst.particle_qd])
+
+    def _launch_frame(self, state_in: State, control: Control, n: int, h: float, state_out: State) -> None:
+        src = state_in
+        for k in range(n):
+            last = k == n - 1
+            dst = state_out if last and state_out is not src else self._scratch[k % 2]
+            if dst is src:
+                dst = self._scratch[(k + 1) % 2]
+            self._launch_substep(src, dst, control, h)
+            src = dst
+        if src is not state_out:
+            state_out.assign(src)
 
     def step(self, model: SkinModel, state_in: State, control: Control, dt: float,
              state_out: State | None = None) -> State:
@@ -68,16 +132,43 @@ class SkinSolver:
 
         state_in is left unchanged unless it is also state_out.
         """
+        if model is not self.model:
+            raise ValueError("step: this solver was built for another SkinModel")
         if state_out is None:
             state_out = model.state()
         n = substep_count(model, dt)
         h = dt / n
-        src = state_in
-        for k in range(n):
-            dst = state_out if (n - k) % 2 == 1 else self._scratch
-            self.particle_f.zero_()
-            eval_spring_forces(model, src, self.particle_f)
-            integrate(model, src, dst, control, self.particle_f, h)
-            collide(model, dst, control)
-            src = dst
+        if not self._capture:
+            self._launch_frame(state_in, control, n, h, state_out)
+            return state_out
+        key = (n, h, id(state_in), id(state_out), id(control))
+        entry = self._graphs.get(key)
+        if entry is None:
+            entry = self._record(state_in, control, n, h, state_out)
+            if entry is None:
+                self._launch_frame(state_in, control, n, h, state_out)
+                return state_out
+            self._graphs[key] = entry
+            while len(self._graphs) > _GRAPH_CACHE_SIZE:
+                self._graphs.popitem(last=False)
+        else:
+            self._graphs.move_to_end(key)
+        wp.capture_launch(entry[0])
         return state_out
+
+    def _record(self, state_in: State, control: Control, n: int, h: float, state_out: State):
+        """(graph, the objects it reads and writes) or None where this Warp cannot capture."""
+        device = self.model.device
+        try:
+            wp.load_module(_springs, device=device)
+            wp.load_module(_integrate, device=device)
+            wp.capture_begin(device=device)
+            try:
+                self._launch_frame(state_in, control, n, h, state_out)
+            finally:
+                graph = wp.capture_end(device=device)
+        except Exception:  # noqa: BLE001 - an older Warp or a device without graphs: launch directly
+            self._capture = False
+            return None
+        # the cache keeps the states alive, so their ids are not reused while the graph is
+        return graph, (state_in, state_out, control)

@@ -1,0 +1,56 @@
+"""The skin mesh from a simulation state, in one kernel: epidermis particles where the skin
+is simulated, the hold (rest place carried by skull and jaw) elsewhere, then a rigid pose.
+
+The numpy twin is `fae.sim.build.skin_positions` (the reference in tests); this is what a
+Player runs per frame: a gather over the skin's vertices instead of numpy's fancy
+indexing (0.05 ms instead of 0.3 ms on the shipped head).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from fae.sim.model import Control, SkinModel, State
+
+wp.set_module_options({"fast_math": True})
+
+
+@wp.kernel
+def skin_vertices(particle_q: wp.array(dtype=wp.vec3), skin_particle: wp.array(dtype=int),
+                  skin_rest: wp.array(dtype=wp.vec3), skin_jaw: wp.array(dtype=float),
+                  bone_rotation: wp.array(dtype=wp.mat33), bone_translation: wp.array(dtype=wp.vec3),
+                  pose_rotation: wp.mat33, pose_translation: wp.vec3, out: wp.array(dtype=wp.vec3)):
+    v = wp.tid()
+    p = skin_particle[v]
+    x = wp.vec3(0.0, 0.0, 0.0)
+    if p >= 0:
+        x = particle_q[p]
+    else:
+        r = skin_rest[v]
+        w = skin_jaw[v]
+        x = (bone_rotation[0] * r + bone_translation[0]) * (1.0 - w) + (bone_rotation[1] * r + bone_translation[1]) * w
+    out[v] = pose_rotation * x + pose_translation
+
+
+class SkinOutput:
+    """Per frame: the (V, 3) float64 skin of a State, posed; arrays allocated once."""
+
+    def __init__(self, model: SkinModel):
+        self.model = model
+        d = model.device
+        self.skin_particle = wp.array(model.skin_particle.astype(np.int32), dtype=int, device=d)
+        self.skin_rest = wp.array(model.skin_rest.astype(np.float32), dtype=wp.vec3, device=d)
+        self.skin_jaw = wp.array(model.skin_jaw.astype(np.float32), dtype=float, device=d)
+        self.out = wp.zeros(len(model.skin_rest), dtype=wp.vec3, device=d)
+
+    def positions(self, state: State, control: Control, pose: np.ndarray | None = None) -> np.ndarray:
+        """(V, 3) float64 metres: the skin of `state` under the bones of `control`, carried by
+        the rigid `pose` (4, 4) (None: identity)."""
+        P = np.eye(4) if pose is None else np.asarray(pose, dtype=np.float64)
+        wp.launch(skin_vertices, dim=len(self.model.skin_rest), device=self.model.device,
+                  inputs=[state.particle_q, self.skin_particle, self.skin_rest, self.skin_jaw,
+                          control.bone_rotation, control.bone_translation,
+                          wp.mat33(*P[:3, :3].reshape(-1)), wp.vec3(*P[:3, 3])],
+                  outputs=[self.out])
+        return self.out.numpy().astype(np.float64)
