@@ -42,13 +42,18 @@ class Surface:
     diagonal: float
 
 
-def surface(V: np.ndarray, F: np.ndarray) -> Surface:
-    """Prepare mesh V (n, 3), F (m, 3) for closest-point and ray queries."""
+def surface(V: np.ndarray, F: np.ndarray, query: MeshQuery | None = None) -> Surface:
+    """Prepare mesh V (n, 3), F (m, 3) for closest-point and ray queries. query: a
+    MeshQuery of the same faces to reuse (moved to V: a refit, not a rebuild)."""
     V = np.asarray(V, dtype=np.float64)
     F = np.asarray(F, dtype=np.int64)
+    if query is None:
+        query = MeshQuery(V, F)
+    else:
+        query.move(V)
     b = boundary_vertices(F, len(V))
     return Surface(V, F, per_vertex_normals(V, F), b, b[F].any(axis=1), cKDTree(V, balanced_tree=False),
-                   MeshQuery(V, F), float(np.linalg.norm(np.ptp(V, axis=0))))
+                   query, float(np.linalg.norm(np.ptp(V, axis=0))))
 
 
 def compatible_closest_points(X: np.ndarray, NX: np.ndarray, target: Surface, max_distance: float

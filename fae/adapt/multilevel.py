@@ -140,7 +140,8 @@ def fit_template(P: np.ndarray, F: np.ndarray, P_landmarks: np.ndarray, scan_V: 
     kernel = {"multilevel": "biharmonic", "rbf": "biharmonic", "wendland": "wendland",
               "multiquadric": "multiquadric"}[method]
     E = mesh_edges(F)
-    deformation, dropped, level0_clean = folding_free_rbf(P, F, PL, QL, kernel, rho, E)
+    model_query = MeshQuery(P, F)  # of the fitted surface, moved along (refits, not rebuilds)
+    deformation, dropped, level0_clean = folding_free_rbf(P, F, PL, QL, kernel, rho, E, model_query)
     if dropped:
         keep = np.setdiff1d(np.arange(len(PL)), dropped)
         PL, QL = PL[keep], QL[keep]
@@ -158,7 +159,7 @@ def fit_template(P: np.ndarray, F: np.ndarray, P_landmarks: np.ndarray, scan_V: 
         can_match = np.ones(len(P), dtype=bool) if movable is None else np.asarray(movable, dtype=bool)
         for k in range(1, levels + 1):
             origins, dirs = feature_mesh_samples(XL, T, k)
-            model = surface(X, F)
+            model = surface(X, F, model_query)
             fm, bm, qs, _ = ray_pairs(origins, dirs, model, scan, max_distance)
             fc, bc, qc, _ = ray_pairs(scan.V[curv], scan.N[curv], model, scan, max_distance)
             face = np.concatenate([fm, fc])
@@ -195,7 +196,9 @@ def fit_template(P: np.ndarray, F: np.ndarray, P_landmarks: np.ndarray, scan_V: 
     best = int(np.argmin([r["combined_error"] for r in report]))
     X, deformation = results[best]
     if method in ("multilevel", "wendland") and local_levels > 0:
-        lm_face, lm_bary = _landmark_anchors(X, F, deformation(PL))
+        model_query.move(X)
+        _, _, lm_face, lm_bary = model_query.closest_points(deformation(PL))
+        lm_face = np.maximum(lm_face, 0)
         X0 = X
         clearance = offset_clearance(X0, per_vertex_normals(X0, F), width / 20.0)
         smoother = OffsetSmoother(F, len(X0))
@@ -211,9 +214,9 @@ def fit_template(P: np.ndarray, F: np.ndarray, P_landmarks: np.ndarray, scan_V: 
         X = group_means(X, seam, seams)[seam]
     relaxed = 0
     if best > 0:  # blend back wherever the chosen level cuts through itself
-        X, weight = untangle(F, X, results[0][0] if level0_clean else P, edges=E)
+        X, weight = untangle(F, X, results[0][0] if level0_clean else P, edges=E, query=model_query)
         relaxed = int(np.sum(weight < 1.0))
-    final = symmetric_rms(surface(X, F), scan, max_distance, scored,
+    final = symmetric_rms(surface(X, F, model_query), scan, max_distance, scored,
                           model_match=None if relaxed else matches[best])
     final["relaxed_vertices"] = relaxed
     final["marker_error"] = report[best]["marker_error"]
@@ -225,10 +228,12 @@ def fit_template(P: np.ndarray, F: np.ndarray, P_landmarks: np.ndarray, scan_V: 
 
 
 def folding_free_rbf(P: np.ndarray, F: np.ndarray, PL: np.ndarray, QL: np.ndarray, kernel: str, rho: float,
-                     edges: np.ndarray | None = None, max_drops: int = 8) -> tuple[Deformation, list[int], bool]:
+                     edges: np.ndarray | None = None, query: MeshQuery | None = None,
+                     max_drops: int = 8) -> tuple[Deformation, list[int], bool]:
     """The level-0 RBF through the feature points PL -> QL (k, 3), the indices of those
     left out because the surface P, F folded through itself with them, and whether the
-    result is free of crossings (edges: mesh_edges(F), when already known).
+    result is free of crossings (edges: mesh_edges(F), query: a MeshQuery of F to reuse,
+    when already built).
 
     Feature points that almost coincide on the template but not on the scan (the inner lip
     contour of a face scanned with the mouth open, closed eyelids over open ones) ask the
@@ -241,7 +246,7 @@ def folding_free_rbf(P: np.ndarray, F: np.ndarray, PL: np.ndarray, QL: np.ndarra
     for _ in range(max_drops + 1):
         deformation = Deformation(rbf_weights(PL[keep], QL[keep] - PL[keep], kernel, rho=rho))
         X = deformation(P)
-        crossing, _ = edge_crossings(X, F, edges)
+        crossing, _ = edge_crossings(X, F, edges, query)
         if len(crossing) == 0 or len(keep) <= 4:
             break
         at = X[crossing].mean(axis=1).mean(axis=0)
@@ -271,11 +276,3 @@ def consistent_pairs(X: np.ndarray, Q: np.ndarray, factor: float = 4.0, floor: f
 def _nearest(P: np.ndarray, L: np.ndarray) -> np.ndarray:
     from scipy.spatial import cKDTree
     return cKDTree(P).query(L)[1]
-
-
-
-def _landmark_anchors(X: np.ndarray, F: np.ndarray, L: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Faces (k,) and barycentric coordinates (k, 3) of the points of X's surface closest to L."""
-    _, _, face, bary = MeshQuery(X, F).closest_points(L)
-    face = np.where(face < 0, 0, face)
-    return face, bary

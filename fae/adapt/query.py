@@ -50,14 +50,15 @@ def _closest_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), max_dist: 
 
 
 @wp.kernel
-def _sign_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), max_dist: float,
-                 out_sign: wp.array(dtype=float)):
+def _signed_distance_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), max_dist: float,
+                            out_distance: wp.array(dtype=float)):
+    # distance to the closest surface point, negative inside; max_dist + 1 where none is that close
     i = wp.tid()
     q = wp.mesh_query_point_sign_normal(mesh, points[i], max_dist)
     if q.result:
-        out_sign[i] = q.sign
+        out_distance[i] = q.sign * wp.length(points[i] - wp.mesh_eval_position(mesh, q.face, q.u, q.v))
     else:
-        out_sign[i] = 1.0
+        out_distance[i] = max_dist + 1.0
 
 
 @wp.kernel
@@ -187,14 +188,21 @@ class MeshQuery:
     def inside(self, X: np.ndarray, max_dist: float = 1e6) -> np.ndarray:
         """(n,) bool: which points X (n, 3) lie inside the mesh (closed, outward faces), by
         the angle-weighted normal at the closest point (exact for a watertight mesh up to
-        float32 rounding at the surface)."""
+        float32 rounding at the surface); points farther than max_dist count as outside."""
+        return self.signed_distances(X, max_dist) < 0.0
+
+    def signed_distances(self, X: np.ndarray, max_dist: float = 1e6) -> np.ndarray:
+        """(n,) distances of points X (n, 3) to the mesh, negative inside it (see inside());
+        +inf for points farther than max_dist."""
         n = len(X)
         if n == 0:
-            return np.zeros(0, dtype=bool)
+            return np.zeros(0)
         p = wp.array(np.asarray(X, np.float32), dtype=wp.vec3, device="cpu")
-        sign = wp.zeros(n, dtype=float, device="cpu")
-        wp.launch(_sign_kernel, dim=n, inputs=[self._mesh.id, p, float(max_dist), sign], device="cpu")
-        return sign.numpy() < 0.0
+        out = wp.zeros(n, dtype=float, device="cpu")
+        wp.launch(_signed_distance_kernel, dim=n, inputs=[self._mesh.id, p, float(max_dist), out], device="cpu")
+        d = out.numpy().astype(np.float64)
+        d[d > max_dist] = np.inf
+        return d
 
     def bidirectional_hits(self, origins: np.ndarray, directions: np.ndarray, max_t: float
                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

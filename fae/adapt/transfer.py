@@ -132,16 +132,25 @@ def smooth_push(V: np.ndarray, push: np.ndarray, at: np.ndarray, radius: float) 
     weights w_j = phi(|x - V[at_j]| / radius). Points near a pushed one move with it, whichever
     side of a thin bone they lie on, so a push cannot fold the bone; the offsets fade to zero
     `radius` metres away."""
-    from scipy.spatial import cKDTree
-
     V = np.asarray(V, dtype=np.float64)
-    if len(at) == 0:
-        return np.zeros_like(V)
-    S = cKDTree(V).sparse_distance_matrix(cKDTree(V[at]), radius, output_type="coo_matrix")
-    w = wendland_c2(S.data / radius)
-    i, j = S.row, S.col
-    total = np.maximum(np.bincount(i, w, minlength=len(V)), 1.0)
-    return np.column_stack([np.bincount(i, w * push[j, a], minlength=len(V)) for a in range(3)]) / total[:, None]
+    D = np.zeros_like(V)
+    for a in range(0, len(at), 256):  # (n, 256) weights at a time
+        src = V[at[a:a + 256]]
+        d2 = np.sum(V * V, 1)[:, None] + np.sum(src * src, 1)[None, :] - 2.0 * V @ src.T
+        w = wendland_c2(np.sqrt(np.maximum(d2, 0.0)) / radius)
+        D += w @ push[a:a + 256]
+        total = w.sum(axis=1) if a == 0 else total + w.sum(axis=1)
+    return D / np.maximum(total, 1.0)[:, None] if len(at) else D
+
+
+def within(X: np.ndarray, Y: np.ndarray, radius: float) -> np.ndarray:
+    """(n,) bool: which points X (n, 3) have a point of Y (k, 3) within `radius` (same unit)."""
+    out = np.zeros(len(X), dtype=bool)
+    xx = np.sum(X * X, axis=1)[:, None]
+    for a in range(0, len(Y), 256):
+        y = Y[a:a + 256]
+        out |= np.min(xx + np.sum(y * y, axis=1)[None, :] - 2.0 * X @ y.T, axis=1) <= radius * radius
+    return out
 
 
 def push_under_skin(model: FaceModel, part: str, min_depth: float = MIN_BONE_DEPTH, rounds: int = 10,
@@ -163,7 +172,7 @@ def push_under_skin(model: FaceModel, part: str, min_depth: float = MIN_BONE_DEP
     if skin is None:
         skin = surface(model.skin_vertices, model.skin_faces)
     S, SF = skin.V, skin.F
-    skin_q, skin_n, skin_tree = skin.query, skin.N, skin.tree
+    skin_q, skin_n = skin.query, skin.N
     bone_q = MeshQuery(V, BF)
     reach = rounds * MAX_PUSH + min_depth  # bone deeper than this under the skin needs nothing
     inside_reach = 5 * MAX_PUSH  # skin "inside" farther from the bone's surface is a fold of the bone, not skin
@@ -171,15 +180,18 @@ def push_under_skin(model: FaceModel, part: str, min_depth: float = MIN_BONE_DEP
     depth = np.full(len(V), np.inf)  # > 0: below the skin, along the skin normal there
     normal = np.zeros_like(V)
     stale = np.full(len(V), np.inf)  # how far each bone vertex moved since its depth was measured
-    inside = np.zeros(len(S), dtype=bool)
-    check = np.flatnonzero(np.all((S > V.min(axis=0) - reach) & (S < V.max(axis=0) + reach), axis=1))
+    gap = np.full(len(S), np.inf)  # signed distance of each skin vertex to the bone (< 0: inside), when measured
+    drift = np.full(len(S), np.inf)  # how far the bone may have moved towards it since
     moved = np.zeros(len(V), dtype=bool)
     for _ in range(rounds):
         redo = np.flatnonzero(stale > 0.5 * PUSH_TOLERANCE)
         depth[redo], normal[redo] = depth_under(skin_q, skin_n, SF, V[redo], reach)
         stale[redo] = 0.0
         bone_q.move(V)
-        inside[check] = bone_q.inside(S[check], inside_reach)
+        check = np.flatnonzero(drift >= np.abs(gap))  # skin the bone may have reached or left
+        gap[check] = np.minimum(bone_q.signed_distances(S[check], inside_reach), inside_reach)
+        drift[check] = 0.0
+        inside = gap < 0.0
         need = np.maximum(min_depth - depth, 0.0)
         if np.any(inside):  # skin inside the bone: its nearest bone vertices go below it
             d, j = cKDTree(V).query(S[inside], distance_upper_bound=inside_reach)
@@ -194,11 +206,9 @@ def push_under_skin(model: FaceModel, part: str, min_depth: float = MIN_BONE_DEP
         step = np.linalg.norm(D, axis=1)
         stale += step
         moved |= step > 1e-6
-        # skin whose inside answer can change: near bone that moved (within PUSH_RADIUS of a
-        # push), or inside until now
-        near = skin_tree.query_ball_point(V[at], PUSH_RADIUS + edge, return_sorted=False)
-        check = np.union1d(np.flatnonzero(inside), np.concatenate([np.zeros(0, np.int64)] + [np.asarray(k, dtype=np.int64) for k in near]))
-    bone.vertices, _ = untangle(BF, V, bone.vertices, reference=bone.vertices if reference is None else reference)
+        drift[within(S, V[at], PUSH_RADIUS + edge + MAX_PUSH)] += step.max()  # bone within PUSH_RADIUS of a push moved
+    bone.vertices, _ = untangle(BF, V, bone.vertices, reference=bone.vertices if reference is None else reference,
+                                query=bone_q)
     return int(moved.sum())
 
 

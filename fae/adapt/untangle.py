@@ -90,7 +90,8 @@ def folded_pairs(V0: np.ndarray, V: np.ndarray, F: np.ndarray, pairs: np.ndarray
 
 
 def untangle(F: np.ndarray, X: np.ndarray, X_safe: np.ndarray, rings: int = 2, rounds: int = 12,
-             edges: np.ndarray | None = None, reference: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+             edges: np.ndarray | None = None, reference: np.ndarray | None = None,
+             query: MeshQuery | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Blend surface X (n, 3) towards X_safe (n, 3) (same faces F, free of intersections)
     around every crossing, until none is left.
 
@@ -100,8 +101,8 @@ def untangle(F: np.ndarray, X: np.ndarray, X_safe: np.ndarray, rings: int = 2, r
     (1: the fit kept, 0: the safe surface). edges: mesh_edges(F), when already known.
     reference (n, 3): the shape X was made from (a bone's template); when given, folds
     against it (folded_pairs) are blended away like crossings (X_safe must have none).
-    Whatever still crosses after `rounds` rounds is left to the caller (check with
-    edge_crossings).
+    query: a MeshQuery of the same faces to reuse (it is moved). Whatever still crosses
+    after `rounds` rounds is left to the caller (check with edge_crossings).
     """
     F = np.asarray(F, dtype=np.int64)
     X = np.asarray(X, dtype=np.float64)
@@ -111,7 +112,7 @@ def untangle(F: np.ndarray, X: np.ndarray, X_safe: np.ndarray, rings: int = 2, r
     pairs = None if reference is None else face_pairs(F)
     weight = np.ones(n)
     Y = X
-    query = MeshQuery(X, F)
+    query = MeshQuery(X, F) if query is None else query
     A = None
     for r in range(rounds + 1):
         bad_e, bad_f = edge_crossings(Y, F, E, query)
