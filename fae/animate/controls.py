@@ -56,21 +56,23 @@ class FapControls:
         self._x = tv
         self._slope = np.divide(np.diff(ts, axis=1), np.diff(tv, axis=1), out=np.zeros((FAP_COUNT, 4)),
                                 where=np.diff(tv, axis=1) > 0)
+        self._rows = np.arange(FAP_COUNT)
+        self._gains = np.vstack([self.gain_pos, self.gain_neg])  # one matmul per frame
 
     def scale(self, values: np.ndarray) -> np.ndarray:
         """(68,) table multiplier at `values` (clamped to the table's ends)."""
-        v = np.clip(values, self._x[:, 0], self._x[:, -1])
-        seg = np.clip((v[:, None] >= self._x[:, 1:4]).sum(axis=1), 0, 3)
-        r = np.arange(FAP_COUNT)
+        v = np.minimum(np.maximum(values, self._x[:, 0]), self._x[:, -1])
+        seg = np.minimum((v[:, None] >= self._x[:, 1:4]).sum(axis=1), 3)
+        r = self._rows
         return self.table_scale[r, seg] + self._slope[r, seg] * (v - self._x[r, seg])
 
     def controls(self, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(activation (M,) for muscles then fields, jaw (3,) angle rad, thrust m, shift m)."""
         v = np.asarray(values, dtype=np.float64)
         s = self.scale(v) * v
-        c = np.maximum(s, 0.0) @ self.gain_pos + np.maximum(-s, 0.0) @ self.gain_neg
-        act = np.clip(c[: self.muscle_count], -ACTIVATION_LIMIT, ACTIVATION_LIMIT)
+        c = np.concatenate([np.maximum(s, 0.0), np.maximum(-s, 0.0)]) @ self._gains
+        act = np.minimum(np.maximum(c[: self.muscle_count], -ACTIVATION_LIMIT), ACTIVATION_LIMIT)
         act[: self.model_muscles] = np.maximum(act[: self.model_muscles], 0.0)
-        jaw = c[self.muscle_count:]
-        jaw = np.array([np.clip(jaw[0], -0.05, JAW_ANGLE_LIMIT), np.clip(jaw[1], -0.02, 0.03), np.clip(jaw[2], -0.03, 0.03)])
+        a, t, x = (float(z) for z in c[self.muscle_count:])
+        jaw = np.array([min(max(a, -0.05), JAW_ANGLE_LIMIT), min(max(t, -0.02), 0.03), min(max(x, -0.03), 0.03)])
         return act, jaw

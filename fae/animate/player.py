@@ -88,9 +88,12 @@ class Player:
         return self.face.fap_mapping
 
     def reset(self) -> None:
-        """Back to the neutral face at rest."""
-        self.state = self.sim.state()
-        self.control = self.sim.control()
+        """Back to the neutral face at rest (in place: the solver's recorded graphs stay valid)."""
+        if not hasattr(self, "state"):
+            self.state, self.control, self._rest = self.sim.state(), self.sim.control(), self.sim.state()
+        self.state.assign(self._rest)
+        self.control.set(muscle_activation=np.zeros(self.sim.muscle_count), bone_rotation=np.tile(np.eye(3), (2, 1, 1)),
+                         bone_translation=np.zeros((2, 3)))
         self.bone_transforms = {b: np.eye(4) for b in ("head", "jaw", "eye_l", "eye_r", "tongue")}
         self.pupil_scale = {"eye_l": 1.0, "eye_r": 1.0}
         self.values = np.zeros(FAP_COUNT)

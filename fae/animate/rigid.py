@@ -76,10 +76,19 @@ class RigidRig:
         self.tongue_root = np.array([self.tongue_center[0], self.tongue_center[1], tv[:, 2].min()])
         self.tongue_length = max(float(np.linalg.norm(self.tongue_tip - self.tongue_root)), 1e-3)
         self.irisd0 = fapu["IRISD"] * 1024.0
+        self._jaw_key, self._jaw = None, None
+        self._poses_key, self._poses = None, None
 
     def jaw(self, angle: float, thrust: float, shift: float) -> np.ndarray:
         """(4, 4) jaw pose: opening `angle` rad about the hinge with the condylar glide, then
-        `thrust` (+z) and `shift` (+x) metres."""
+        `thrust` (+z) and `shift` (+x) metres (the caller must not modify it)."""
+        key = (float(angle), float(thrust), float(shift))
+        if key != self._jaw_key:
+            self._jaw_key, self._jaw = key, self._jaw_pose(*key)
+            self._jaw.setflags(write=False)
+        return self._jaw
+
+    def _jaw_pose(self, angle: float, thrust: float, shift: float) -> np.ndarray:
         glide = CONDYLE_GLIDE * max(float(angle), 0.0)
         move = np.array([shift, -glide * np.sin(EMINENCE_SLOPE), thrust + glide * np.cos(EMINENCE_SLOPE)])
         return about(axis_angle(self.jaw_axis, angle), self.jaw_pivot, move)
@@ -109,7 +118,17 @@ class RigidRig:
                 "eye_r": max(0.05, 1.0 + v[29] * self.fapu["IRISD"] / d)}
 
     def poses(self, v: np.ndarray, jaw: np.ndarray) -> dict[str, np.ndarray]:
-        """Bone name -> (4, 4) rest -> now for FAP values v (68,) and jaw pose (4, 4) in the head frame."""
+        """Bone name -> (4, 4) rest -> now for FAP values v (68,) and jaw pose (4, 4) in the head
+        frame (the caller must not modify them). Held poses (most frames of a stream move only
+        the face) are not recomputed."""
+        key = v[22:30].tobytes() + v[42:50].tobytes() + np.asarray(jaw).tobytes()
+        if key != self._poses_key:
+            self._poses_key, self._poses = key, self._all_poses(v, jaw)
+            for T in self._poses.values():
+                T.setflags(write=False)
+        return dict(self._poses)
+
+    def _all_poses(self, v: np.ndarray, jaw: np.ndarray) -> dict[str, np.ndarray]:
         H = self.head(v)
         return {"head": H, "jaw": H @ jaw, "eye_l": H @ self.eye(v, "eye_l"), "eye_r": H @ self.eye(v, "eye_r"),
                 "tongue": H @ jaw @ self.tongue(v)}
