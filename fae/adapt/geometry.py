@@ -106,6 +106,18 @@ def group_means(X: np.ndarray, label: np.ndarray, k: int) -> np.ndarray:
     return np.column_stack([np.bincount(label, X[:, a], minlength=k) for a in range(X.shape[1])]) / count
 
 
+def within(X: np.ndarray, Y: np.ndarray, radius: float) -> np.ndarray:
+    """(n,) bool: which points X (n, 3) have a point of Y (k, 3) within `radius` (same unit)."""
+    X = np.asarray(X, dtype=np.float64)
+    Y = np.asarray(Y, dtype=np.float64)
+    out = np.zeros(len(X), dtype=bool)
+    xx = np.sum(X * X, axis=1)[:, None]
+    for a in range(0, len(Y), 256):
+        y = Y[a:a + 256]
+        out |= np.min(xx + np.sum(y * y, axis=1)[None, :] - 2.0 * X @ y.T, axis=1) <= radius * radius
+    return out
+
+
 def boundary_vertices(F: np.ndarray, n: int) -> np.ndarray:
     """(n,) bool: vertices on a boundary edge (an edge used by one face only)."""
     F = np.asarray(F, dtype=np.int64)

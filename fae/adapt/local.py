@@ -97,16 +97,17 @@ class OffsetSmoother:
 
     L is the graph Laplacian of faces F (m, 3) over n vertices, W = diag(weights) with
     weight 1 for matched vertices and `leak` for the rest (their offset fades to zero over
-    about sqrt(lam / leak) edges away from matched ones). lam: smoothing, in edges^2.
-    Solved by Jacobi-preconditioned conjugate gradients from the previous solution (the
+    about sqrt(lam / leak) edges away from matched ones). lam: smoothing, in edges^2;
+    rtol: relative residual of the solve (1%: offsets to tens of micrometres, well below
+    what one pyramid level changes). Solved by Jacobi-preconditioned conjugate gradients from the previous solution (the
     system changes with the matched set at every pyramid level; a factorization would be
     redone each time).
     """
 
-    def __init__(self, F: np.ndarray, n: int, lam: float = 0.1, leak: float = 1e-3):
+    def __init__(self, F: np.ndarray, n: int, lam: float = 0.1, leak: float = 1e-3, rtol: float = 1e-2):
         A = adjacency_matrix(np.asarray(F, dtype=np.int64), n)
         self.L = (sp.diags(np.asarray(A.sum(axis=1)).ravel()) - A).tocsr()
-        self.lam, self.leak, self.n = lam, leak, n
+        self.lam, self.leak, self.n, self.rtol = lam, leak, n, rtol
         self._last = np.zeros((n, 3))
 
     def __call__(self, offsets: np.ndarray, matched: np.ndarray) -> np.ndarray:
@@ -117,7 +118,7 @@ class OffsetSmoother:
         rhs = np.where(matched[:, None], offsets, 0.0) * w[:, None]
         out = np.empty((self.n, 3))
         for a in range(3):
-            out[:, a], _ = cg(M, rhs[:, a], x0=self._last[:, a], rtol=1e-3, atol=0.0, M=pre, maxiter=200)
+            out[:, a], _ = cg(M, rhs[:, a], x0=self._last[:, a], rtol=self.rtol, atol=0.0, M=pre, maxiter=200)
         self._last = out
         return out
 

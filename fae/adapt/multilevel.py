@@ -216,8 +216,14 @@ def fit_template(P: np.ndarray, F: np.ndarray, P_landmarks: np.ndarray, scan_V: 
     if best > 0:  # blend back wherever the chosen level cuts through itself
         X, weight = untangle(F, X, results[0][0] if level0_clean else P, edges=E, query=model_query)
         relaxed = int(np.sum(weight < 1.0))
-    final = symmetric_rms(surface(X, F, model_query), scan, max_distance, scored,
-                          model_match=None if relaxed else matches[best])
+    model = surface(X, F, model_query)
+    # the chosen level's distances hold wherever welding and untangling left X and its normals alone
+    changed = np.any(X != results[best][0], axis=1)
+    changed[F[changed[F].any(axis=1)].ravel()] = True
+    dist, ok = (a.copy() for a in matches[best])
+    redo = np.flatnonzero(changed & scored)
+    _, _, dist[redo], ok[redo] = compatible_closest_points(X[redo], model.N[redo], scan, max_distance)
+    final = symmetric_rms(model, scan, max_distance, scored, model_match=(dist, ok))
     final["relaxed_vertices"] = relaxed
     final["marker_error"] = report[best]["marker_error"]
     final["distance_error"] = report[best]["distance_error"]

@@ -48,7 +48,7 @@ from fae.adapt.calibration import apply_transform, calibration_transform, outlie
 from fae.adapt.correspondence import grid_sample
 from fae.adapt.csrbf import wendland_c2
 from fae.adapt.errors import Surface, surface
-from fae.adapt.geometry import per_vertex_normals
+from fae.adapt.geometry import per_vertex_normals, within
 from fae.adapt.multilevel import fit_template
 from fae.adapt.query import MeshQuery
 from fae.adapt.rbf import RBF, rbf_interpolant, rbf_weights
@@ -141,16 +141,6 @@ def smooth_push(V: np.ndarray, push: np.ndarray, at: np.ndarray, radius: float) 
         D += w @ push[a:a + 256]
         total = w.sum(axis=1) if a == 0 else total + w.sum(axis=1)
     return D / np.maximum(total, 1.0)[:, None] if len(at) else D
-
-
-def within(X: np.ndarray, Y: np.ndarray, radius: float) -> np.ndarray:
-    """(n,) bool: which points X (n, 3) have a point of Y (k, 3) within `radius` (same unit)."""
-    out = np.zeros(len(X), dtype=bool)
-    xx = np.sum(X * X, axis=1)[:, None]
-    for a in range(0, len(Y), 256):
-        y = Y[a:a + 256]
-        out |= np.min(xx + np.sum(y * y, axis=1)[None, :] - 2.0 * X @ y.T, axis=1) <= radius * radius
-    return out
 
 
 def push_under_skin(model: FaceModel, part: str, min_depth: float = MIN_BONE_DEPTH, rounds: int = 10,

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from fae.adapt.geometry import adjacency_matrix, per_face_normals
+from fae.adapt.geometry import adjacency_matrix, per_face_normals, within
 from fae.adapt.query import MeshQuery
 
 _END_GAP = 1e-3  # of the edge length, kept off both ends (Warp works in float32)
@@ -114,8 +114,9 @@ def untangle(F: np.ndarray, X: np.ndarray, X_safe: np.ndarray, rings: int = 2, r
     Y = X
     query = MeshQuery(X, F) if query is None else query
     A = None
+    check = E  # the edges whose crossing can have changed since the last round
     for r in range(rounds + 1):
-        bad_e, bad_f = edge_crossings(Y, F, E, query)
+        bad_e, bad_f = edge_crossings(Y, F, check, query)
         folded = np.zeros((0, 2), dtype=np.int64) if pairs is None else folded_pairs(reference, Y, F, pairs)
         if len(bad_e) == 0 and len(folded) == 0:
             break
@@ -135,5 +136,11 @@ def untangle(F: np.ndarray, X: np.ndarray, X_safe: np.ndarray, rings: int = 2, r
             target[ring] = k / (grow + 1)
             zone = zone | ring
         weight = np.minimum(weight, target)
-        Y = X_safe + weight[:, None] * (X - X_safe)
+        Y_next = X_safe + weight[:, None] * (X - X_safe)
+        moved = np.any(Y_next != Y, axis=1)
+        Y = Y_next
+        # what crossed stays checked; an edge through a moved triangle has an end within
+        # twice the longest edge of that triangle's corners
+        reach = 2.0 * float(np.max(np.linalg.norm(Y[E[:, 0]] - Y[E[:, 1]], axis=1)))
+        check = E[(zone | within(Y, Y[moved], reach))[E].any(axis=1)]
     return Y, weight
