@@ -16,7 +16,7 @@ import trimesh
 from scipy.spatial import Delaunay
 
 from fae.adapt.errors import Surface
-from fae.adapt.geometry import boundary_vertices, mean_curvature, per_face_normals
+from fae.adapt.geometry import mean_curvature, per_face_normals
 
 PAIR_COSINE = 0.7  # closest-point pairs: normals at most 45 degrees apart (concave folds such as behind the ears)
 
@@ -79,10 +79,12 @@ def curvature_features(scan: Surface, box_min: np.ndarray, box_max: np.ndarray, 
     if len(cand) == 0:
         return cand
     # curvature on the faces around the box only (the rest of the scan is not searched)
-    near = scan.F[np.any(inside[scan.F], axis=1)]
-    H = np.abs(mean_curvature(scan.V, near))
-    H[boundary_vertices(near, len(scan.V))] = 0.0  # the cut around the box is no feature
-    cand = cand[np.argsort(-H[cand])][: count * 20]
+    searched = np.any(inside[scan.F], axis=1)
+    H = np.abs(mean_curvature(scan.V, scan.F[searched]))
+    H[scan.F[~searched].ravel()] = 0.0  # the cut around the box is no feature
+    top = min(count * 20, len(cand))
+    cand = cand[np.argpartition(-H[cand], top - 1)[:top]]
+    cand = cand[np.argsort(-H[cand])]
     cell = np.floor(scan.V[cand] / spacing).astype(np.int64)
     _, first = np.unique(cell, axis=0, return_index=True)
     keep = cand[np.sort(first)]

@@ -290,13 +290,16 @@ def keep_muscles_inside(model: FaceModel, skin: MeshQuery | None = None) -> list
 
     q = MeshQuery(model.skin_vertices, model.skin_faces) if skin is None else skin
     ts = np.array([0.1, 0.3, 0.5, 0.7, 0.9])
+    linear = [m for m in model.muscles if m.kind == "linear" and m.insertion is not None]
+    if not linear:
+        return []
+    ends = np.array([[model.surface_point_position(m.attachment), model.surface_point_position(m.insertion)]
+                     for m in linear])  # (k, 2, 3)
+    samples = ends[:, :1] + ts[None, :, None] * (ends[:, 1:] - ends[:, :1])  # (k, 5, 3)
+    inside = q.inside(samples.reshape(-1, 3)).reshape(len(linear), len(ts)).all(axis=1)
     moved = []
-    for mus in model.muscles:
-        if mus.kind != "linear" or mus.insertion is None:
-            continue
-        a = model.surface_point_position(mus.attachment)
-        b = model.surface_point_position(mus.insertion)
-        if q.inside(a + ts[:, None] * (b - a)).all():
+    for mus, (a, b), ok_now in zip(linear, ends, inside):
+        if ok_now:
             continue
         BV, BF = model.mesh(mus.attachment.part)
         near = np.flatnonzero(np.linalg.norm(BV - a, axis=1) <= MUSCLE_SEARCH_RADIUS)
