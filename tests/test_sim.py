@@ -123,3 +123,70 @@ def test_cuda_matches_cpu(face):
             solver.step(m, state, control, 1 / 25, state)
         out.append(state.particle_q.numpy())
     assert np.abs(out[0] - out[1]).max() < 1e-5
+
+
+def test_skin_kernel_matches_the_numpy_skin_positions(model):
+    """The Player's skin assembly (one kernel) equals the numpy twin: simulated vertices from
+    their particles, the rest carried by their hold, all under a rigid pose."""
+    from fae.sim.skin import SkinOutput
+
+    rng = np.random.default_rng(5)
+    rot, tr = _jaw_pose(0.3, model.jaw_pivot)
+    state, control = model.state(), model.control()
+    control.set(bone_rotation=rot, bone_translation=tr)
+    q = model.particle_q.numpy() + rng.normal(0.0, 1e-3, (model.particle_count, 3)).astype(np.float32)
+    state.particle_q.assign(q)
+    pose = np.eye(4)
+    pose[:3, :3] = _jaw_pose(0.2, np.zeros(3))[0][1]
+    pose[:3, 3] = [0.01, -0.02, 0.03]
+    got = SkinOutput(model).positions(state, control, pose)
+    want = skin_positions(model, q.astype(np.float64), rot, tr) @ pose[:3, :3].T + pose[:3, 3]
+    assert np.abs(got - want).max() < 1e-6
+    # the jaw carries the unsimulated skin of its hold, and only that
+    moved = np.linalg.norm(skin_positions(model, model.particle_q.numpy(), rot, tr) - model.skin_rest, axis=1)
+    k = model.skin_kinematic
+    assert len(k) and np.all(moved[k] > 0.0)
+    still = np.setdiff1d(np.flatnonzero((model.skin_particle < 0)), k)
+    assert np.all(moved[still] == 0.0)
+
+
+def test_a_fast_particle_does_not_pass_through_the_skull_and_slides_along_it(model):
+    """A particle thrown at the skull at 5 m/s (a substep's path of 2-3 cm crosses the thin
+    skull) stops on the bone instead of tunnelling, keeping its sideways motion."""
+    solver, state, control = SkinSolver(model), model.state(), model.control()
+    q0 = model.particle_q.numpy().astype(np.float64)
+    col = model.collider_particle.numpy()
+    values = model.sdf_values[0].numpy()
+    phi, grad = sample_grid(values, model.sdf_origin[0], model.sdf_spacing[0], q0[col])
+    k = int(np.argmin(np.where(phi > 0.0, phi, np.inf)))  # the collider nearest the skull
+    i, grad = int(col[k]), grad[k:k + 1]
+    inward = -grad[0] / np.linalg.norm(grad[0])
+    side = np.cross(inward, np.eye(3)[np.argmin(np.abs(inward))])
+    side /= np.linalg.norm(side)
+    qd = np.zeros_like(q0)
+    qd[i] = 5.0 * inward + 0.5 * side
+    state.particle_qd.assign(qd.astype(np.float32))
+    solver.step(model, state, control, model.dt_max, state)  # one substep: its path is 2-3 cm
+    x = state.particle_q.numpy().astype(np.float64)[i]
+    phi = sample_grid(values, model.sdf_origin[0], model.sdf_spacing[0], x[None])[0][0]
+    assert phi > -0.5 * model.sdf_spacing[0]
+    # it is on its own side of the thin skull: the way back to its rest place crosses no bone
+    way_back = q0[i] + np.linspace(0.0, 1.0, 50)[:, None] * (x - q0[i])
+    assert sample_grid(values, model.sdf_origin[0], model.sdf_spacing[0], way_back)[0].min() > -0.5 * model.sdf_spacing[0]
+    assert (x - q0[i]) @ side > 1e-4  # and it slid sideways along the bone
+
+
+def test_a_strong_sphincter_stays_stable_at_the_largest_substep(model):
+    """A sphincter at the activation limit is stiffer than every spring; the pass treats its
+    stiffness implicitly, so the largest stable substep stays stable."""
+    from fae.animate.controls import ACTIVATION_LIMIT
+
+    m = model.muscle_names.index("orbicularis_oris")
+    activation = np.zeros(model.muscle_count)
+    activation[m] = ACTIVATION_LIMIT
+    solver, state, control = SkinSolver(model), model.state(), model.control()
+    control.set(muscle_activation=activation)
+    for _ in range(200):
+        solver.step(model, state, control, model.dt_max, state)
+    q = state.particle_q.numpy()
+    assert np.all(np.isfinite(q)) and np.abs(q - model.particle_q.numpy()).max() < 0.05

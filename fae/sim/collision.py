@@ -6,18 +6,20 @@ with the jaw). Contact is a position projection, which stays stable for any cont
 inward normal velocity. The solver's particle pass calls `bone_contact` for each bone
 (fae.sim.integrate) with the particle's positions before and after its step:
 
-A particle that was outside before the step and is inside after it entered during the
-step: where it entered is found by bisection of its path in the grid, and the particle is
-projected onto the surface's tangent plane there (then once along the gradient), however
-deep it got: a long step cannot carry skin through a bone, and skin slides along a bone
-instead of sticking where it touched it. If it entered from the bone's far side (see
-below), it passes on towards its rest place.
+A particle that was outside before the step and whose path reached the bone (it ends
+inside, or it is longer than its distances to the bone at both ends allow without
+touching it) entered during the step: where is found by sphere tracing its path in the
+grid (bisection for a grazing path), and the particle is projected onto the surface's
+tangent plane there (then once along the gradient), however deep or far it got: a long
+step cannot carry skin into or through a bone, and skin slides along a bone instead of
+sticking where it touched it (stopped where it entered, lip skin that touched the teeth
+at a slant stayed caught on them). If it entered from the bone's far side (see below),
+it passes on towards its rest place.
 
 A particle that was already inside (the bone moved onto it) and is less than
 `contact_depth` deep (-depth < phi < 0) is projected onto the surface along the distance
-gradient (twice at most, since the grid is trilinear). Deeper, it is left to its springs. A substep moves skin far
-less than that depth, so only a bone that jumps (a jaw opened in one frame) can bury
-skin so deep; projecting it would push it out on the nearest side, which may be the wrong
+gradient (twice at most, since the grid is trilinear). Deeper, it is left to its springs:
+only a bone that jumps (a jaw opened in one frame) can bury skin so deep; projecting it would push it out on the nearest side, which may be the wrong
 one (skin pushed behind the mandible stayed caught there after the pose relaxed), while
 its springs and bone anchors always pull it back to rest.
 
@@ -39,7 +41,10 @@ wp.set_module_options({"fast_math": True})
 # cosine: skin whose rest place lies more than 120 degrees away from the surface normal is
 # on the bone's wrong side (it passed through a thin bone) and is left to its springs
 WRONG_SIDE_COS = 0.5
-# halvings of a step's path to find where a particle entered a bone (1/32 of the step)
+# finding where a particle's step entered a bone: sphere-tracing steps, the distance (m) at
+# which the trace has arrived, and halvings of a grazing path's rest (1/32 of it)
+TRACE_STEPS = 8
+TRACE_TOLERANCE = 1.0e-4
 ENTRY_BISECTIONS = 5
 
 
@@ -50,9 +55,10 @@ def grid_sample(values: wp.array3d(dtype=float), origin: wp.vec3, spacing: float
     nx = values.shape[0]
     ny = values.shape[1]
     nz = values.shape[2]
-    if g[0] < 0.0 or g[1] < 0.0 or g[2] < 0.0:
-        return 1.0, wp.vec3(0.0, 0.0, 0.0)
-    if g[0] > float(nx - 1) - 1.0e-6 or g[1] > float(ny - 1) - 1.0e-6 or g[2] > float(nz - 1) - 1.0e-6:
+    # written so that a NaN position is outside too (never an index)
+    inside = g[0] >= 0.0 and g[1] >= 0.0 and g[2] >= 0.0
+    inside = inside and g[0] <= float(nx - 1) - 1.0e-6 and g[1] <= float(ny - 1) - 1.0e-6
+    if not (inside and g[2] <= float(nz - 1) - 1.0e-6):
         return 1.0, wp.vec3(0.0, 0.0, 0.0)
     i = int(wp.floor(g[0]))
     j = int(wp.floor(g[1]))
@@ -82,6 +88,43 @@ def grid_sample(values: wp.array3d(dtype=float), origin: wp.vec3, spacing: float
 
 
 @wp.func
+def path_entry(start: wp.vec3, end: wp.vec3, phi_start: float, phi_end: float, sdf_values: wp.array3d(dtype=float),
+               sdf_origin: wp.vec3, sdf_spacing: float):
+    """(found, point): where the straight path from `start` (outside, distance phi_start) to
+    `end` first reaches the bone, by sphere tracing in the distance grid (each step is the
+    distance to the bone, so none can jump over it); a path that grazes the surface is
+    finished by bisection. Not found: the path stays outside."""
+    d = end - start
+    length = wp.length(d)
+    if length <= 1.0e-12:
+        return 0, start
+    direction = d / length
+    t = float(0.0)
+    t_out = float(0.0)
+    phi = phi_start
+    for _it in range(TRACE_STEPS):
+        if phi <= TRACE_TOLERANCE:
+            return 1, start + direction * t
+        t_out = t
+        t = t + phi
+        if t >= length:
+            break
+        phi, grad = grid_sample(sdf_values, sdf_origin, sdf_spacing, start + direction * t)
+    if phi_end >= 0.0:
+        return 0, end
+    lo = t_out
+    hi = length
+    for _it in range(ENTRY_BISECTIONS):
+        mid = 0.5 * (lo + hi)
+        phi_mid, grad_mid = grid_sample(sdf_values, sdf_origin, sdf_spacing, start + direction * mid)
+        if phi_mid >= 0.0:
+            lo = mid
+        else:
+            hi = mid
+    return 1, start + direction * lo
+
+
+@wp.func
 def bone_contact(x_prev: wp.vec3, x: wp.vec3, v: wp.vec3, rest: wp.vec3, clearance: float,
                  sdf_values: wp.array3d(dtype=float), sdf_origin: wp.vec3, sdf_spacing: float, R: wp.mat33,
                  t: wp.vec3, contact_depth: float):
@@ -94,23 +137,16 @@ def bone_contact(x_prev: wp.vec3, x: wp.vec3, v: wp.vec3, rest: wp.vec3, clearan
     if wp.dot(away, away) < clearance * clearance:
         return x, v
     phi, grad = grid_sample(sdf_values, sdf_origin, sdf_spacing, local)
-    if phi >= 0.0:
-        return x, v
     start = Rt * (x_prev - t)
     phi_start, grad_start = grid_sample(sdf_values, sdf_origin, sdf_spacing, start)
     n_local = wp.vec3(0.0, 0.0, 0.0)
     if phi_start >= 0.0:
-        # entered the bone during this step: back along its path to where it entered
-        lo = float(0.0)
-        hi = float(1.0)
-        for _it in range(ENTRY_BISECTIONS):
-            mid = 0.5 * (lo + hi)
-            phi_mid, grad_mid = grid_sample(sdf_values, sdf_origin, sdf_spacing, start + (local - start) * mid)
-            if phi_mid >= 0.0:
-                lo = mid
-            else:
-                hi = mid
-        entry = start + (local - start) * lo
+        # outside before the step: a path shorter than both distances cannot reach the bone
+        if phi >= 0.0 and wp.length(local - start) <= phi + phi_start:
+            return x, v
+        found, entry = path_entry(start, local, phi_start, phi, sdf_values, sdf_origin, sdf_spacing)
+        if found == 0:
+            return x, v
         phi, grad = grid_sample(sdf_values, sdf_origin, sdf_spacing, entry)
         glen = wp.length(grad)
         if glen > 1.0e-9:
@@ -127,7 +163,7 @@ def bone_contact(x_prev: wp.vec3, x: wp.vec3, v: wp.vec3, rest: wp.vec3, clearan
             local = local - grad * (phi / glen)
     else:
         # inside at the start too: the bone came onto it (a jaw that jumped)
-        if phi < -contact_depth:
+        if phi >= 0.0 or phi < -contact_depth:
             return x, v
         # a bone pushes skin out only towards the side the skin belongs to (its rest place)
         to_rest = rest - local

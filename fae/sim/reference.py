@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from fae.sim.model import MUSCLE_FIELD, MUSCLE_LINEAR, MUSCLE_SPHINCTER, SkinModel
-from fae.sim.collision import ENTRY_BISECTIONS, WRONG_SIDE_COS
+from fae.sim.collision import ENTRY_BISECTIONS, TRACE_STEPS, TRACE_TOLERANCE, WRONG_SIDE_COS
 from fae.sim.sdf import sample_grid
 from fae.sim.solver import substep_count
 
@@ -76,60 +76,88 @@ class ReferenceSolver:
 
     def collide(self, q: np.ndarray, qd: np.ndarray, q_prev: np.ndarray, bone_rotation: np.ndarray,
                 bone_translation: np.ndarray) -> None:
-        """Particles that entered a bone go back along their path from q_prev; particles that were
-        inside already are projected onto its surface (in place, fae.sim.collision)."""
+        """Particles whose step from q_prev reached a bone go back to its surface where they
+        entered; particles that were inside already are projected out (in place, as
+        fae.sim.collision.bone_contact)."""
         col = np.flatnonzero(self.a["particle_collider"])
+        clearance = self.a["particle_clearance"].astype(np.float64)
         for b, values in enumerate(self.a["sdf_values"]):
             if values is None or len(col) == 0:
                 continue
-            origin, spacing = self.model.sdf_origin[b], self.model.sdf_spacing[b]
+
+            def sample(points):
+                return sample_grid(values, self.model.sdf_origin[b], self.model.sdf_spacing[b], points)
+
             R, t = bone_rotation[b], bone_translation[b]
+            rest = self.rest[col]
             local = (q[col] - t) @ R
-            phi, grad = sample_grid(values, origin, spacing, local)
-            inside = phi < 0.0
-            idx, loc, ph, gr = col[inside], local[inside], phi[inside], grad[inside]
+            beyond = np.sum((local - rest) ** 2, axis=1) >= clearance[col, b] ** 2
+            idx, local, rest = col[beyond], local[beyond], rest[beyond]
+            phi, grad = sample(local)
             start = (q_prev[idx] - t) @ R
-            ph0 = sample_grid(values, origin, spacing, start)[0]
-            entered = ph0 >= 0.0
+            phi_s = sample(start)[0]
             n_local = np.zeros((len(idx), 3))
-            moved = entered.copy()
-            # entered during the step: bisect the path back to the entry point
-            lo, hi = np.zeros(len(idx)), np.ones(len(idx))
+            new = local.copy()
+            moved = np.zeros(len(idx), dtype=bool)
+
+            # outside before the step: did its path reach the bone? (sphere tracing)
+            seg = local - start
+            length = np.linalg.norm(seg, axis=1)
+            reach = (phi_s >= 0.0) & ((phi < 0.0) | (length > phi + phi_s)) & (length > 1e-12)
+            direction = seg / np.maximum(length, 1e-300)[:, None]
+            tt, t_out, ph = np.zeros(len(idx)), np.zeros(len(idx)), phi_s.copy()
+            found, active = np.zeros(len(idx), dtype=bool), reach.copy()
+            entry = start.copy()
+            for _ in range(TRACE_STEPS):
+                hit = active & (ph <= TRACE_TOLERANCE)
+                found |= hit
+                entry[hit] = start[hit] + direction[hit] * tt[hit, None]
+                active &= ~hit
+                t_out = np.where(active, tt, t_out)
+                tt = np.where(active, tt + ph, tt)
+                active &= tt < length
+                ph = np.where(active, sample(start + direction * tt[:, None])[0], ph)
+            graze = reach & ~found & (phi < 0.0)
+            lo, hi = t_out.copy(), length.copy()
             for _ in range(ENTRY_BISECTIONS):
                 mid = 0.5 * (lo + hi)
-                out = sample_grid(values, origin, spacing, start + (loc - start) * mid[:, None])[0] >= 0.0
+                out = sample(start + direction * mid[:, None])[0] >= 0.0
                 lo, hi = np.where(out, mid, lo), np.where(out, hi, mid)
-            entry = start + (loc - start) * lo[:, None]
-            g = sample_grid(values, origin, spacing, entry)[1]
+            entry[graze] = start[graze] + direction[graze] * lo[graze, None]
+            found |= graze
+            g = sample(entry)[1]
             glen = np.linalg.norm(g, axis=1)
-            n_local = np.where((entered & (glen > 1e-9))[:, None], g / np.maximum(glen, 1e-300)[:, None], n_local)
-            # entered from the bone's far side from its rest place: passes on
-            to_entry_rest = self.a["particle_q"][idx].astype(np.float64) - entry
-            far = np.sum(n_local * to_entry_rest, axis=1) < -WRONG_SIDE_COS * np.linalg.norm(to_entry_rest, axis=1)
-            moved &= ~far
-            slid = loc + n_local * np.maximum(np.sum((entry - loc) * n_local, axis=1), 0.0)[:, None]
-            ph_s, gr_s = sample_grid(values, origin, spacing, slid)
-            gl_s = np.linalg.norm(gr_s, axis=1)
-            fix = (ph_s < 0.0) & (gl_s > 1e-9)
-            slid = np.where(fix[:, None], slid - gr_s * (ph_s / np.maximum(gl_s, 1e-300))[:, None], slid)
-            loc = np.where((entered & ~far)[:, None], slid, loc)
-            # inside at the start too: shallow ones on the side they belong to are projected out
-            to_rest = self.a["particle_q"][idx].astype(np.float64) - loc
-            wrong = np.sum(gr * to_rest, axis=1) < -WRONG_SIDE_COS * np.linalg.norm(gr, axis=1) * np.linalg.norm(to_rest, axis=1)
-            active = ~entered & (ph >= -self.model.contact_depth) & ~wrong
+            ne = np.where((glen > 1e-9)[:, None], g / np.maximum(glen, 1e-300)[:, None], 0.0)
+            to_rest = rest - entry
+            far = np.sum(ne * to_rest, axis=1) < -WRONG_SIDE_COS * np.linalg.norm(to_rest, axis=1)
+            slide = found & ~far
+            slid = local + ne * np.maximum(np.sum((entry - local) * ne, axis=1), 0.0)[:, None]
+            ph2, gr2 = sample(slid)
+            gl2 = np.linalg.norm(gr2, axis=1)
+            fix = (ph2 < 0.0) & (gl2 > 1e-9)
+            slid = np.where(fix[:, None], slid - gr2 * (ph2 / np.maximum(gl2, 1e-300))[:, None], slid)
+            new[slide], n_local[slide], moved[slide] = slid[slide], ne[slide], True
+
+            # inside before the step too: shallow ones on the side they belong to are projected out
+            to_rest = rest - local
+            wrong = np.sum(grad * to_rest, axis=1) < -WRONG_SIDE_COS * np.linalg.norm(grad, axis=1) * np.linalg.norm(to_rest, axis=1)
+            active = (phi_s < 0.0) & (phi < 0.0) & (phi >= -self.model.contact_depth) & ~wrong
+            loc, ph, gr = local.copy(), phi.copy(), grad.copy()
             for _ in range(2):
                 active &= ph < 0.0
-                glen = np.linalg.norm(gr, axis=1)
-                active &= glen >= 1e-9
-                nl = gr / np.maximum(glen, 1e-300)[:, None]
+                gl = np.linalg.norm(gr, axis=1)
+                active &= gl >= 1e-9
+                nl = gr / np.maximum(gl, 1e-300)[:, None]
                 n_local = np.where(active[:, None], nl, n_local)
                 loc = np.where(active[:, None], loc - nl * ph[:, None], loc)
                 moved |= active
-                ph2, gr2 = sample_grid(values, origin, spacing, loc)
-                ph = np.where(active, ph2, ph)
-                gr = np.where(active[:, None], gr2, gr)
-            idx, loc, n_local = idx[moved], loc[moved], n_local[moved]
-            q[idx] = loc @ R.T + t
+                new = np.where(active[:, None], loc, new)
+                ph3, gr3 = sample(loc)
+                ph = np.where(active, ph3, ph)
+                gr = np.where(active[:, None], gr3, gr)
+
+            idx, new, n_local = idx[moved], new[moved], n_local[moved]
+            q[idx] = new @ R.T + t
             n = n_local @ R.T
             vn = np.sum(qd[idx] * n, axis=1)
             qd[idx] -= n * np.minimum(vn, 0.0)[:, None]

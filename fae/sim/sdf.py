@@ -84,8 +84,8 @@ def sample_grid(values: np.ndarray, origin: np.ndarray, spacing: float, points: 
     """
     dims = np.array(values.shape)
     g = (np.asarray(points, dtype=np.float64) - origin) / spacing
-    inside = np.all((g >= 0.0) & (g <= dims - 1.000001), axis=1)
-    gi = np.clip(g, 0.0, dims - 1.000001)
+    inside = np.all((g >= 0.0) & (g <= dims - 1.000001), axis=1)  # NaN is outside
+    gi = np.clip(np.nan_to_num(g), 0.0, dims - 1.000001)
     i0 = np.floor(gi).astype(int)
     f = gi - i0
     phi = np.zeros(len(g))

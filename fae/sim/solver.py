@@ -27,10 +27,11 @@ the side of the bone the particle belongs to (fae.sim.collision). Every skin par
 held to its bone: the deepest layer stiffly, the upper layers by weak tethers, which gives
 the network a single rest shape to return to. Kernels are compiled with fast math.
 
-Per frame the solver replays a recorded graph of its launches (Warp's graph capture: CUDA
-graphs on a GPU, Warp's own replay on the CPU): one call instead of a Python launch per
-kernel and substep, whose argument packing cost about as much as the springs themselves.
-A graph is recorded once per (substeps, step length, states, control) and kept.
+Per substep the solver replays two recorded launches (Warp's `record_cmd`), made once per
+(states, control): a plain `wp.launch` packs its 40 arguments anew each time, which cost
+as much as the springs themselves. (Warp's graph capture would replay a whole frame in one
+call, but on the CPU it records every Warp call of the process while it captures, so a
+second face being built in another thread, as `fae serve` does, breaks it.)
 
 Schemes not taken: a per-particle gather of the springs (no atomics) measured 1.5x slower
 on the CPU than the scatter, since it evaluates each spring from both ends; a prefactored
@@ -54,7 +55,7 @@ from fae.sim.model import Control, SkinModel, State
 # consecutive springs / particles per Warp thread on the CPU (see fae.sim.springs)
 CPU_SPRING_CHUNK = 32
 CPU_PARTICLE_CHUNK = 64
-_GRAPH_CACHE_SIZE = 8
+_LAUNCH_CACHE_SIZE = 16
 
 
 def substep_count(model: SkinModel, dt: float) -> int:
@@ -92,39 +93,40 @@ class SkinSolver:
             o = model.sdf_origin[b] if values is not None else np.zeros(3)
             self._grids += [no_grid if values is None else values, wp.vec3(*(float(c) for c in o)),
                             float(model.sdf_spacing[b]) if values is not None else 1.0]
-        self._graphs: OrderedDict[tuple, tuple] = OrderedDict()
-        self._capture = True
+        self._launches: OrderedDict[tuple, tuple] = OrderedDict()
 
-    def _launch_substep(self, src: State, dst: State, control: Control, h: float) -> None:
-        m = self.model
-        self.particle_f.zero_()
-        if m.spring_count:
-            wp.launch(_springs.eval_springs, dim=-(-m.spring_count // self.spring_chunk), device=m.device,
-                      inputs=[src.particle_q, m.spring_indices, m.spring_rest_length, m.spring_stiffness,
-                              m.spring_count, self.spring_chunk],
-                      outputs=[self.particle_f])
-        wp.launch(_integrate.step_particles, dim=-(-m.particle_count // self.particle_chunk), device=m.device,
-                  inputs=[src.particle_q, src.particle_qd, self.particle_f, m.particle_inv_mass, m.particle_q,
-                          m.particle_jaw, m.particle_anchor_stiffness,
-                          m.row_influence_start, m.influence_muscle, m.influence_weight,
-                          m.muscle_kind, m.muscle_bone, m.muscle_point, m.muscle_axis_u, m.muscle_axis_v,
-                          m.muscle_scale, control.muscle_activation, control.bone_rotation,
-                          control.bone_translation, m.particle_below, m.particle_normal, m.particle_height,
-                          m.particle_collider, m.particle_clearance, *self._grids, float(m.contact_depth), float(m.damping), float(h),
-                          m.particle_count, self.particle_chunk],
-                  outputs=[dst.particle_q, dst.particle_qd])
-
-    def _launch_frame(self, state_in: State, control: Control, n: int, h: float, state_out: State) -> None:
-        src = state_in
-        for k in range(n):
-            last = k == n - 1
-            dst = state_out if last and state_out is not src else self._scratch[k % 2]
-            if dst is src:
-                dst = self._scratch[(k + 1) % 2]
-            self._launch_substep(src, dst, control, h)
-            src = dst
-        if src is not state_out:
-            state_out.assign(src)
+    def _substep_launches(self, src: State, dst: State, control: Control, h: float) -> tuple:
+        """(springs, particles) recorded launches from src to dst, their step set to h."""
+        key = (id(src), id(dst), id(control))
+        entry = self._launches.get(key)
+        if entry is None:
+            m = self.model
+            springs = wp.launch(_springs.eval_springs, dim=-(-m.spring_count // self.spring_chunk), device=m.device,
+                                inputs=[src.particle_q, m.spring_indices, m.spring_rest_length, m.spring_stiffness,
+                                        m.spring_count, self.spring_chunk],
+                                outputs=[self.particle_f], record_cmd=True)
+            particles = wp.launch(
+                _integrate.step_particles, dim=-(-m.particle_count // self.particle_chunk), device=m.device,
+                inputs=[src.particle_q, src.particle_qd, self.particle_f, m.particle_inv_mass, m.particle_q,
+                        m.particle_jaw, m.particle_anchor_stiffness,
+                        m.row_influence_start, m.influence_muscle, m.influence_weight,
+                        m.muscle_kind, m.muscle_bone, m.muscle_point, m.muscle_axis_u, m.muscle_axis_v,
+                        m.muscle_scale, control.muscle_activation, control.bone_rotation,
+                        control.bone_translation, m.particle_below, m.particle_normal, m.particle_height,
+                        m.particle_collider, m.particle_clearance, *self._grids, float(m.contact_depth),
+                        float(m.damping), float(h), m.particle_count, self.particle_chunk],
+                outputs=[dst.particle_q, dst.particle_qd], record_cmd=True)
+            # the entry keeps the states and control alive, so that their ids stay theirs
+            entry = [springs, particles, h, (src, dst, control)]
+            self._launches[key] = entry
+            while len(self._launches) > _LAUNCH_CACHE_SIZE:
+                self._launches.popitem(last=False)
+        else:
+            self._launches.move_to_end(key)
+        if entry[2] != h:
+            entry[1].set_param_by_name("dt", float(h))
+            entry[2] = h
+        return entry
 
     def step(self, model: SkinModel, state_in: State, control: Control, dt: float,
              state_out: State | None = None) -> State:
@@ -138,37 +140,17 @@ class SkinSolver:
             state_out = model.state()
         n = substep_count(model, dt)
         h = dt / n
-        if not self._capture:
-            self._launch_frame(state_in, control, n, h, state_out)
-            return state_out
-        key = (n, h, id(state_in), id(state_out), id(control))
-        entry = self._graphs.get(key)
-        if entry is None:
-            entry = self._record(state_in, control, n, h, state_out)
-            if entry is None:
-                self._launch_frame(state_in, control, n, h, state_out)
-                return state_out
-            self._graphs[key] = entry
-            while len(self._graphs) > _GRAPH_CACHE_SIZE:
-                self._graphs.popitem(last=False)
-        else:
-            self._graphs.move_to_end(key)
-        wp.capture_launch(entry[0])
+        src = state_in
+        for k in range(n):
+            dst = state_out if k == n - 1 and state_out is not src else self._scratch[k % 2]
+            if dst is src:
+                dst = self._scratch[(k + 1) % 2]
+            springs, particles = self._substep_launches(src, dst, control, h)[:2]
+            self.particle_f.zero_()
+            if model.spring_count:
+                springs.launch()
+            particles.launch()
+            src = dst
+        if src is not state_out:
+            state_out.assign(src)
         return state_out
-
-    def _record(self, state_in: State, control: Control, n: int, h: float, state_out: State):
-        """(graph, the objects it reads and writes) or None where this Warp cannot capture."""
-        device = self.model.device
-        try:
-            wp.load_module(_springs, device=device)
-            wp.load_module(_integrate, device=device)
-            wp.capture_begin(device=device)
-            try:
-                self._launch_frame(state_in, control, n, h, state_out)
-            finally:
-                graph = wp.capture_end(device=device)
-        except Exception:  # noqa: BLE001 - an older Warp or a device without graphs: launch directly
-            self._capture = False
-            return None
-        # the cache keeps the states alive, so their ids are not reused while the graph is
-        return graph, (state_in, state_out, control)
