@@ -7,7 +7,8 @@ support on top of the previous function (eq. 17-21). Then optional local adaptat
 low-pass pyramid (paper 001). Errors (paper 000 §5) are measured after every level and the
 result with the smallest combined error is returned, after fae.adapt.untangle has blended
 it back towards the first level wherever it cuts through itself (reported as
-`relaxed_vertices`).
+`relaxed_vertices`); vertices that coincide on the template (seams) are averaged back
+together first.
 
 Correspondences per level k: the feature points, feature-mesh ray pairs (paper 000 §4.1),
 mean-curvature features, and closest-point pairs from template vertices sampled every

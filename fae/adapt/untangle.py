@@ -5,7 +5,10 @@ the mouth slit, eyelids over the eyeball, the ear against the scalp, the inside 
 mouth) and a correspondence pulled one sheet onto the other's scan. untangle() finds such
 places and blends the fit back towards a safe surface (one known to be free of
 intersections with the same topology, e.g. the global-RBF level or the template itself)
-there, with a smooth transition, until nothing crosses.
+there, with a smooth transition, until nothing crosses. Given a reference shape (a bone's
+template), it also blends away folds: neighbouring faces turned more than FOLD_ANGLE
+further against each other than on the reference, which crumple a thin bone before any
+two of its faces cut through each other.
 
     edge_crossings(V, F) -> (edges (k, 2), faces (k,))
     folded_pairs(V0, V, F) -> (face pairs (k, 2)) turned into folds against the reference V0
