@@ -370,12 +370,14 @@ def adapt_facemodel(template: FaceModel, scan_V: np.ndarray, scan_F: np.ndarray,
     model.jaw_pivot = carried(field, np.asarray(template.jaw_pivot)[None])[0]
     pushed = sum(push_under_skin(model, name, reference=template.parts[name].vertices, skin=skin)
                  for name in ("cranium", "mandible") if name in model.parts)
-    # soft-tissue depth
+    # soft-tissue depth: distance to the nearest bone (both bones in one BVH)
     bones = [model.parts[n] for n in ("cranium", "mandible") if n in model.parts]
     if bones:
         cap = float(np.max(template.skin_thickness)) if len(template.skin_thickness) else 1.0
-        d = np.min([MeshQuery(b.vertices, b.faces).closest_points(model.skin_vertices, cap)[1] for b in bones], axis=0)
-        model.skin_thickness = np.minimum(d, cap)
+        first = np.cumsum([0] + [len(b.vertices) for b in bones[:-1]])
+        both = MeshQuery(np.vstack([b.vertices for b in bones]),
+                         np.vstack([np.asarray(b.faces, dtype=np.int64) + o for b, o in zip(bones, first)]))
+        model.skin_thickness = np.minimum(both.closest_points(model.skin_vertices, cap)[1], cap)
     for m in model.muscles:
         near_eye = m.kind == "sphincter" and ("oculi" in m.name or "eye" in m.name)
         s = (eye_l + eye_r) / 2 if near_eye else mouth
