@@ -197,3 +197,51 @@ def test_eyes_tongue_and_head_poses(player):
     T = np.linalg.inv(bones["jaw"]) @ bones["tongue"]
     assert np.allclose(T[:3, 3], [0, 0, 200 * fapu["MW"]], atol=1e-9)
     player.reset()
+
+
+def test_an_ear_fap_carries_its_ear_whole_and_leaves_the_other(player):
+    """raise_l_ear at half range: the left ear moves up by value x ENS as one piece (derived
+    FaceDefTable, not simulated), the right ear and the face stay where they are (to the
+    micrometre: positions come out of a float32 kernel)."""
+    face = player.face
+    v = np.zeros(68)
+    v[64] = FAP_LIMITS[64, 1] / 2
+    skin = settle(player, v, frames=3)
+    rest = face.skin_vertices
+    moved = skin - rest
+    names, region = face.region_names, face.skin_region
+    ear_l, ear_r = region == names.index("ear_l"), region == names.index("ear_r")
+    up = v[64] * fapu_of(face)["ENS"]
+    assert np.allclose(moved[ear_l], [0.0, up, 0.0], atol=1e-6)
+    assert np.abs(moved[ear_r]).max() < 1e-6
+    assert np.abs(moved[region == names.index("nose")]).max() < 1e-6
+    p = face.surface_point_position(face.feature_points["10.1"], skin) - face.feature_point_positions()["10.1"]
+    assert np.allclose(p, [0.0, up, 0.0], atol=1e-6)
+
+
+def test_an_open_jaw_carries_lower_lip_and_chin_and_not_the_neck(player):
+    """open_jaw at its full range: chin and lower lip go down with the mandible, the upper lip
+    and the bottom of the neck (held by the body, not the jaw) stay where they are, and the
+    skin between jaw and neck stretches smoothly (no vertex jumps away from its neighbours)."""
+    face = player.face
+    v = np.zeros(68)
+    v[2] = FAP_LIMITS[2, 1]
+    skin = settle(player, v)
+    rest = face.skin_vertices
+    names, region = face.region_names, face.skin_region
+    fp = face.feature_point_positions()
+
+    def down(name):
+        return (face.surface_point_position(face.feature_points[name], skin) - fp[name])[1]
+
+    assert down("2.1") < -0.015 and down("8.2") < -0.5 * 0.015
+    assert abs(down("8.1")) < 0.002
+    neck = region == names.index("neck")
+    base = neck & (rest[:, 1] < np.percentile(rest[neck, 1], 20))
+    assert np.linalg.norm(skin[base] - rest[base], axis=1).max() < 1e-4
+    # the chin drops 2 cm, the lips part 4 cm: spread over the skin, no edge takes it alone
+    F = np.asarray(face.skin_faces)
+    edges = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
+    longer = np.linalg.norm(skin[edges[:, 0]] - skin[edges[:, 1]], axis=1) - np.linalg.norm(
+        rest[edges[:, 0]] - rest[edges[:, 1]], axis=1)
+    assert longer.max() < 0.01

@@ -9,10 +9,10 @@ edge's ends to the other end in the next layer. Muscles act on the middle layer;
 fields on the two upper layers.
 
 Holds: every particle is anchored by a zero-length spring to its hold, its rest place
-carried by the skull, the mandible or a blend of both (`jaw_weights`: the nearer bone to
-the deepest layer, lower lip and chin on the jaw, upper lip on the skull, the neck fading
-off the jaw, averaged over a few edge rings so that the skin between skull and jaw
-stretches over a band): the deepest layer stiffly, the upper layers weakly (tethers).
+carried by the skull, the mandible or a blend of both (`jaw_weights`: a harmonic blend
+between skin clearly over one bone, lower lip and chin on the jaw, upper lip on the
+skull, the neck off the jaw, so that the skin between skull and jaw stretches smoothly
+over a band): the deepest layer stiffly, the upper layers weakly (tethers).
 
 Only skin near a muscle or a pull field is simulated (`active_rings` 3 edge rings around
 it, plus one ring that sits on its hold); the rest (scalp, neck, the inside of the mouth,
@@ -24,8 +24,8 @@ Parameters (keys of `layer_params`, else these defaults): stiffness per unit mas
 1250, `kappa_cross` 400, `kappa_anchor` 10000 (deepest layer to its hold), `kappa_tether`
 250 (upper layers to theirs); `drag` 130 1/s; `density` 1100 kg/m^3;
 `muscle_acceleration` 50 m/s^2 (force per unit activation and weight, per kg);
-`jaw_reach` 15 mm (the jaw's hold fades out between this distance from the mandible and
-twice it), `jaw_blend_rings` 8. Springs twice as stiff needed 5 explicit
+`jaw_reach` 15 mm, `jaw_sure` 0.5, `jaw_corner_blend` 0.2, `jaw_blend_rings` 4 (see
+`jaw_weights`). Springs twice as stiff needed 5 explicit
 substeps per 25 fps frame; at these, with the drag and anchors implicit (fae.sim.solver),
 the stable substep is 20 ms, two per 25 fps frame, and the skin still settles within two
 frames (equilibria depend on the ratios only, and calibration sets the amplitudes).
@@ -42,6 +42,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
+from scipy.sparse.linalg import spsolve
 import warp as wp
 from scipy.spatial import cKDTree
 
@@ -69,7 +70,9 @@ DEFAULTS = {
     "contact_depth": 0.004,
     "layer_min_height": 0.1,
     "jaw_reach": 0.015,
-    "jaw_blend_rings": 8,
+    "jaw_sure": 0.5,
+    "jaw_corner_blend": 0.2,
+    "jaw_blend_rings": 4,
 }
 
 
@@ -159,34 +162,63 @@ def max_stiffness_rate(n: int, pairs: np.ndarray, stiffness: np.ndarray, mass: n
 def jaw_weights(face: FaceModel, deep: np.ndarray, A: sp.csr_matrix, params: dict) -> np.ndarray:
     """(V,) float in [0, 1]: how much the hold of each skin vertex follows the mandible.
 
-    deep (V, 3) metres: the deepest layer; A (V, V) the skin's vertex adjacency. Start from
-    the nearer bone (skull with upper teeth, or mandible with lower teeth) to the deepest
-    layer, the lower lip and chin on the jaw and the upper lip on the skull (their regions,
-    where the head has them: both lips lie over both rows of teeth); fade the jaw's hold out
-    between `jaw_reach` and twice that distance from the mandible (the neck hangs from the
-    skull and the body, not from the jaw); then average over `jaw_blend_rings` edge rings so
-    that the skin between skull and jaw stretches over a band instead of tearing along a
-    line. Without a mandible, 0 everywhere.
+    deep (V, 3) metres: the deepest layer; A (V, V) the skin's vertex adjacency. Skin whose
+    deepest layer lies clearly nearer one bone (less than `jaw_sure` times its distance to
+    the other; skull with upper teeth, mandible with lower teeth; and for the mandible within
+    `jaw_reach` of it) is held by that bone alone,
+    as are the lower lip and chin (by the jaw) and the upper lip (by the skull), where the
+    head has those regions (both lips lie over both rows of teeth), while the mouth's lining
+    (its region) is held by neither alone: it stretches from lip to lip as the mouth opens,
+    not just over the thin band between the teeth; the neck beyond three times `jaw_reach`
+    from the mandible is held by the skull (it hangs from the skull and the body, not the jaw).
+    Everywhere else, the mouth's corners included (within `jaw_corner_blend` times the mouth
+    width of feature points 2.4 and 2.5, where upper and lower lip meet) and `jaw_blend_rings`
+    edge rings around any seam between skin held by one bone and by the other, the weight is the
+    harmonic interpolation of these (Laplace's equation over the skin's edges, weighted by
+    inverse length): the skin between skull and jaw stretches smoothly over the whole band
+    instead of tearing along a line. Without a mandible, 0 everywhere.
     """
+    V = np.asarray(face.skin_vertices, dtype=np.float64)
     meshes = [_bone_mesh(face, b) for b in BONE_NAMES]
     if len(meshes[1][0]) == 0:
-        return np.zeros(len(deep))
+        return np.zeros(len(V))
     dist = [cKDTree(_surface_samples(bv, bf)).query(deep)[0] if len(bv) else np.full(len(deep), np.inf)
             for bv, bf in meshes]
-    reach = float(params["jaw_reach"])
-    w = np.where(dist[1] < dist[0], 1.0, 0.0) * np.clip(2.0 - dist[1] / reach, 0.0, 1.0)
+    sure, reach = float(params["jaw_sure"]), float(params["jaw_reach"])
+    w = np.full(len(V), np.nan)
+    w[(dist[1] < sure * dist[0]) & (dist[1] < reach)] = 1.0
+    w[(dist[0] < sure * dist[1]) | (dist[1] > 3.0 * reach)] = 0.0
     names = list(face.region_names)
     region = np.asarray(face.skin_region)
-    fixed = np.zeros(len(deep), dtype=bool)
-    for name, value in (("lip_lower", 1.0), ("chin", 1.0), ("lip_upper", 0.0)):
+    for name, value in (("lip_lower", 1.0), ("chin", 1.0), ("lip_upper", 0.0), ("mouth_cavity", np.nan)):
         if name in names:
-            on = region == names.index(name)
-            w[on], fixed[on] = value, True
-    pinned = w[fixed]
-    valence = np.maximum(np.asarray(A.sum(axis=1)).ravel(), 1.0)
-    for _ in range(int(params["jaw_blend_rings"])):
-        w = 0.5 * (w + (A @ w) / valence)
-        w[fixed] = pinned
+            w[region == names.index(name)] = value
+    corners = [face.surface_point_position(face.feature_points[c]) for c in ("2.4", "2.5")
+               if c in face.feature_points and face.feature_points[c].part == "skin"]
+    if len(corners) == 2:
+        radius = float(params["jaw_corner_blend"]) * np.linalg.norm(corners[0] - corners[1])
+        for c in corners:
+            w[np.linalg.norm(V - c, axis=1) < radius] = np.nan
+    # where skin held by the skull comes near skin held by the jaw (the skin's depth jumps
+    # there, below the ears), `jaw_blend_rings` edge rings on either side are left to blend
+    rings = int(params["jaw_blend_rings"])
+    ones, zeros = w == 1.0, w == 0.0
+    w[(ones & dilate(zeros, A, rings)) | (zeros & dilate(ones, A, rings))] = np.nan
+    free = np.isnan(w)
+    if not np.any(free):
+        return w
+    # Laplace's equation for the free vertices, with a faint pull towards the nearer bone so
+    # that a free patch touching no held skin still has one solution
+    i, j = sp.triu(A, k=1).nonzero()
+    g = 1.0 / np.maximum(np.linalg.norm(V[i] - V[j], axis=1), 1e-6)
+    W = sp.coo_matrix((np.concatenate([g, g]), (np.concatenate([i, j]), np.concatenate([j, i]))),
+                      shape=(len(V), len(V))).tocsr()
+    degree = np.asarray(W.sum(axis=1)).ravel()
+    nearer = np.where(dist[1] < dist[0], 1.0, 0.0)
+    eps = 1e-4 * degree[free]
+    held = np.where(free, 0.0, w)
+    L = (sp.diags(degree[free] + eps) - W[free][:, free]).tocsc()
+    w[free] = spsolve(L, W[free] @ held + eps * nearer[free])
     return np.clip(w, 0.0, 1.0)
 
 

@@ -6,7 +6,8 @@ with the jaw). Contact is a position projection, which stays stable for any cont
 inward normal velocity. The solver's particle pass calls `bone_contact` for each bone
 (fae.sim.integrate) with the particle's positions before and after its step:
 
-A particle that was outside before the step and whose path reached the bone (it ends
+A particle that was outside (or on the surface, where contact left it) before the step and
+whose path reached the bone (it ends
 inside, or it is longer than its distances to the bone at both ends allow without
 touching it) entered during the step: where is found by sphere tracing its path in the
 grid (bisection for a grazing path), and the particle is projected onto the surface's
@@ -23,12 +24,14 @@ only a bone that jumps (a jaw opened in one frame) can bury skin so deep; projec
 one (skin pushed behind the mandible stayed caught there after the pose relaxed), while
 its springs and bone anchors always pull it back to rest.
 
-Nor is a particle held on the far side of a bone from its rest place (the surface normal
-more than 120 degrees from the direction to its rest position, in the bone's frame): a jaw
-snapped open in one step can carry chin skin through the thin mandible, extreme lip poses
-can tuck the upper lip behind the teeth; held on the bone's inner face, such skin stayed
-trapped there, 2 cm off rest, while its springs pulled it into the bone (after 10,000
-random frames). Left to the springs, it passes back.
+Nor is a particle held on the far side of a bone from its hold (the place its anchor pulls
+it to, fae.sim.integrate: the surface normal more than 120 degrees from the direction to
+the hold, in the bone's frame), when the hold is outside the bone: a jaw snapped open in one
+step can carry chin skin through the thin mandible, extreme lip poses can tuck the upper lip
+behind the teeth; held on the bone's inner face, such skin stayed trapped there, 2 cm off
+rest, while its springs pulled it into the bone (after 10,000 random frames). Left to the
+springs, it passes back. A hold blended between skull and jaw can lie inside a bone: then
+the bone holds the skin off wherever it is.
 """
 
 from __future__ import annotations
@@ -44,6 +47,8 @@ WRONG_SIDE_COS = 0.5
 # finding where a particle's step entered a bone: sphere-tracing steps, the distance (m) at
 # which the trace has arrived, and halvings of a grazing path's rest (1/32 of it)
 TRACE_STEPS = 8
+# metres: a particle this little inside a bone is on its surface (where contact put it)
+ON_SURFACE = 5.0e-4
 TRACE_TOLERANCE = 1.0e-4
 ENTRY_BISECTIONS = 5
 
@@ -125,23 +130,28 @@ def path_entry(start: wp.vec3, end: wp.vec3, phi_start: float, phi_end: float, s
 
 
 @wp.func
-def bone_contact(x_prev: wp.vec3, x: wp.vec3, v: wp.vec3, rest: wp.vec3, clearance: float,
+def bone_contact(x_prev: wp.vec3, x: wp.vec3, v: wp.vec3, rest: wp.vec3, hold: wp.vec3, clearance: float,
                  sdf_values: wp.array3d(dtype=float), sdf_origin: wp.vec3, sdf_spacing: float, R: wp.mat33,
                  t: wp.vec3, contact_depth: float):
     """(x, v) of a particle that moved from x_prev to x with velocity v, after contact with one
     bone (pose R, t) whose signed-distance grid is in the bone's rest frame; `rest` is the
-    particle's rest position, `clearance` how far from it it cannot reach the bone."""
+    particle's rest position, `clearance` how far from it it cannot reach the bone, `hold`
+    where its anchor pulls it (fae.sim.integrate)."""
     Rt = wp.transpose(R)
     local = Rt * (x - t)
     away = local - rest
     if wp.dot(away, away) < clearance * clearance:
         return x, v
     phi, grad = grid_sample(sdf_values, sdf_origin, sdf_spacing, local)
+    # the side of the bone the particle belongs to is its hold's, where that is outside
+    hold_local = Rt * (hold - t)
+    phi_hold, grad_hold = grid_sample(sdf_values, sdf_origin, sdf_spacing, hold_local)
     start = Rt * (x_prev - t)
     phi_start, grad_start = grid_sample(sdf_values, sdf_origin, sdf_spacing, start)
     n_local = wp.vec3(0.0, 0.0, 0.0)
-    if phi_start >= 0.0:
-        # outside before the step: a path shorter than both distances cannot reach the bone
+    if phi_start >= -ON_SURFACE:
+        # outside (or on the surface) before the step: a path shorter than both distances
+        # cannot reach the bone
         if phi >= 0.0 and wp.length(local - start) <= phi + phi_start:
             return x, v
         found, entry = path_entry(start, local, phi_start, phi, sdf_values, sdf_origin, sdf_spacing)
@@ -151,9 +161,9 @@ def bone_contact(x_prev: wp.vec3, x: wp.vec3, v: wp.vec3, rest: wp.vec3, clearan
         glen = wp.length(grad)
         if glen > 1.0e-9:
             n_local = grad / glen
-        # a particle on the bone's far side from its rest place passes back through it
-        to_rest = rest - entry
-        if wp.dot(n_local, to_rest) < -WRONG_SIDE_COS * wp.length(to_rest):
+        # a particle on the bone's far side from its hold passes back through it
+        to_hold = hold_local - entry
+        if phi_hold > 0.0 and wp.dot(n_local, to_hold) < -WRONG_SIDE_COS * wp.length(to_hold):
             return x, v
         # onto the surface's tangent plane where it entered: it slides, it does not stick
         local = local + n_local * wp.max(wp.dot(entry - local, n_local), 0.0)
@@ -165,9 +175,9 @@ def bone_contact(x_prev: wp.vec3, x: wp.vec3, v: wp.vec3, rest: wp.vec3, clearan
         # inside at the start too: the bone came onto it (a jaw that jumped)
         if phi >= 0.0 or phi < -contact_depth:
             return x, v
-        # a bone pushes skin out only towards the side the skin belongs to (its rest place)
-        to_rest = rest - local
-        if wp.dot(grad, to_rest) < -WRONG_SIDE_COS * wp.length(grad) * wp.length(to_rest):
+        # a bone pushes skin out only towards the side the skin belongs to (its hold's)
+        to_hold = hold_local - local
+        if phi_hold > 0.0 and wp.dot(grad, to_hold) < -WRONG_SIDE_COS * wp.length(grad) * wp.length(to_hold):
             return x, v
         moved = int(0)
         for _it in range(2):

@@ -98,9 +98,9 @@ def step_particles(particle_q: wp.array(dtype=wp.vec3), particle_qd: wp.array(dt
         if particle_collider[tid] != 0:
             x0 = particle_q[tid]
             clear = particle_clearance[tid]
-            x, v = bone_contact(x0, x, v, rest, clear[0], head_sdf, head_sdf_origin, head_sdf_spacing, bone_rotation[0],
+            x, v = bone_contact(x0, x, v, rest, target, clear[0], head_sdf, head_sdf_origin, head_sdf_spacing, bone_rotation[0],
                                 bone_translation[0], contact_depth)
-            x, v = bone_contact(x0, x, v, rest, clear[1], jaw_sdf, jaw_sdf_origin, jaw_sdf_spacing, bone_rotation[1],
+            x, v = bone_contact(x0, x, v, rest, target, clear[1], jaw_sdf, jaw_sdf_origin, jaw_sdf_spacing, bone_rotation[1],
                                 bone_translation[1], contact_depth)
         particle_qd_out[tid] = v
         particle_q_out[tid] = x

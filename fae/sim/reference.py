@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from fae.sim.model import MUSCLE_FIELD, MUSCLE_LINEAR, MUSCLE_SPHINCTER, SkinModel
-from fae.sim.collision import ENTRY_BISECTIONS, TRACE_STEPS, TRACE_TOLERANCE, WRONG_SIDE_COS
+from fae.sim.collision import ENTRY_BISECTIONS, ON_SURFACE, TRACE_STEPS, TRACE_TOLERANCE, WRONG_SIDE_COS
 from fae.sim.sdf import sample_grid
 from fae.sim.solver import substep_count
 
@@ -92,8 +92,10 @@ class ReferenceSolver:
             rest = self.rest[col]
             local = (q[col] - t) @ R
             beyond = np.sum((local - rest) ** 2, axis=1) >= clearance[col, b] ** 2
-            idx, local, rest = col[beyond], local[beyond], rest[beyond]
+            idx, local = col[beyond], local[beyond]
             phi, grad = sample(local)
+            hold = (self.holds(bone_rotation, bone_translation)[idx] - t) @ R
+            hold_out = sample(hold)[0] > 0.0
             start = (q_prev[idx] - t) @ R
             phi_s = sample(start)[0]
             n_local = np.zeros((len(idx), 3))
@@ -103,7 +105,7 @@ class ReferenceSolver:
             # outside before the step: did its path reach the bone? (sphere tracing)
             seg = local - start
             length = np.linalg.norm(seg, axis=1)
-            reach = (phi_s >= 0.0) & ((phi < 0.0) | (length > phi + phi_s)) & (length > 1e-12)
+            reach = (phi_s >= -ON_SURFACE) & ((phi < 0.0) | (length > phi + phi_s)) & (length > 1e-12)
             direction = seg / np.maximum(length, 1e-300)[:, None]
             tt, t_out, ph = np.zeros(len(idx)), np.zeros(len(idx)), phi_s.copy()
             found, active = np.zeros(len(idx), dtype=bool), reach.copy()
@@ -128,8 +130,8 @@ class ReferenceSolver:
             g = sample(entry)[1]
             glen = np.linalg.norm(g, axis=1)
             ne = np.where((glen > 1e-9)[:, None], g / np.maximum(glen, 1e-300)[:, None], 0.0)
-            to_rest = rest - entry
-            far = np.sum(ne * to_rest, axis=1) < -WRONG_SIDE_COS * np.linalg.norm(to_rest, axis=1)
+            to_hold = hold - entry
+            far = hold_out & (np.sum(ne * to_hold, axis=1) < -WRONG_SIDE_COS * np.linalg.norm(to_hold, axis=1))
             slide = found & ~far
             slid = local + ne * np.maximum(np.sum((entry - local) * ne, axis=1), 0.0)[:, None]
             ph2, gr2 = sample(slid)
@@ -139,9 +141,10 @@ class ReferenceSolver:
             new[slide], n_local[slide], moved[slide] = slid[slide], ne[slide], True
 
             # inside before the step too: shallow ones on the side they belong to are projected out
-            to_rest = rest - local
-            wrong = np.sum(grad * to_rest, axis=1) < -WRONG_SIDE_COS * np.linalg.norm(grad, axis=1) * np.linalg.norm(to_rest, axis=1)
-            active = (phi_s < 0.0) & (phi < 0.0) & (phi >= -self.model.contact_depth) & ~wrong
+            to_hold = hold - local
+            wrong = hold_out & (np.sum(grad * to_hold, axis=1)
+                                < -WRONG_SIDE_COS * np.linalg.norm(grad, axis=1) * np.linalg.norm(to_hold, axis=1))
+            active = (phi_s < -ON_SURFACE) & (phi < 0.0) & (phi >= -self.model.contact_depth) & ~wrong
             loc, ph, gr = local.copy(), phi.copy(), grad.copy()
             for _ in range(2):
                 active &= ph < 0.0
