@@ -4,28 +4,30 @@ Scheme. A frame of length dt is split into n = ceil(dt / dt_max) equal substeps 
 
     f = springs (a scatter over springs, fae.sim.springs);
     one pass over particles (fae.sim.integrate): f += muscles;
-        v' = (v + h/m (f + k_a (target - x))) / (1 + h c + h^2 k_a / m);  x' = x + h v';
-        upper layers kept above the next; particles inside the skull or mandible projected out.
+        v' = (v + h/m (f + k_a (hold - x))) / (1 + h c + h^2 (k_a + k_m) / m);  x' = x + h v';
+        upper layers kept above the next; contact with skull and mandible (fae.sim.collision).
 
-Stability. The drag c (1/s) and each particle's bone anchor k_a are implicit, the springs
-explicit. For one mode of the springs of frequency w (w^2 an eigenvalue of M^-1 K_s) on a
-particle with anchor rate kappa_a = k_a / m, the step's amplification matrix has
-determinant 1 / (1 + h c + h^2 kappa_a) < 1 and its eigenvalues stay inside the unit
-circle while
+Stability. The drag c (1/s), each particle's anchor k_a (a zero-length spring to its hold)
+and the stiffness k_m of the muscles contracted on it are implicit, the springs explicit.
+For one mode of the springs of frequency w (w^2 an eigenvalue of M^-1 K_s) on a particle
+with anchor rate kappa_a = k_a / m, the step's amplification matrix has determinant
+1 / (1 + h c + h^2 kappa_a) < 1 and its eigenvalues stay inside the unit circle while
 
     h^2 w^2 < 4 + 2 h c + h^2 kappa_a.
 
 The drag therefore buys a much longer step than the undamped bound h w < 2, and the
-anchors (the stiffest part of the skin, kappa_anchor 10000 1/s^2) cost none. `dt_max` is
-the largest h that satisfies this for the springs' largest w^2 (Lanczos over the spring
-network's weighted graph Laplacian, which bounds M^-1 K_s in every configuration without
-compressed springs, see fae.sim.build) and the weakest anchor, with a safety factor
-cfl = 0.9 on w. On the shipped head one substep covers a 25 fps frame.
+anchors (the stiffest part of the skin, kappa_anchor 10000 1/s^2) and muscles (a sphincter
+at its activation limit is stiffer than all the springs) cost none. `dt_max` is the largest
+h that satisfies this for the springs' largest w^2 (Lanczos over the spring network's
+weighted graph Laplacian, which bounds M^-1 K_s in every configuration without compressed
+springs, see fae.sim.build) and the weakest anchor, with a safety factor cfl = 0.9 on w.
+On the shipped head dt_max is 20 ms: two substeps per 25 or 30 fps frame, one at 50 fps
+and up (8.4 ms, five substeps per 25 fps frame, with the same springs twice as stiff and
+drag and anchors explicit).
 
-Contact is a projection (no stiff penalty springs) of shallow penetrations only, towards
-the side of the bone the particle belongs to (fae.sim.collision). Every skin particle is
-held to its bone: the deepest layer stiffly, the upper layers by weak tethers, which gives
-the network a single rest shape to return to. Kernels are compiled with fast math.
+Contact is a position projection (no stiff penalty springs): a step that reached a bone
+ends on its surface, skin the bone moved onto is pushed out on the side it belongs to
+(fae.sim.collision). Kernels are compiled with fast math.
 
 Per substep the solver replays two recorded launches (Warp's `record_cmd`), made once per
 (states, control): a plain `wp.launch` packs its 40 arguments anew each time, which cost
@@ -36,8 +38,8 @@ second face being built in another thread, as `fae serve` does, breaks it.)
 Schemes not taken: a per-particle gather of the springs (no atomics) measured 1.5x slower
 on the CPU than the scatter, since it evaluates each spring from both ends; a prefactored
 implicit (projective dynamics) step needs a sparse triangular solve of about 2 million
-non-zeros on the shipped head, 7.5 ms per frame in C on one core, more than the whole
-explicit frame.
+non-zeros for the full three-layer skin of the shipped head (21,840 particles), 7.5 ms per
+frame in C on one core, more than the whole explicit frame.
 """
 
 from __future__ import annotations
