@@ -20,15 +20,17 @@ the ears, 3,200 of the generic head's 9,000 vertices with a hold on the jaw) mov
 hold (`skin_positions`). The ears' FAPs move them directly (fae.animate.ears).
 
 Parameters (keys of `layer_params`, else these defaults): stiffness per unit mass kappa
-(1/s^2) `kappa_epidermis` 1250, `kappa_middle` 625, `kappa_deep` 625, `kappa_vertical`
-1250, `kappa_cross` 400, `kappa_anchor` 10000 (deepest layer to its hold), `kappa_tether`
-250 (upper layers to theirs); `drag` 130 1/s; `density` 1100 kg/m^3;
+(1/s^2) `kappa_epidermis` 600, `kappa_middle` 300, `kappa_deep` 300, `kappa_vertical`
+1000, `kappa_cross` 400, `kappa_anchor` 10000 (deepest layer to its hold), `kappa_tether`
+500 (upper layers to theirs); `drag` 70 1/s; `density` 1100 kg/m^3;
 `muscle_acceleration` 50 m/s^2 (force per unit activation and weight, per kg);
 `jaw_reach` 15 mm, `jaw_sure` 0.5, `jaw_corner_blend` 0.2, `jaw_blend_rings` 4 (see
-`jaw_weights`). Springs twice as stiff needed 5 explicit
-substeps per 25 fps frame; at these, with the drag and anchors implicit (fae.sim.solver),
-the stable substep is 20 ms, two per 25 fps frame, and the skin still settles within two
-frames (equilibria depend on the ratios only, and calibration sets the amplitudes).
+`jaw_weights`). How fast the skin follows a muscle is set by the drag against the
+stiffness that resists large deformations (tethers and cross springs: a muscle's step
+reaches 90 % of its pull in 3-4 frames at 25 fps, about as with springs four times as stiff
+and five explicit substeps); the stable substep by the stiffest, the in-plane springs
+(with the drag and anchors implicit, fae.sim.solver: 20.7 ms, two substeps per 25 fps
+frame). Equilibria depend on stiffness ratios only; calibration sets the amplitudes.
 Layer order: an epidermis particle stays at least `layer_min_height` 0.1 of its rest
 height above its vertex in the middle layer (0.25, and the middle layer over the deepest
 too, held the lower lip's raise to 0.72 of its FAP) (fae.sim.integrate). Contact:
@@ -54,14 +56,14 @@ from fae.sim.solver import stable_substep
 
 DEFAULTS = {
     "layer_depth_fractions": [0.0, 0.5, 1.0],
-    "kappa_epidermis": 1250.0,
-    "kappa_middle": 625.0,
-    "kappa_deep": 625.0,
-    "kappa_vertical": 1250.0,
+    "kappa_epidermis": 600.0,
+    "kappa_middle": 300.0,
+    "kappa_deep": 300.0,
+    "kappa_vertical": 1000.0,
     "kappa_cross": 400.0,
     "kappa_anchor": 10000.0,
-    "kappa_tether": 250.0,
-    "drag": 130.0,
+    "kappa_tether": 500.0,
+    "drag": 70.0,
     "density": 1100.0,
     "muscle_acceleration": 50.0,
     "active_rings": 3,

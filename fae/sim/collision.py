@@ -143,11 +143,13 @@ def bone_contact(x_prev: wp.vec3, x: wp.vec3, v: wp.vec3, rest: wp.vec3, hold: w
     if wp.dot(away, away) < clearance * clearance:
         return x, v
     phi, grad = grid_sample(sdf_values, sdf_origin, sdf_spacing, local)
+    start = Rt * (x_prev - t)
+    if phi >= wp.length(local - start):
+        return x, v  # the whole step stayed farther from the bone than it moved
+    phi_start, grad_start = grid_sample(sdf_values, sdf_origin, sdf_spacing, start)
     # the side of the bone the particle belongs to is its hold's, where that is outside
     hold_local = Rt * (hold - t)
     phi_hold, grad_hold = grid_sample(sdf_values, sdf_origin, sdf_spacing, hold_local)
-    start = Rt * (x_prev - t)
-    phi_start, grad_start = grid_sample(sdf_values, sdf_origin, sdf_spacing, start)
     n_local = wp.vec3(0.0, 0.0, 0.0)
     if phi_start >= -ON_SURFACE:
         # outside (or on the surface) before the step: a path shorter than both distances

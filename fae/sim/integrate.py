@@ -46,9 +46,9 @@ def step_particles(particle_q: wp.array(dtype=wp.vec3), particle_qd: wp.array(dt
                    particle_anchor_stiffness: wp.array(dtype=float),
                    row_influence_start: wp.array(dtype=int), influence_muscle: wp.array(dtype=int),
                    influence_weight: wp.array(dtype=float),
-                   muscle_kind: wp.array(dtype=int), muscle_bone: wp.array(dtype=int),
-                   muscle_point: wp.array(dtype=wp.vec3), muscle_axis_u: wp.array(dtype=wp.vec3),
-                   muscle_axis_v: wp.array(dtype=wp.vec3), muscle_scale: wp.array(dtype=float),
+                   muscle_kind: wp.array(dtype=int), muscle_point_now: wp.array(dtype=wp.vec3),
+                   muscle_axis_u_now: wp.array(dtype=wp.vec3), muscle_axis_v_now: wp.array(dtype=wp.vec3),
+                   muscle_scale: wp.array(dtype=float),
                    muscle_activation: wp.array(dtype=float), bone_rotation: wp.array(dtype=wp.mat33),
                    bone_translation: wp.array(dtype=wp.vec3), particle_below: wp.array(dtype=int),
                    particle_normal: wp.array(dtype=wp.vec3), particle_height: wp.array(dtype=float),
@@ -76,8 +76,8 @@ def step_particles(particle_q: wp.array(dtype=wp.vec3), particle_qd: wp.array(dt
             m = influence_muscle[r]
             act = muscle_activation[m]
             if act != 0.0:
-                dirm, km = muscle_direction(x, muscle_kind[m], muscle_bone[m], muscle_point[m], muscle_axis_u[m],
-                                            muscle_axis_v[m], muscle_scale[m], bone_rotation, bone_translation)
+                dirm, km = muscle_direction(x, muscle_kind[m], muscle_point_now[m], muscle_axis_u_now[m],
+                                            muscle_axis_v_now[m], muscle_scale[m])
                 f = f + dirm * (act * influence_weight[r])
                 ka = ka + km * wp.abs(act) * influence_weight[r]
         f = f + (target - x) * particle_anchor_stiffness[tid]

@@ -184,6 +184,7 @@ class Control:
     muscle_activation: wp.array
     bone_rotation: wp.array
     bone_translation: wp.array
+    _views: dict = field(default_factory=dict, repr=False, compare=False)  # numpy views of CPU arrays
 
     def set(self, muscle_activation: np.ndarray | None = None, bone_rotation: np.ndarray | None = None,
             bone_translation: np.ndarray | None = None) -> None:
@@ -194,6 +195,9 @@ class Control:
                 continue
             if array.device.is_cpu:
                 # the array's own memory: no temporary Warp array per frame
-                np.copyto(array.numpy(), np.reshape(value, array.numpy().shape), casting="unsafe")
+                view = self._views.get(id(array))
+                if view is None:
+                    view = self._views[id(array)] = array.numpy()
+                np.copyto(view, np.reshape(value, view.shape), casting="unsafe")
             else:
                 array.assign(np.asarray(value, dtype=np.float32))

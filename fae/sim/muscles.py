@@ -10,8 +10,9 @@ masked by skin regions), so a step only multiplies activation x weight x directi
              offset from the centre divided by the larger semi-axis;
 - field:     along a fixed direction of the bone's frame.
 
-The solver's particle pass (fae.sim.integrate) gathers each particle's influences and calls
-`muscle_direction`. A contracted sphincter or linear muscle is also a stiffness (its force
+Once per step `pose_muscles` carries every muscle's point and axes by its bone; the
+solver's particle pass (fae.sim.integrate) then gathers each particle's influences and
+calls `muscle_direction`. A contracted sphincter or linear muscle is also a stiffness (its force
 turns with the particle: activation x weight / semi-axis, or / distance to the
 attachment); the pass treats it implicitly like the anchors, so that a strong contraction
 cannot make the explicit substep unstable (the orbicularis oris at its limit is stiffer than
@@ -26,29 +27,40 @@ import warp as wp
 wp.set_module_options({"fast_math": True})
 
 
-@wp.func
-def muscle_direction(x: wp.vec3, kind: int, b: int, point: wp.vec3, axis_u: wp.vec3, axis_v: wp.vec3,
-                     scale: float, bone_rotation: wp.array(dtype=wp.mat33), bone_translation: wp.array(dtype=wp.vec3)):
-    """(force, stiffness) per unit activation and weight on a particle at x: the force (see the
-    module docstring) and the largest eigenvalue of minus its Jacobian in x (1/m), which the
-    particle pass makes implicit."""
+@wp.kernel
+def pose_muscles(muscle_bone: wp.array(dtype=int), muscle_point: wp.array(dtype=wp.vec3),
+                 muscle_axis_u: wp.array(dtype=wp.vec3), muscle_axis_v: wp.array(dtype=wp.vec3),
+                 bone_rotation: wp.array(dtype=wp.mat33), bone_translation: wp.array(dtype=wp.vec3),
+                 point_now: wp.array(dtype=wp.vec3), axis_u_now: wp.array(dtype=wp.vec3),
+                 axis_v_now: wp.array(dtype=wp.vec3)):
+    """Each muscle's attachment or centre and axes carried by its bone, once per step (the
+    particle pass would otherwise transform them once per influence)."""
+    m = wp.tid()
+    b = muscle_bone[m]
     R = bone_rotation[b]
+    point_now[m] = R * muscle_point[m] + bone_translation[b]
+    axis_u_now[m] = R * muscle_axis_u[m]
+    axis_v_now[m] = R * muscle_axis_v[m]
+
+
+@wp.func
+def muscle_direction(x: wp.vec3, kind: int, point: wp.vec3, axis_u: wp.vec3, axis_v: wp.vec3, scale: float):
+    """(force, stiffness) per unit activation and weight on a particle at x, given the muscle's
+    posed point and axes (`pose_muscles`): the force (see the module docstring) and the
+    largest eigenvalue of minus its Jacobian in x (1/m), which the particle pass makes
+    implicit."""
     f = wp.vec3(0.0, 0.0, 0.0)
     k = float(0.0)
     if kind == 0:
-        target = R * point + bone_translation[b]
-        d = target - x
+        d = point - x
         length = wp.length(d)
         if length > 1.0e-9:
             f = d / length
             k = 1.0 / wp.max(length, 1.0e-3)
     elif kind == 1:
-        c = R * point + bone_translation[b]
-        u = R * axis_u
-        v = R * axis_v
-        d = x - c
-        f = -(u * wp.dot(d, u) + v * wp.dot(d, v)) / scale
+        d = x - point
+        f = -(axis_u * wp.dot(d, axis_u) + axis_v * wp.dot(d, axis_v)) / scale
         k = 1.0 / scale
     else:
-        f = R * axis_u
+        f = axis_u
     return f, k

@@ -51,6 +51,7 @@ import numpy as np
 import warp as wp
 
 import fae.sim.integrate as _integrate
+import fae.sim.muscles as _muscles
 import fae.sim.springs as _springs
 from fae.sim.model import Control, SkinModel, State
 
@@ -96,6 +97,28 @@ class SkinSolver:
             self._grids += [no_grid if values is None else values, wp.vec3(*(float(c) for c in o)),
                             float(model.sdf_spacing[b]) if values is not None else 1.0]
         self._launches: OrderedDict[tuple, tuple] = OrderedDict()
+        # the muscles' points and axes carried by their bones, once per step
+        self._muscle_point = wp.zeros(max(model.muscle_count, 1), dtype=wp.vec3, device=model.device)
+        self._muscle_axis_u = wp.zeros_like(self._muscle_point)
+        self._muscle_axis_v = wp.zeros_like(self._muscle_point)
+        self._pose_launches: OrderedDict[int, tuple] = OrderedDict()
+
+    def _pose_muscles(self, control: Control) -> None:
+        m = self.model
+        if m.muscle_count == 0:
+            return
+        entry = self._pose_launches.get(id(control))
+        if entry is None:
+            launch = wp.launch(_muscles.pose_muscles, dim=m.muscle_count, device=m.device, record_cmd=True,
+                               inputs=[m.muscle_bone, m.muscle_point, m.muscle_axis_u, m.muscle_axis_v,
+                                       control.bone_rotation, control.bone_translation],
+                               outputs=[self._muscle_point, self._muscle_axis_u, self._muscle_axis_v])
+            entry = self._pose_launches[id(control)] = (launch, control)  # keeps the id the control's
+            while len(self._pose_launches) > _LAUNCH_CACHE_SIZE:
+                self._pose_launches.popitem(last=False)
+        else:
+            self._pose_launches.move_to_end(id(control))
+        entry[0].launch()
 
     def _substep_launches(self, src: State, dst: State, control: Control, h: float) -> tuple:
         """(springs, particles) recorded launches from src to dst, their step set to h."""
@@ -112,7 +135,7 @@ class SkinSolver:
                 inputs=[src.particle_q, src.particle_qd, self.particle_f, m.particle_inv_mass, m.particle_q,
                         m.particle_jaw, m.particle_anchor_stiffness,
                         m.row_influence_start, m.influence_muscle, m.influence_weight,
-                        m.muscle_kind, m.muscle_bone, m.muscle_point, m.muscle_axis_u, m.muscle_axis_v,
+                        m.muscle_kind, self._muscle_point, self._muscle_axis_u, self._muscle_axis_v,
                         m.muscle_scale, control.muscle_activation, control.bone_rotation,
                         control.bone_translation, m.particle_below, m.particle_normal, m.particle_height,
                         m.particle_collider, m.particle_clearance, *self._grids, float(m.contact_depth),
@@ -142,6 +165,7 @@ class SkinSolver:
             state_out = model.state()
         n = substep_count(model, dt)
         h = dt / n
+        self._pose_muscles(control)
         src = state_in
         for k in range(n):
             dst = state_out if k == n - 1 and state_out is not src else self._scratch[k % 2]
