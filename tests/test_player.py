@@ -50,3 +50,23 @@ def test_a_left_fap_moves_the_left_side_only(player):
     x = player.face.skin_vertices[:, 0]
     assert d[x > 0].max() > 1e-3
     assert d[x < -0.01].max() < 0.15 * d[x > 0].max()
+
+
+def test_spawned_players_share_the_model_and_step_independently(player):
+    """Players spawned from one share its static arrays but not their state: two streams on
+    two spawns give what each gives alone, interleaved, and the first is left as it was."""
+    player.reset()
+    a, b = player.spawn(), player.spawn()
+    assert a.sim is player.sim and a.state is not b.state and a.control is not b.control
+    va, vb = np.zeros(68), np.zeros(68)
+    va[11] = 300.0  # raise_l_cornerlip
+    vb[2] = 400.0   # open_jaw
+    for _ in range(5):
+        ska = a.step(va, dt=1 / 25)
+        skb = b.step(vb, dt=1 / 25)
+    alone = player.spawn()
+    for _ in range(5):
+        ref = alone.step(va, dt=1 / 25)
+    assert np.abs(ska - ref).max() < 1e-7
+    assert np.abs(skb - ska).max() > 1e-3
+    assert np.abs(player.step(np.zeros(68), dt=1 / 25) - player.face.skin_vertices).max() < 1e-6

@@ -16,6 +16,7 @@ skin and parts. On load, a head without a calibrated `fap_mapping` is calibrated
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 
@@ -81,6 +82,19 @@ class Player:
         self._t = np.zeros((2, 3))
         self.fps = DEFAULT_FPS
         self.reset()
+
+    def spawn(self) -> "Player":
+        """A new Player of the same head at rest, sharing this one's static arrays (the
+        SkinModel, controls, FaceDefTables): milliseconds instead of a new build, and one
+        copy of the model's memory for any number of faces (a server's clients)."""
+        other = copy.copy(self)
+        other.rig = RigidRig(self.face, self.fapu)
+        other._R, other._t = self._R.copy(), self._t.copy()
+        other.solver = SkinSolver(self.sim)
+        other.skin = SkinOutput(self.sim)
+        del other.state, other.control, other._rest
+        other.reset()
+        return other
 
     @property
     def fap_mapping(self) -> dict[str, np.ndarray]:

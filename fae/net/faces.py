@@ -9,6 +9,7 @@ releases the GIL during launches, so several faces use several cores.
 from __future__ import annotations
 
 import asyncio
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from typing import Callable, Protocol
@@ -129,12 +130,14 @@ class PlayerFace:
     model   the head (shared read-only between faces); give it a calibrated fap_mapping
             (see :func:`playable_model`), or every face calibrates it again on build
     device  Warp device ("cpu" or "cuda:0")
+    player  a Player to use (one spawned from another, see `player_face_factory`), or None
+            to build one
     """
 
-    def __init__(self, model, device: str = "cpu") -> None:
+    def __init__(self, model, device: str = "cpu", player=None) -> None:
         from fae.animate.player import Player
 
-        self.player = Player(model, device=device)
+        self.player = player if player is not None else Player(model, device=device)
 
     def step(self, frame: DenseFrame, dt: float) -> Pose:
         skin = self.player.step(frame, dt=dt)
@@ -162,5 +165,18 @@ def playable_model(model, device: str = "cpu"):
 
 
 def player_face_factory(model, device: str = "cpu") -> FaceFactory:
-    """A factory building a new PlayerFace on `model` for each stream."""
-    return lambda: PlayerFace(model, device)
+    """A factory building a new PlayerFace on `model` for each stream. The first face builds
+    the head's simulation (seconds); every later one spawns from it (milliseconds), sharing
+    its static arrays."""
+    first: list = []
+    lock = threading.Lock()
+
+    def build() -> PlayerFace:
+        from fae.animate.player import Player
+
+        with lock:
+            if not first:
+                first.append(Player(model, device=device))
+            return PlayerFace(model, device, first[0].spawn())
+
+    return build
