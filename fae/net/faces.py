@@ -1,14 +1,16 @@
-"""Faces the server drives: the frame-consumer interface and the thread that steps one face.
+"""Faces the server drives: the frame-consumer interface and the workers that step them.
 
 A face turns one dense FAP frame into a pose. The server never does that CPU work on its
-event loop: each face lives in its own :class:`FaceWorker`, a single worker thread that
-builds the face and then runs its steps one after another, in submission order. Warp
-releases the GIL during launches, so several faces use several cores.
+event loop: each face lives in a :class:`FaceWorker`, which builds the face and then runs
+its steps one after another, in submission order, on a pool of threads (one per core,
+shared by a :class:`FacePool`'s faces). Warp releases the GIL during launches, so several
+faces use several cores.
 """
 
 from __future__ import annotations
 
 import asyncio
+import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
@@ -49,16 +51,21 @@ FaceFactory = Callable[[], FrameConsumer]
 
 
 class FaceWorker:
-    """A face and the one thread that builds and steps it.
+    """A face, built and stepped on a pool of threads, its steps one after another.
 
-    factory  called once, in the worker thread, to build the face (model set-up and
-             kernel compilation stay off the event loop)
-    name     thread name prefix, for diagnostics
+    factory   called once, in a pool thread, to build the face (model set-up and kernel
+              compilation stay off the event loop)
+    name      thread name prefix of an own pool, for diagnostics
+    executor  the pool to run on (shared by a FacePool's faces: one thread per core), or
+              None for a pool of one thread of the worker's own
     """
 
-    def __init__(self, factory: FaceFactory, name: str = "fae-face") -> None:
-        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix=name)
+    def __init__(self, factory: FaceFactory, name: str = "fae-face", executor: ThreadPoolExecutor | None = None) -> None:
+        self._own_executor = executor is None
+        self._executor = executor or ThreadPoolExecutor(max_workers=1, thread_name_prefix=name)
         self._face_future = self._executor.submit(factory)
+        self._last: asyncio.Future | None = None  # this face's latest queued job
+        self._closed = False
         self.step_count = 0
 
     def _face(self) -> FrameConsumer:
@@ -69,10 +76,25 @@ class FaceWorker:
         self.step_count += 1
         return pose
 
+    def _queue(self, fn, *args) -> asyncio.Future:
+        """Run fn(*args) in the pool once this face's previous job has finished (whatever its
+        outcome): a face is never stepped by two threads at once, and in submission order."""
+        loop = asyncio.get_running_loop()
+        previous = self._last
+
+        async def run():
+            if previous is not None and not previous.done():
+                await asyncio.wait([previous])
+            if self._closed:
+                raise asyncio.CancelledError("the face was closed")
+            return await loop.run_in_executor(self._executor, fn, *args)
+
+        self._last = asyncio.ensure_future(run())
+        return self._last
+
     def submit(self, frame: DenseFrame, dt: float) -> asyncio.Future:
         """Queue one step; the returned future resolves to its Pose. Steps run in order."""
-        loop = asyncio.get_running_loop()
-        return loop.run_in_executor(self._executor, self._step, frame, dt)
+        return self._queue(self._step, frame, dt)
 
     async def ready(self) -> None:
         """Wait until the face is built; raises what its factory raised."""
@@ -80,48 +102,59 @@ class FaceWorker:
 
     async def reset(self) -> None:
         """Reset the face, after every step queued before this call."""
-        loop = asyncio.get_running_loop()
-        await loop.run_in_executor(self._executor, lambda: self._face().reset())
+        await self._queue(lambda: self._face().reset())
 
     def close(self) -> None:
-        """Drop queued steps and let the thread end once the running step returns."""
-        self._executor.shutdown(wait=False, cancel_futures=True)
+        """Drop queued steps; a running step finishes (an own pool's thread then ends)."""
+        self._closed = True
+        if self._last is not None and not self._last.done():
+            self._last.cancel()
+        if self._own_executor:
+            self._executor.shutdown(wait=False, cancel_futures=True)
 
 
 class FacePool:
-    """Hands out FaceWorkers, each with a new face, keeping `spares` of them built ahead.
+    """Hands out FaceWorkers, each with a new face, keeping `spares` of them built ahead;
+    all of them build and step on one pool of threads, one per core.
 
     Building a Player takes seconds; with a spare, a client's face is (usually) ready when
-    its header arrives, and the next spare is built while that client streams.
+    its header arrives, and the next spare is built while that client streams. One thread
+    per core, not per face: ten faces in ten threads fought over the interpreter lock (a
+    step of 6 ms of CPU took 30 ms), while Warp's kernels, which release it, already keep
+    a core busy per thread.
 
-    factory  builds one face (called in the worker's thread)
+    factory  builds one face (called in a pool thread)
     spares   faces kept built ahead (0: each face is built when it is asked for)
+    threads  pool size (default: the cores this process may use)
     """
 
-    def __init__(self, factory: FaceFactory, spares: int = 0) -> None:
+    def __init__(self, factory: FaceFactory, spares: int = 0, threads: int | None = None) -> None:
         if spares < 0:
             raise ValueError(f"spares: expected >= 0, got {spares}")
         self.factory = factory
         self.spares = spares
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+        self._executor = ThreadPoolExecutor(max_workers=threads or max(1, cores), thread_name_prefix="fae-face")
         self._ready: list[FaceWorker] = []
         self._fill()
 
     def _fill(self) -> None:
         while len(self._ready) < self.spares:
-            self._ready.append(FaceWorker(self.factory))
+            self._ready.append(FaceWorker(self.factory, executor=self._executor))
 
     def take(self) -> FaceWorker:
         """A worker whose face is built or being built; the caller closes it."""
-        worker = self._ready.pop(0) if self._ready else FaceWorker(self.factory)
+        worker = self._ready.pop(0) if self._ready else FaceWorker(self.factory, executor=self._executor)
         self._fill()
         return worker
 
     def close(self) -> None:
-        """Release the spares."""
+        """Release the spares and the pool (running steps finish)."""
         for worker in self._ready:
             worker.close()
         self._ready.clear()
         self.spares = 0
+        self._executor.shutdown(wait=False, cancel_futures=True)
 
 
 class PlayerFace:

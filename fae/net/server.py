@@ -6,7 +6,8 @@ client's first bytes. A client that stays silent gets the Xface greeting
 the first non-blank byte decides: `<` is an Xface client, anything else a native one.
 
 Faces: each native connection drives its own face, built by `face_factory` when its
-header arrives and stepped in its own worker thread; all Xface clients share one face
+header arrives (or ahead, `spare_faces`); the faces step on a pool of one thread per core,
+each face's steps in order (fae.net.faces); all Xface clients share one face
 (as in Xface). Every pose is published to subscribers (:meth:`FapServer.subscribe`).
 """
 
