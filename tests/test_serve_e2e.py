@@ -197,6 +197,12 @@ def test_xface_upload_resume_stop_rewind_against_the_real_player(server):
 
 
 def test_sigterm_stops_the_server_cleanly(server):
+    text = fap_text("xface_anger.fap")
+
+    async def main():  # its own streams: with xdist this may be the server's first test
+        return [await send_fap(text, port=server.port, rate="max", timeout=60) for _ in range(2)]
+
+    assert all(report.complete for report in run(main()))
     code, err = server.stop(signal.SIGTERM)
     assert code == 0, err
     assert "stopped after" in err and "Traceback" not in err
