@@ -99,7 +99,7 @@ def test_full_activation_and_wide_jaw_stay_stable_and_outside_bones(face, model)
     q = state.particle_q.numpy().astype(np.float64)
     assert np.all(np.isfinite(q))
     assert np.abs(q - model.particle_q.numpy()).max() < 0.1
-    col = model.collider_particle.numpy()
+    col = np.flatnonzero(model.particle_collider.numpy())
     phis = []
     for b, values in enumerate(model.sdf_values):
         local = (q[col] - tr[b]) @ rot[b]
@@ -155,7 +155,7 @@ def test_a_fast_particle_does_not_pass_through_the_skull_and_slides_along_it(mod
     skull) stops on the bone instead of tunnelling, keeping its sideways motion."""
     solver, state, control = SkinSolver(model), model.state(), model.control()
     q0 = model.particle_q.numpy().astype(np.float64)
-    col = model.collider_particle.numpy()
+    col = np.flatnonzero(model.particle_collider.numpy())
     values = model.sdf_values[0].numpy()
     phi, grad = sample_grid(values, model.sdf_origin[0], model.sdf_spacing[0], q0[col])
     k = int(np.argmin(np.where(phi > 0.0, phi, np.inf)))  # the collider nearest the skull

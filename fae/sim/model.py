@@ -45,8 +45,7 @@ class SkinModel:
     particle_mass       (P,) float kg
     particle_inv_mass   (P,) float 1/kg; 0 for particles held fixed (the border ring)
     particle_layer      (P,) int   0 epidermis, 1 middle, 2 deepest
-    collider_particle   (C,) int   particles that must stay outside the bones
-    particle_collider   (P,) int   1 for those particles, else 0
+    particle_collider   (P,) int   1 for particles that must stay outside the bones, else 0
     particle_clearance  (P,) vec2  metres, per bone: no closer to its rest place in the bone's
                                    frame than this, the particle cannot be inside the bone
     contact_depth       metres: deeper penetrations are left to the springs (fae.sim.collision)
@@ -94,8 +93,6 @@ class SkinModel:
     particle_mass: wp.array
     particle_inv_mass: wp.array
     particle_layer: wp.array
-    collider_count: int
-    collider_particle: wp.array
     particle_collider: wp.array
     particle_clearance: wp.array
     spring_count: int
