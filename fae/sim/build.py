@@ -15,9 +15,10 @@ skull, the neck off the jaw, so that the skin between skull and jaw stretches sm
 over a band): the deepest layer stiffly, the upper layers weakly (tethers).
 
 Only skin near a muscle or a pull field is simulated (`active_rings` 3 edge rings around
-it, plus one ring that sits on its hold); the rest (scalp, neck, the inside of the mouth,
-the ears, 3,200 of the generic head's 9,000 vertices with a hold on the jaw) moves with its
-hold (`skin_positions`). The ears' FAPs move them directly (fae.animate.ears).
+it, plus one ring that sits on its hold: 3,000 of the generic head's 9,000 vertices); the
+rest (scalp, neck, the inside of the mouth, the ears) moves with its hold
+(`skin_positions`; 2,100 of those vertices follow the jaw in part). The ears' FAPs move
+them directly (fae.animate.ears).
 
 Parameters (keys of `layer_params`, else these defaults): stiffness per unit mass kappa
 (1/s^2) `kappa_epidermis` 600, `kappa_middle` 300, `kappa_deep` 300, `kappa_vertical`
@@ -76,7 +77,6 @@ DEFAULTS = {
     "jaw_corner_blend": 0.2,
     "jaw_blend_rings": 4,
 }
-
 
 
 @dataclass
