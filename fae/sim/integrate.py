@@ -6,18 +6,17 @@ takes a symplectic Euler step in which its velocity drag c and its anchor (a zer
 spring of stiffness k_a to its hold: its rest place carried by the skull, the jaw, or a
 blend of both, `particle_jaw`) are implicit:
 
-    v' = (v + h/m (f + k_a (target - x))) / (1 + h c + h^2 k_a / m),   x' = x + h v'.
+    v' = (v + h/m (f + k_a (hold - x))) / (1 + h c + h^2 k_a / m),   x' = x + h v'.
 
 Both are per particle (diagonal), so implicit costs nothing more than explicit, and they
 widen the stable substep (see fae.sim.solver): the anchors are the stiffest part of the
-skin, and the drag that settles it within a frame or two also damps the springs' fastest
-modes. The stiffness of contracted muscles (fae.sim.muscles) joins k_a in the denominator:
+skin, and the drag also damps the springs' fastest modes. The stiffness of contracted muscles (fae.sim.muscles) joins k_a in the denominator:
 a linearized implicit step for them, which changes no equilibrium (at rest v' = v = 0 and
 f = 0 whatever the denominator). Only the springs are explicit.
 
 Then the layer order: an epidermis particle is kept at least `particle_height` above the
 previous position of its own vertex in the middle layer, along its rest normal carried by
-its bone (a position projection; the inward normal velocity is removed). Without it an
+its hold (a position projection; the inward normal velocity is removed). Without it an
 epidermis pushed through the middle layer is a stable state of the springs: the skin of
 the eyelids and brows stayed sunk 3 mm after 10,000 random frames. Last, a collider
 particle that entered the skull or the mandible is projected out (fae.sim.collision), the
