@@ -668,3 +668,49 @@ def test_parser_discards_a_partial_frame_and_reads_the_next_line_as_a_mask():
     parser.feed_line(m1, 4)
     frame = parser.feed_line(v1, 5)
     assert frame is not None and str(frame.number) == v1.split()[0]
+
+
+def test_a_face_is_never_stepped_by_two_pool_threads_even_when_a_waiter_gives_up():
+    """Faces share one pool of threads. A caller that stops waiting for a step (Xface's
+    STOP_PLAYBACK cancels a step in flight, then resets) must not let the face's next job
+    start while that step still runs."""
+    import threading
+    import time
+
+    from fae.net.faces import FacePool
+
+    running, overlaps = [0], []
+    lock = threading.Lock()
+
+    class SlowFace:
+        def _enter(self):
+            with lock:
+                running[0] += 1
+                overlaps.append(running[0] > 1)
+            time.sleep(0.05)
+            with lock:
+                running[0] -= 1
+
+        def step(self, frame, dt):
+            self._enter()
+            return Pose(np.zeros((1, 3)), {})
+
+        def reset(self):
+            self._enter()
+
+    async def main():
+        pool = FacePool(SlowFace, threads=4)
+        worker = pool.take()
+        await worker.ready()
+        first = worker.submit(None, 0.04)
+        queued = worker.submit(None, 0.04)
+        await asyncio.sleep(0.01)
+        first.cancel()   # the waiter gives up while the step runs
+        queued.cancel()  # and on one still queued
+        await worker.reset()
+        await worker.submit(None, 0.04)
+        worker.close()
+        pool.close()
+
+    asyncio.run(main())
+    assert len(overlaps) >= 3 and not any(overlaps)

@@ -78,7 +78,11 @@ class FaceWorker:
 
     def _queue(self, fn, *args) -> asyncio.Future:
         """Run fn(*args) in the pool once this face's previous job has finished (whatever its
-        outcome): a face is never stepped by two threads at once, and in submission order."""
+        outcome): a face is never stepped by two threads at once, and in submission order.
+
+        The chain links the worker's own tasks; callers get a shield of theirs, so a caller
+        that stops waiting (a playback cancelled mid-step) cannot cut the chain while the
+        job still runs in its thread."""
         loop = asyncio.get_running_loop()
         previous = self._last
 
@@ -89,8 +93,11 @@ class FaceWorker:
                 raise asyncio.CancelledError("the face was closed")
             return await loop.run_in_executor(self._executor, fn, *args)
 
-        self._last = asyncio.ensure_future(run())
-        return self._last
+        task = asyncio.ensure_future(run())
+        # a job nobody waits for any more must not warn that its outcome was never read
+        task.add_done_callback(lambda t: t.cancelled() or t.exception())
+        self._last = task
+        return asyncio.shield(task)
 
     def submit(self, frame: DenseFrame, dt: float) -> asyncio.Future:
         """Queue one step; the returned future resolves to its Pose. Steps run in order."""
@@ -105,8 +112,10 @@ class FaceWorker:
         await self._queue(lambda: self._face().reset())
 
     def close(self) -> None:
-        """Drop queued steps; a running step finishes (an own pool's thread then ends)."""
+        """Drop queued steps (and the build, if it has not started); a running step
+        finishes (an own pool's thread then ends)."""
         self._closed = True
+        self._face_future.cancel()
         if self._last is not None and not self._last.done():
             self._last.cancel()
         if self._own_executor:

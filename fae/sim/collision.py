@@ -15,7 +15,7 @@ tangent plane there (then once along the gradient), however deep or far it got: 
 step cannot carry skin into or through a bone, and skin slides along a bone instead of
 sticking where it touched it (stopped where it entered, lip skin that touched the teeth
 at a slant stayed caught on them). If it entered from the bone's far side (see below),
-it passes on towards its rest place.
+it passes on towards its hold.
 
 A particle that was already inside (the bone moved onto it) and is less than
 `contact_depth` deep (-depth < phi < 0) is projected onto the surface along the distance
@@ -38,24 +38,27 @@ from __future__ import annotations
 
 import warp as wp
 
+from fae.sim.sdf import GRID_PADDING
+
 # fast math: about 1.5x faster kernels on the CPU; the numpy reference still agrees to 1e-5
 wp.set_module_options({"fast_math": True})
 
-# cosine: skin whose rest place lies more than 120 degrees away from the surface normal is
-# on the bone's wrong side (it passed through a thin bone) and is left to its springs
+# cosine: skin whose hold lies more than 120 degrees away from the surface normal is on the
+# bone's wrong side (it passed through a thin bone) and is left to its springs
 WRONG_SIDE_COS = 0.5
+# metres: a particle this little inside a bone is on its surface (where contact put it)
+ON_SURFACE = 5.0e-4
 # finding where a particle's step entered a bone: sphere-tracing steps, the distance (m) at
 # which the trace has arrived, and halvings of a grazing path's rest (1/32 of it)
 TRACE_STEPS = 8
-# metres: a particle this little inside a bone is on its surface (where contact put it)
-ON_SURFACE = 5.0e-4
 TRACE_TOLERANCE = 1.0e-4
 ENTRY_BISECTIONS = 5
 
 
 @wp.func
 def grid_sample(values: wp.array3d(dtype=float), origin: wp.vec3, spacing: float, p: wp.vec3):
-    """(phi, grad) trilinear in a signed-distance grid; far outside: (1 m, 0)."""
+    """(phi, grad) trilinear in a signed-distance grid; outside it, a lower bound of the
+    distance (to the grid's box plus GRID_PADDING, fae.sim.sdf) and no gradient."""
     g = (p - origin) / spacing
     nx = values.shape[0]
     ny = values.shape[1]
@@ -64,7 +67,14 @@ def grid_sample(values: wp.array3d(dtype=float), origin: wp.vec3, spacing: float
     inside = g[0] >= 0.0 and g[1] >= 0.0 and g[2] >= 0.0
     inside = inside and g[0] <= float(nx - 1) - 1.0e-6 and g[1] <= float(ny - 1) - 1.0e-6
     if not (inside and g[2] <= float(nz - 1) - 1.0e-6):
-        return 1.0, wp.vec3(0.0, 0.0, 0.0)
+        hi = origin + wp.vec3(float(nx - 1), float(ny - 1), float(nz - 1)) * spacing
+        away = wp.vec3(wp.max(wp.max(origin[0] - p[0], p[0] - hi[0]), 0.0),
+                       wp.max(wp.max(origin[1] - p[1], p[1] - hi[1]), 0.0),
+                       wp.max(wp.max(origin[2] - p[2], p[2] - hi[2]), 0.0))
+        dist = wp.length(away) + GRID_PADDING
+        if not (dist >= 0.0):
+            dist = 1.0  # a NaN position
+        return dist, wp.vec3(0.0, 0.0, 0.0)
     i = int(wp.floor(g[0]))
     j = int(wp.floor(g[1]))
     k = int(wp.floor(g[2]))

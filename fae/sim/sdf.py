@@ -18,6 +18,7 @@ import warp as wp
 # (one per client in `fae serve`) of the same head reuses them instead of spending seconds.
 _GRID_CACHE: OrderedDict[bytes, tuple[np.ndarray, np.ndarray, float]] = OrderedDict()
 _GRID_CACHE_SIZE = 8
+GRID_PADDING = 0.01  # metres between a mesh's bounding box and its grid's
 
 
 @wp.kernel
@@ -36,13 +37,14 @@ def _grid_signed_distance(mesh: wp.uint64, origin: wp.vec3, spacing: float, ny: 
         out[tid] = max_dist
 
 
-def signed_distance_grid(V: np.ndarray, F: np.ndarray, cell: float = 0.003, padding: float = 0.01,
-                         max_cells: int = 96, device: str = "cpu") -> tuple[np.ndarray, np.ndarray, float]:
+def signed_distance_grid(V: np.ndarray, F: np.ndarray, cell: float = 0.003, max_cells: int = 96,
+                         device: str = "cpu") -> tuple[np.ndarray, np.ndarray, float]:
     """Signed distance to the triangle mesh (V, F) sampled on a regular grid.
 
     V (n, 3) float64 metres, F (m, 3) int. The grid covers the mesh's bounding box plus
-    `padding` metres, with cubic cells of `cell` metres (coarsened so that no axis has more
-    than `max_cells` samples).
+    GRID_PADDING metres, with cubic cells of `cell` metres (coarsened so that no axis has
+    more than `max_cells` samples); outside it, a point's distance to the grid's box plus
+    GRID_PADDING is a lower bound of its distance to the mesh (what the samplers return).
 
     Returns (values (nx, ny, nz) float32 metres, negative inside; origin (3,) float64
     metres, the position of values[0, 0, 0]; spacing float metres).
@@ -51,13 +53,13 @@ def signed_distance_grid(V: np.ndarray, F: np.ndarray, cell: float = 0.003, padd
     F = np.asarray(F, dtype=np.int32)
     if V.ndim != 2 or V.shape[1] != 3 or F.ndim != 2 or F.shape[1] != 3 or len(F) == 0:
         raise ValueError(f"signed_distance_grid: expected V (n, 3) and F (m, 3), got {V.shape} and {F.shape}")
-    key = hashlib.blake2b(V.tobytes() + F.tobytes() + repr((V.shape, F.shape, cell, padding, max_cells,
+    key = hashlib.blake2b(V.tobytes() + F.tobytes() + repr((V.shape, F.shape, cell, max_cells,
                                                             str(device))).encode(), digest_size=20).digest()
     if key in _GRID_CACHE:
         _GRID_CACHE.move_to_end(key)
         return _GRID_CACHE[key]
-    lo = V.min(axis=0) - padding
-    hi = V.max(axis=0) + padding
+    lo = V.min(axis=0) - GRID_PADDING
+    hi = V.max(axis=0) + GRID_PADDING
     spacing = max(cell, float((hi - lo).max()) / (max_cells - 1))
     dims = np.ceil((hi - lo) / spacing).astype(int) + 1
     mesh = wp.Mesh(points=wp.array(V.astype(np.float32), dtype=wp.vec3, device=device),
@@ -79,11 +81,13 @@ def signed_distance_grid(V: np.ndarray, F: np.ndarray, cell: float = 0.003, padd
 def sample_grid(values: np.ndarray, origin: np.ndarray, spacing: float, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Trilinear signed distance and its gradient at `points` (n, 3) metres (numpy).
 
-    Points outside the grid get a large positive distance and a zero gradient.
+    Points outside the grid get a lower bound of their distance (to the grid's box, plus
+    GRID_PADDING; 1 m for a NaN point) and a zero gradient.
     Returns (phi (n,) metres, grad (n, 3)).
     """
     dims = np.array(values.shape)
-    g = (np.asarray(points, dtype=np.float64) - origin) / spacing
+    points = np.asarray(points, dtype=np.float64)
+    g = (points - origin) / spacing
     inside = np.all((g >= 0.0) & (g <= dims - 1.000001), axis=1)  # NaN is outside
     gi = np.clip(np.nan_to_num(g), 0.0, dims - 1.000001)
     i0 = np.floor(gi).astype(int)
@@ -105,6 +109,8 @@ def sample_grid(values: np.ndarray, origin: np.ndarray, spacing: float, points: 
                 grad[:, 1] += wx * sy * wz * v
                 grad[:, 2] += wx * wy * sz * v
     grad /= spacing
-    phi[~inside] = 1.0
+    hi = origin + (dims - 1) * spacing
+    away = np.linalg.norm(np.maximum(np.maximum(origin - points, points - hi), 0.0), axis=1) + GRID_PADDING
+    phi[~inside] = np.nan_to_num(away[~inside], nan=1.0)
     grad[~inside] = 0.0
     return phi, grad
