@@ -17,9 +17,10 @@ Choice per FAP group (every low-level FAP 3-68 drives something):
 
 Procedure: (1) linear response: the skin's stiffness matrix at rest (springs k n n^T plus
 anchors) is factorized once (scipy splu); each control's rest force field gives the skin's
-displacement per unit control (with the unsimulated skin carried by its hold). (2) per FAP and side, bounded least squares
-(scipy lsq_linear) for the controls moving its feature point by one metre along the
-standard direction. (3) nonlinear correction: the real solver is run at +-half range (the
+displacement per unit control (with the unsimulated skin carried by its hold). (2) per
+FAP and side, bounded least squares (scipy lsq_linear) for the controls moving its feature
+point by one metre along the standard direction while, for a sided FAP, its mirror point
+stays still (those rows weighted by how far apart the two points are, see MIRROR_NEAR). (3) nonlinear correction: the real solver is run at +-half range (the
 operating amplitude verify-faps checks) for FAPs in batches whose footprints, grown by two
 edge rings, do not overlap (the jaw FAPs alone); the settled displacement along the
 direction is measured and the table scale at +-half and full range multiplied by
@@ -53,7 +54,9 @@ from fae.mpeg4.fdps import mirror_point
 from fae.sim.build import PullField, mesh_edges, skin_model, skin_positions
 from fae.sim.reference import ReferenceSolver
 
-FORMAT_VERSION = 1
+# 2: the skin solver with implicit anchors, blended holds and derived ear tables; a mapping
+# calibrated for another solver moves the feature points by other amounts
+FORMAT_VERSION = 2
 JAW_CONTROLS = 3
 FIELD_ONLY_FAPS = (19, 20, 21, 22)
 # pull-field radius per FAP, in units of ES0

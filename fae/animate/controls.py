@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from fae.animate.calibrate import FORMAT_VERSION, JAW_CONTROLS
+from fae.animate.calibrate import FORMAT_VERSION, JAW_CONTROLS, field_faps
 from fae.mpeg4.faps import FAP_COUNT
 
 ACTIVATION_LIMIT = 50.0
@@ -38,6 +38,9 @@ class FapControls:
         if version != FORMAT_VERSION or nj != JAW_CONTROLS or nm != len(face.muscles):
             raise MappingMismatch(f"fap_mapping: layout {layout.tolist()} does not match this head "
                                   f"({len(face.muscles)} muscles, format {FORMAT_VERSION})")
+        fields = np.asarray(m["field_faps"]).astype(int).tolist()
+        if fields != field_faps(face):
+            raise MappingMismatch(f"fap_mapping: pull fields for FAPs {fields}, this head needs {field_faps(face)}")
         if model is not None and model.muscle_count != nm + nf:
             raise MappingMismatch(f"fap_mapping: {nm + nf} muscles and fields, the simulation has {model.muscle_count}")
         self.gain_pos = np.asarray(m["gain_pos"], dtype=np.float64)

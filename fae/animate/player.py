@@ -102,7 +102,7 @@ class Player:
         return self.face.fap_mapping
 
     def reset(self) -> None:
-        """Back to the neutral face at rest (in place: the solver's recorded graphs stay valid)."""
+        """Back to the neutral face at rest (in place: the solver's recorded launches stay valid)."""
         if not hasattr(self, "state"):
             self.state, self.control, self._rest = self.sim.state(), self.sim.control(), self.sim.state()
         self.state.assign(self._rest)

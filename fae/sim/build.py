@@ -171,8 +171,9 @@ def jaw_weights(face: FaceModel, deep: np.ndarray, A: sp.csr_matrix, params: dic
     as are the lower lip and chin (by the jaw) and the upper lip (by the skull), where the
     head has those regions (both lips lie over both rows of teeth), while the mouth's lining
     (its region) is held by neither alone: it stretches from lip to lip as the mouth opens,
-    not just over the thin band between the teeth; the neck beyond three times `jaw_reach`
-    from the mandible is held by the skull (it hangs from the skull and the body, not the jaw).
+    not just over the thin band between the teeth; skin farther than three times `jaw_reach`
+    from the mandible is held by the skull (the neck hangs from the skull and the body, not
+    the jaw).
     Everywhere else, the mouth's corners included (within `jaw_corner_blend` times the mouth
     width of feature points 2.4 and 2.5, where upper and lower lip meet) and `jaw_blend_rings`
     edge rings around any seam between skin held by one bone and by the other, the weight is the
@@ -447,7 +448,6 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
         return wp.array(np.ascontiguousarray(x), dtype=dtype, device=device)
 
     skin_particle = np.where(active, local, -1)
-    kinematic = np.flatnonzero((skin_particle < 0) & (jaw > 0.0))
     ma = muscle_arrays
     return SkinModel(
         device=device,
@@ -486,10 +486,6 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
         sdf_spacing=sdf_spacing,
         skin_particle=skin_particle,
         skin_jaw=jaw,
-        skin_simulated=np.flatnonzero(skin_particle >= 0),
-        skin_kinematic=kinematic,
-        skin_kinematic_rest=V[kinematic],
-        skin_kinematic_jaw=jaw[kinematic, None],
         skin_rest=V.copy(),
         dt_max=dt_max,
         damping=float(p["drag"]),
@@ -502,11 +498,15 @@ def skin_positions(model: SkinModel, particle_q: np.ndarray, bone_rotation: np.n
                    bone_translation: np.ndarray | None = None) -> np.ndarray:
     """(V, 3) float64 metres: skin vertices from epidermis particle positions (P, 3) and the
     bone poses (BONE_COUNT, 3, 3), (BONE_COUNT, 3) (None: at rest). Skin that is not
-    simulated moves with its hold: rest + jaw weight x (jaw pose applied to rest - rest)."""
-    out = model.skin_rest.copy()
-    if bone_rotation is not None and len(model.skin_kinematic):
-        k, rest = model.skin_kinematic, model.skin_kinematic_rest
-        R, t = np.asarray(bone_rotation[1]), np.asarray(bone_translation[1])
-        out[k] += model.skin_kinematic_jaw * (rest @ (R - np.eye(3)).T + t)
-    out[model.skin_simulated] = particle_q[model.skin_particle[model.skin_simulated]]
+    simulated is carried by its hold: (1 - w) x (skull pose of rest) + w x (jaw pose of rest),
+    w its jaw weight (the numpy twin of fae.sim.skin)."""
+    rest = model.skin_rest
+    if bone_rotation is None:
+        out = rest.copy()
+    else:
+        R, t = np.asarray(bone_rotation, dtype=np.float64), np.asarray(bone_translation, dtype=np.float64)
+        w = model.skin_jaw[:, None]
+        out = (rest @ R[0].T + t[0]) * (1.0 - w) + (rest @ R[1].T + t[1]) * w
+    sim = model.skin_particle >= 0
+    out[sim] = particle_q[model.skin_particle[sim]]
     return out

@@ -1,7 +1,7 @@
 """SkinModel, State and Control: the static arrays, the changing state and the inputs of the skin.
 
 Reads like Warp's simulators: a `SkinModel` holds what never changes while a head plays
-(rest positions, masses, springs, bone anchors, muscle influences, skull distance grids),
+(rest positions, masses, springs, holds and anchors, muscle influences, bone distance grids),
 a `State` what does (particle positions and velocities), a `Control` the inputs of one
 step (muscle activations, bone poses). A solver maps ``(model, state_in, control, dt)`` to
 ``state_out``. Arrays are named ``<thing>_<attr>``, counts ``<thing>_count``.
@@ -13,7 +13,7 @@ teeth); a bone pose maps rest positions to current positions, x' = R x + t.
 Muscles are the face model's Waters muscles plus directional pull fields (kind 2): a
 pull field pushes its particles along a fixed direction of the head frame, weighted by a
 radial fall-off around a feature point; the runtime uses them for motions no muscle makes
-(eyelids, ears, nostrils, lip protrusion), see :mod:`fae.animate.calibrate`.
+(eyelids, nostrils, lip protrusion), see :mod:`fae.animate.calibrate`.
 """
 
 from __future__ import annotations
@@ -38,8 +38,8 @@ class SkinModel:
     """Static arrays of the 3-layer mass-spring-damper skin (Warp arrays on `device`).
 
     Particles are the simulated subset of the three layers (see `particle_layer`); skin
-    vertices far from every muscle and from the jaw never move relative to the head and
-    are not simulated (`skin_particle` is -1 for them).
+    vertices far from every muscle are not simulated (`skin_particle` is -1 for them) and
+    are carried by their hold (`skin_jaw`, fae.sim.build.skin_positions).
 
     particle_q          (P,) vec3  metres, rest positions
     particle_mass       (P,) float kg
@@ -78,10 +78,6 @@ class SkinModel:
     sdf_spacing         (BONE_COUNT,) numpy float64 metres, cell size
     skin_particle       (V,) numpy int, epidermis particle of each skin vertex or -1
     skin_jaw            (V,) numpy float, jaw weight of each skin vertex's hold
-    skin_simulated      (S,) numpy int, skin vertices with an epidermis particle
-    skin_kinematic      (K,) numpy int, unsimulated skin vertices whose hold follows the jaw
-    skin_kinematic_rest (K, 3) numpy float64 metres, their rest positions
-    skin_kinematic_jaw  (K, 1) numpy float64, their jaw weights
     skin_rest           (V, 3) numpy float64 metres, skin at rest
     dt_max              seconds: the largest stable substep (see solver)
     damping             1/s: velocity drag applied implicitly each substep
@@ -123,15 +119,12 @@ class SkinModel:
     sdf_spacing: np.ndarray
     skin_particle: np.ndarray
     skin_jaw: np.ndarray
-    skin_simulated: np.ndarray
-    skin_kinematic: np.ndarray
-    skin_kinematic_rest: np.ndarray
-    skin_kinematic_jaw: np.ndarray
     skin_rest: np.ndarray
     dt_max: float
     damping: float
     jaw_pivot: np.ndarray = field(default_factory=lambda: np.zeros(3))
     jaw_axis: np.ndarray = field(default_factory=lambda: np.array([1.0, 0.0, 0.0]))
+    _skin_arrays: tuple | None = field(default=None, repr=False, compare=False)
 
     def state(self) -> "State":
         """A State at rest, on the model's device."""
@@ -146,6 +139,15 @@ class SkinModel:
             bone_rotation=wp.array(np.tile(np.eye(3, dtype=np.float32), (BONE_COUNT, 1, 1)), dtype=wp.mat33, device=self.device),
             bone_translation=wp.zeros(BONE_COUNT, dtype=wp.vec3, device=self.device),
         )
+
+    def skin_arrays(self) -> tuple[wp.array, wp.array, wp.array]:
+        """(skin_particle (V,) int, skin_rest (V,) vec3, skin_jaw (V,) float) as Warp arrays on
+        the model's device, made once and shared by everything that draws this model's skin."""
+        if self._skin_arrays is None:
+            self._skin_arrays = (wp.array(self.skin_particle.astype(np.int32), dtype=int, device=self.device),
+                                 wp.array(self.skin_rest.astype(np.float32), dtype=wp.vec3, device=self.device),
+                                 wp.array(self.skin_jaw.astype(np.float32), dtype=float, device=self.device))
+        return self._skin_arrays
 
     def numpy_arrays(self) -> dict[str, np.ndarray]:
         """All Warp arrays of the model as numpy arrays (for the reference step and tests)."""

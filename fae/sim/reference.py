@@ -36,15 +36,19 @@ class ReferenceSolver:
         jaw = self.rest @ bone_rotation[1].T + bone_translation[1]
         return head * (1.0 - self.jaw) + jaw * self.jaw
 
-    def forces(self, q: np.ndarray, activation: np.ndarray, bone_rotation: np.ndarray,
-               bone_translation: np.ndarray) -> np.ndarray:
-        """(P, 3) N: springs + anchors + muscles at positions q (P, 3) metres."""
+    def spring_forces(self, q: np.ndarray) -> np.ndarray:
+        """(P, 3) N: the springs' forces at positions q (P, 3) metres."""
         a, P = self.a, self.model.particle_count
         d = q[self.i] - q[self.j]
         length = np.maximum(np.linalg.norm(d, axis=1), 1e-9)
         fs = d * (a["spring_stiffness"] * (1.0 - a["spring_rest_length"] / length))[:, None]
-        f = _accumulate(P, self.j, fs) - _accumulate(P, self.i, fs)
-        f += (self.holds(bone_rotation, bone_translation) - q) * a["particle_anchor_stiffness"][:, None]
+        return _accumulate(P, self.j, fs) - _accumulate(P, self.i, fs)
+
+    def forces(self, q: np.ndarray, activation: np.ndarray, bone_rotation: np.ndarray,
+               bone_translation: np.ndarray) -> np.ndarray:
+        """(P, 3) N: springs + anchors + muscles at positions q (P, 3) metres."""
+        f = self.spring_forces(q)
+        f += (self.holds(bone_rotation, bone_translation) - q) * self.a["particle_anchor_stiffness"][:, None]
         f += self.muscles(q, activation, bone_rotation, bone_translation)[0]
         return f
 
@@ -75,10 +79,11 @@ class ReferenceSolver:
         return _accumulate(P, p, dirs * act[:, None]), np.bincount(p, weights=rate * np.abs(act), minlength=P)
 
     def collide(self, q: np.ndarray, qd: np.ndarray, q_prev: np.ndarray, bone_rotation: np.ndarray,
-                bone_translation: np.ndarray) -> None:
+                bone_translation: np.ndarray, hold: np.ndarray | None = None) -> None:
         """Particles whose step from q_prev reached a bone go back to its surface where they
         entered; particles that were inside already are projected out (in place, as
-        fae.sim.collision.bone_contact)."""
+        fae.sim.collision.bone_contact). hold (P, 3) metres: the particles' holds (None:
+        computed here)."""
         col = np.flatnonzero(self.a["particle_collider"])
         clearance = self.a["particle_clearance"].astype(np.float64)
         for b, values in enumerate(self.a["sdf_values"]):
@@ -94,8 +99,8 @@ class ReferenceSolver:
             beyond = np.sum((local - rest) ** 2, axis=1) >= clearance[col, b] ** 2
             idx, local = col[beyond], local[beyond]
             phi, grad = sample(local)
-            hold = (self.holds(bone_rotation, bone_translation)[idx] - t) @ R
-            hold_out = sample(hold)[0] > 0.0
+            hold_local = ((self.holds(bone_rotation, bone_translation) if hold is None else hold)[idx] - t) @ R
+            hold_out = sample(hold_local)[0] > 0.0
             start = (q_prev[idx] - t) @ R
             phi_s = sample(start)[0]
             n_local = np.zeros((len(idx), 3))
@@ -130,7 +135,7 @@ class ReferenceSolver:
             g = sample(entry)[1]
             glen = np.linalg.norm(g, axis=1)
             ne = np.where((glen > 1e-9)[:, None], g / np.maximum(glen, 1e-300)[:, None], 0.0)
-            to_hold = hold - entry
+            to_hold = hold_local - entry
             far = hold_out & (np.sum(ne * to_hold, axis=1) < -WRONG_SIDE_COS * np.linalg.norm(to_hold, axis=1))
             slide = found & ~far
             slid = local + ne * np.maximum(np.sum((entry - local) * ne, axis=1), 0.0)[:, None]
@@ -141,7 +146,7 @@ class ReferenceSolver:
             new[slide], n_local[slide], moved[slide] = slid[slide], ne[slide], True
 
             # inside before the step too: shallow ones on the side they belong to are projected out
-            to_hold = hold - local
+            to_hold = hold_local - local
             wrong = hold_out & (np.sum(grad * to_hold, axis=1)
                                 < -WRONG_SIDE_COS * np.linalg.norm(grad, axis=1) * np.linalg.norm(to_hold, axis=1))
             active = (phi_s < -ON_SURFACE) & (phi < 0.0) & (phi >= -self.model.contact_depth) & ~wrong
@@ -195,9 +200,10 @@ class ReferenceSolver:
         w = self.inv_mass[:, None]
         fixed = self.inv_mass == 0.0
         hold = self.holds(R, t)
+        ka = self.a["particle_anchor_stiffness"][:, None]
         for _ in range(n):
-            f = self.forces(q, act, R, t)
-            k_muscle = self.muscles(q, act, R, t)[1]
+            f_muscle, k_muscle = self.muscles(q, act, R, t)
+            f = self.spring_forces(q) + (hold - q) * ka + f_muscle
             implicit = 1.0 + h * self.model.damping + h * h * (self.anchor_rate + k_muscle * self.inv_mass)
             qd = (qd + f * w * h) / implicit[:, None]
             qd[fixed] = 0.0
@@ -205,5 +211,5 @@ class ReferenceSolver:
             q = q + qd * h
             q[fixed] = hold[fixed]
             self.layer_order(q, qd, q_prev, R)
-            self.collide(q, qd, q_prev, R, t)
+            self.collide(q, qd, q_prev, R, t, hold)
         return q, qd

@@ -46,9 +46,7 @@ class SkinOutput:
     def __init__(self, model: SkinModel):
         self.model = model
         d = model.device
-        self.skin_particle = wp.array(model.skin_particle.astype(np.int32), dtype=int, device=d)
-        self.skin_rest = wp.array(model.skin_rest.astype(np.float32), dtype=wp.vec3, device=d)
-        self.skin_jaw = wp.array(model.skin_jaw.astype(np.float32), dtype=float, device=d)
+        self.skin_particle, self.skin_rest, self.skin_jaw = model.skin_arrays()
         self.pose_rotation = wp.array(np.eye(3, dtype=np.float32)[None], dtype=wp.mat33, device=d)
         self.pose_translation = wp.zeros(1, dtype=wp.vec3, device=d)
         self.out = wp.zeros(len(model.skin_rest), dtype=wp.vec3, device=d)

@@ -30,7 +30,7 @@ ends on its surface, skin the bone moved onto is pushed out on the side it belon
 (fae.sim.collision). Kernels are compiled with fast math.
 
 Per substep the solver replays two recorded launches (Warp's `record_cmd`), made once per
-(states, control): a plain `wp.launch` packs its 40 arguments anew each time, which cost
+(states, control): a plain `wp.launch` packs its 36 arguments anew each time, which cost
 as much as the springs themselves. (Warp's graph capture would replay a whole frame in one
 call, but on the CPU it records every Warp call of the process while it captures, so a
 second face being built in another thread, as `fae serve` does, breaks it.)

@@ -6,8 +6,9 @@ springs). The springs carry no damping of their own: the solver's implicit drag 
 the skin (an explicit damper along each spring would shrink the stable substep).
 
 On the CPU each Warp thread evaluates `chunk` consecutive springs: a launch copies the
-kernel's arguments once per thread, which cost more than the spring itself (163k springs:
-3.8 ms one per thread, 1.5 ms in chunks of 32). On CUDA a chunk is one spring.
+kernel's arguments once per thread, which cost more than the spring itself (the full
+skin's 163k springs: 3.8 ms one per thread, 1.5 ms in chunks of 32). On CUDA a chunk is one
+spring.
 """
 
 from __future__ import annotations
@@ -29,6 +30,6 @@ def eval_springs(particle_q: wp.array(dtype=wp.vec3), spring_indices: wp.array(d
         d = particle_q[i] - particle_q[j]
         length = wp.max(wp.length(d), 1.0e-9)
         f = d * (spring_stiffness[s] * (1.0 - spring_rest_length[s] / length))
-        # on the CPU a thread runs alone, so plain adds; on CUDA atomics
+        # plain adds on the CPU (a launch runs its threads one after another), atomics on CUDA
         wp.atomic_sub(particle_f, i, f)
         wp.atomic_add(particle_f, j, f)
