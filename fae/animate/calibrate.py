@@ -102,13 +102,14 @@ def geodesic_distance(face, point, limit: float, graph: sp.csr_matrix | None = N
     return np.min(d + np.linalg.norm(V[tri] - p, axis=1)[:, None], axis=0)
 
 
-def pull_fields(face, fapu: dict[str, float]) -> list[PullField]:
-    """The pull fields of `face`, one per FAP of `field_faps`, in that order."""
+def pull_fields(face, fapu: dict[str, float], graph: sp.csr_matrix | None = None) -> list[PullField]:
+    """The pull fields of `face`, one per FAP of `field_faps`, in that order (graph:
+    `edge_length_graph(face)`, when already at hand)."""
     es0 = fapu["ES"] * 1024.0
     names = list(face.region_names)
     region = np.asarray(face.skin_region)
     faces = np.asarray(face.skin_faces)
-    graph = edge_length_graph(face)
+    graph = edge_length_graph(face) if graph is None else graph
     out = []
     for k in field_faps(face):
         point = face.feature_points[FAP_FEATURE_POINT[k - 1]]

@@ -63,18 +63,16 @@ class Player:
     def __init__(self, model, device: str = "cpu"):
         face = model
         try:
-            fields = pull_fields(face, fapu_of(face))
-            self.sim = skin_model(face, device=device, fields=fields)
-            self.controls = FapControls(face, self.sim)
+            FapControls(face)
         except MappingMismatch:
             face = calibrate(face, device=device)
-            fields = pull_fields(face, fapu_of(face))
-            self.sim = skin_model(face, device=device, fields=fields)
-            self.controls = FapControls(face, self.sim)
         self.face = face
         self.fapu = fapu_of(face)
+        graph = edge_length_graph(face)
+        self.sim = skin_model(face, device=device, fields=pull_fields(face, self.fapu, graph))
+        self.controls = FapControls(face, self.sim)
         self.rig = RigidRig(face, self.fapu)
-        tables = list(face.face_def_tables) + ear_tables(face, self.fapu, edge_length_graph(face))
+        tables = list(face.face_def_tables) + ear_tables(face, self.fapu, graph)
         self.facedef = FaceDefOffsets(tables, face.skin_vertex_count)
         self.solver = SkinSolver(self.sim)
         self.skin = SkinOutput(self.sim)

@@ -12,6 +12,7 @@ import numpy as np
 import warp as wp
 
 from fae.sim.model import Control, SkinModel, State
+from fae.sim.solver import LaunchCache
 
 wp.set_module_options({"fast_math": True})
 
@@ -51,7 +52,7 @@ class SkinOutput:
         self.pose_translation = wp.zeros(1, dtype=wp.vec3, device=d)
         self.out = wp.zeros(len(model.skin_rest), dtype=wp.vec3, device=d)
         self.chunk = CPU_VERTEX_CHUNK if wp.get_device(d).is_cpu else 1
-        self._launches: dict[tuple[int, int], wp.Launch] = {}
+        self._launches = LaunchCache(size=4)
 
     def positions(self, state: State, control: Control, pose: np.ndarray | None = None) -> np.ndarray:
         """(V, 3) float64 metres: the skin of `state` under the bones of `control`, carried by
@@ -63,17 +64,10 @@ class SkinOutput:
         else:
             self.pose_rotation.assign(P[None, :3, :3].astype(np.float32))
             self.pose_translation.assign(P[None, :3, 3].astype(np.float32))
-        key = (id(state), id(control))
-        launch = self._launches.get(key)
-        if launch is None:
-            n = len(self.model.skin_rest)
-            launch = wp.launch(skin_vertices, dim=-(-n // self.chunk), device=self.model.device, record_cmd=True,
-                               inputs=[state.particle_q, self.skin_particle, self.skin_rest, self.skin_jaw,
-                                       control.bone_rotation, control.bone_translation, self.pose_rotation,
-                                       self.pose_translation, n, self.chunk],
-                               outputs=[self.out])
-            # the launch holds the arrays; keep the objects too, so that their ids stay theirs
-            self._launches = {key: launch}
-            self._owners = (state, control)
-        launch.launch()
+        n = len(self.model.skin_rest)
+        self._launches.get((state, control), lambda: wp.launch(
+            skin_vertices, dim=-(-n // self.chunk), device=self.model.device, record_cmd=True,
+            inputs=[state.particle_q, self.skin_particle, self.skin_rest, self.skin_jaw, control.bone_rotation,
+                    control.bone_translation, self.pose_rotation, self.pose_translation, n, self.chunk],
+            outputs=[self.out])).launch()
         return self.out.numpy().astype(np.float64)

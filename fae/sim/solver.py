@@ -79,6 +79,28 @@ def stable_substep(spring_rate: float, anchor_rate: float, damping: float, cfl: 
     return min(1.0, (b + math.sqrt(b * b + 4.0 * cfl * cfl * a)) / a)
 
 
+class LaunchCache:
+    """Recorded launches (or tuples of them) by the objects whose arrays they were recorded
+    with, the `size` most recently used. An entry keeps those objects alive, so that the ids
+    in its key cannot be reused by others while it is cached."""
+
+    def __init__(self, size: int = _LAUNCH_CACHE_SIZE):
+        self.size = size
+        self._entries: OrderedDict[tuple, tuple] = OrderedDict()
+
+    def get(self, owners: tuple, record):
+        """The entry for `owners` (a tuple of objects), made by `record()` if new."""
+        key = tuple(id(o) for o in owners)
+        entry = self._entries.get(key)
+        if entry is None:
+            entry = self._entries[key] = (record(), owners)
+            while len(self._entries) > self.size:
+                self._entries.popitem(last=False)
+        else:
+            self._entries.move_to_end(key)
+        return entry[0]
+
+
 class SkinSolver:
     """Advances a SkinModel's State under a Control; allocates its scratch arrays once."""
 
@@ -96,35 +118,26 @@ class SkinSolver:
             o = model.sdf_origin[b] if values is not None else np.zeros(3)
             self._grids += [no_grid if values is None else values, wp.vec3(*(float(c) for c in o)),
                             float(model.sdf_spacing[b]) if values is not None else 1.0]
-        self._launches: OrderedDict[tuple, tuple] = OrderedDict()
+        self._launches = LaunchCache()
         # the muscles' points and axes carried by their bones, once per step
         self._muscle_point = wp.zeros(max(model.muscle_count, 1), dtype=wp.vec3, device=model.device)
         self._muscle_axis_u = wp.zeros_like(self._muscle_point)
         self._muscle_axis_v = wp.zeros_like(self._muscle_point)
-        self._pose_launches: OrderedDict[int, tuple] = OrderedDict()
+        self._pose_launches = LaunchCache()
 
     def _pose_muscles(self, control: Control) -> None:
         m = self.model
         if m.muscle_count == 0:
             return
-        entry = self._pose_launches.get(id(control))
-        if entry is None:
-            launch = wp.launch(_muscles.pose_muscles, dim=m.muscle_count, device=m.device, record_cmd=True,
-                               inputs=[m.muscle_bone, m.muscle_point, m.muscle_axis_u, m.muscle_axis_v,
-                                       control.bone_rotation, control.bone_translation],
-                               outputs=[self._muscle_point, self._muscle_axis_u, self._muscle_axis_v])
-            entry = self._pose_launches[id(control)] = (launch, control)  # keeps the id the control's
-            while len(self._pose_launches) > _LAUNCH_CACHE_SIZE:
-                self._pose_launches.popitem(last=False)
-        else:
-            self._pose_launches.move_to_end(id(control))
-        entry[0].launch()
+        self._pose_launches.get((control,), lambda: wp.launch(
+            _muscles.pose_muscles, dim=m.muscle_count, device=m.device, record_cmd=True,
+            inputs=[m.muscle_bone, m.muscle_point, m.muscle_axis_u, m.muscle_axis_v,
+                    control.bone_rotation, control.bone_translation],
+            outputs=[self._muscle_point, self._muscle_axis_u, self._muscle_axis_v])).launch()
 
-    def _substep_launches(self, src: State, dst: State, control: Control, h: float) -> tuple:
-        """(springs, particles) recorded launches from src to dst, their step set to h."""
-        key = (id(src), id(dst), id(control))
-        entry = self._launches.get(key)
-        if entry is None:
+    def _substep_launches(self, src: State, dst: State, control: Control, h: float) -> list:
+        """[springs, particles, h] recorded launches from src to dst, their step set to h."""
+        def record() -> list:
             m = self.model
             springs = wp.launch(_springs.eval_springs, dim=-(-m.spring_count // self.spring_chunk), device=m.device,
                                 inputs=[src.particle_q, m.spring_indices, m.spring_rest_length, m.spring_stiffness,
@@ -141,13 +154,9 @@ class SkinSolver:
                         m.particle_collider, m.particle_clearance, *self._grids, float(m.contact_depth),
                         float(m.damping), float(h), m.particle_count, self.particle_chunk],
                 outputs=[dst.particle_q, dst.particle_qd], record_cmd=True)
-            # the entry keeps the states and control alive, so that their ids stay theirs
-            entry = [springs, particles, h, (src, dst, control)]
-            self._launches[key] = entry
-            while len(self._launches) > _LAUNCH_CACHE_SIZE:
-                self._launches.popitem(last=False)
-        else:
-            self._launches.move_to_end(key)
+            return [springs, particles, h]
+
+        entry = self._launches.get((src, dst, control), record)
         if entry[2] != h:
             entry[1].set_param_by_name("dt", float(h))
             entry[2] = h
