@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
-import warp as wp
+from fae.warp_setup import wp
 
 from fae.adapt.query import init_warp
 

@@ -9,16 +9,15 @@ Points go in and come out as float64 numpy arrays; Warp works in float32 interna
 from __future__ import annotations
 
 import numpy as np
-import warp as wp
+from fae.warp_setup import wp
 
 _initialized = False
 
 
 def init_warp() -> None:
-    """Initialize Warp once (quietly: warnings and errors only)."""
+    """Initialize Warp once (configured by fae.warp_setup)."""
     global _initialized
     if not _initialized:
-        wp.config.log_level = 30  # warnings and above
         wp.init()
         _initialized = True
 

@@ -1,7 +1,3 @@
 """The skin simulation: Warp kernels (one file per physics concern) and their numpy twin."""
 
-import warp as wp
-
-# Warp reports every module load on stdout at its default level; a player's output is the
-# user's, so keep to warnings and errors.
-wp.config.log_level = 30
+import fae.warp_setup  # noqa: F401  (Warp's configuration before any kernel is built)

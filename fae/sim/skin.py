@@ -12,7 +12,7 @@ import numpy as np
 import warp as wp
 
 from fae.sim.model import Control, SkinModel, State
-from fae.sim.solver import LaunchCache
+from fae.sim.solver import LaunchCache, call_first_alone
 
 wp.set_module_options({"fast_math": True})
 
@@ -52,6 +52,12 @@ class SkinOutput:
         self.pose_translation = wp.zeros(1, dtype=wp.vec3, device=d)
         self.out = wp.zeros(len(model.skin_rest), dtype=wp.vec3, device=d)
         self.chunk = CPU_VERTEX_CHUNK if wp.get_device(d).is_cpu else 1
+        self._launches = LaunchCache(size=4)
+        call_first_alone(("SkinOutput", str(wp.get_device(d))), self._first_positions)
+
+    def _first_positions(self) -> None:
+        """The skin at rest once, to run the kernel once (see fae.sim.solver.call_first_alone)."""
+        self.positions(self.model.state(), self.model.control())
         self._launches = LaunchCache(size=4)
 
     def positions(self, state: State, control: Control, pose: np.ndarray | None = None) -> np.ndarray:

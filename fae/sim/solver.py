@@ -45,6 +45,7 @@ frame in C on one core, more than the whole explicit frame.
 from __future__ import annotations
 
 import math
+import threading
 from collections import OrderedDict
 
 import numpy as np
@@ -77,6 +78,27 @@ def stable_substep(spring_rate: float, anchor_rate: float, damping: float, cfl: 
     if a <= 0.0:
         return 1.0
     return min(1.0, (b + math.sqrt(b * b + 4.0 * cfl * cfl * a)) / a)
+
+
+_first_calls_lock = threading.Lock()
+_first_calls_done: set = set()
+
+
+def call_first_alone(key, fn) -> None:
+    """Run fn() unless a call for `key` already finished in this process; no two such
+    first calls run at once, and later ones wait for the first to finish.
+
+    Warp's CPU backend crashed (a segfault inside the kernel) when threads entered a kernel
+    for the first time at once: ten faces of `fae serve` stepping their first frames
+    together crashed the server in 4 of 6 runs. Once each kernel has run, faces step in
+    several threads safely. Solvers and skin outputs run their kernels once through this
+    when made (fae.sim.skin)."""
+    if key in _first_calls_done:
+        return
+    with _first_calls_lock:
+        if key not in _first_calls_done:
+            fn()
+            _first_calls_done.add(key)
 
 
 class LaunchCache:
@@ -124,6 +146,13 @@ class SkinSolver:
         self._muscle_axis_u = wp.zeros_like(self._muscle_point)
         self._muscle_axis_v = wp.zeros_like(self._muscle_point)
         self._pose_launches = LaunchCache()
+        call_first_alone(("SkinSolver", str(wp.get_device(model.device))), self._first_step)
+
+    def _first_step(self) -> None:
+        """One step at rest, to run every kernel once (see `call_first_alone`)."""
+        state = self.model.state()
+        self.step(self.model, state, self.model.control(), self.model.dt_max, state)
+        self._launches, self._pose_launches = LaunchCache(), LaunchCache()
 
     def _pose_muscles(self, control: Control) -> None:
         m = self.model

@@ -1,0 +1,21 @@
+"""Warp, configured once for all of fae's kernels (import `wp` from here).
+
+fae runs its CPU kernels from several threads at once (a server's faces step on a pool of
+threads; Warp releases the interpreter lock during a launch). Each kernel's first call is
+made alone (fae.sim.solver.call_first_alone): concurrent first calls crashed. And on
+x86-64, Warp's default (`config.enable_tiles_in_stack_memory` True) points one static
+variable, shared by all threads, at the running launch's tile storage, and every launch
+writes through it as it starts: with two launches at once, that write can land in another
+thread's stack. fae's kernels use no tiles, so the option is left to Warp's automatic
+choice, which enables it only on AArch64, where the pointer lives in a register of each
+thread.
+"""
+
+import warp as wp
+
+wp.config.enable_tiles_in_stack_memory = None
+# Warp reports every module load on stdout at its default level; a player's output is the
+# user's, so keep to warnings and errors.
+wp.config.log_level = 30
+
+__all__ = ["wp"]
