@@ -284,3 +284,25 @@ def test_served_poses_are_the_players_own_when_the_client_waits_for_each_ack(hea
         np.testing.assert_allclose(event.pose.skin_vertices, skin, rtol=0, atol=1e-9)
     moved = np.linalg.norm(direct[-1] - direct[0], axis=1).max()
     assert moved > 1e-4  # the frames do move the face (metres)
+
+
+def test_ten_clients_starting_at_once_are_all_served_by_the_real_player(head):
+    """Ten clients connecting and flooding at once: ten faces built and stepped on the
+    server's pool together; every frame acknowledged, a clean stop. (Concurrent first steps
+    of prebuilt faces, which crashed the server, are tested in test_sim_threads.)"""
+    text = (REPO / "fap_streams" / "expressions.fap").read_text()
+    _, frames = split_fap_text(text)
+    proc = ServeProcess("--head", str(head))
+    try:
+        async def main():
+            return await asyncio.gather(*[send_fap(text, port=proc.port, rate="max", timeout=120) for _ in range(10)])
+
+        reports = run(main(), timeout=300)
+        assert proc.proc.poll() is None, "".join(proc.lines)
+        code, err = proc.stop(signal.SIGTERM)
+    finally:
+        if proc.proc.poll() is None:
+            proc.proc.kill()
+    for report in reports:
+        assert report.complete and report.frames_ok == len(frames), report.summary()
+    assert code == 0 and "Traceback" not in err, err

@@ -4,7 +4,9 @@ Baseline, measured in the same run: the same face stepped directly in-process (n
 no parsing), one step per frame. The clients run in a separate process from the server.
 Throughput runs send as fast as the server takes frames; paced runs send each client's
 frames at each rate of --paced-fps (25 frames/s, the sample streams' own, and 100).
-Latency is frame sent -> its `ok` read (positions ready). When frames arrive faster than
+Paced clients start together (in phase: every client's frame k is sent at the same moment,
+the worst case) and, in a second run, at random moments within one frame period, as
+independent programs would. Latency is frame sent -> its `ok` read (positions ready). When frames arrive faster than
 a face steps, the server coalesces them (one step with the latest held values; see
 docs/protocol.md): the output shows frames vs face steps.
 
@@ -84,8 +86,9 @@ def direct_rate(factory, text: str, seconds: float = 2.0) -> float:
     return n / (time.perf_counter() - t0)
 
 
-async def served(factory, clients: int, text: str, rate: str, spare_faces: int = 0):
-    """Serve `clients` concurrent streams of `text` sent by a separate client process."""
+async def served(factory, clients: int, text: str, rate: str, spare_faces: int = 0, phases: str = "same"):
+    """Serve `clients` concurrent streams of `text` sent by a separate client process
+    (`phases` "same": all start at once; "random": each within one frame period)."""
     server = FapServer(factory, port=0, spare_faces=spare_faces)
     await server.start()
     viewer = server.subscribe(maxsize=8)  # a lossy subscriber, as a viewer would be
@@ -94,7 +97,8 @@ async def served(factory, clients: int, text: str, rate: str, spare_faces: int =
     try:
         proc = await asyncio.create_subprocess_exec(
             sys.executable, __file__, "--client", handle.name, "--port", str(server.port),
-            "--clients", str(clients), "--rate", rate, stdout=asyncio.subprocess.PIPE)
+            "--clients", str(clients), "--rate", rate, "--phases", phases,
+            stdout=asyncio.subprocess.PIPE)
         out, _ = await proc.communicate()
     finally:
         Path(handle.name).unlink()
@@ -107,11 +111,18 @@ async def served(factory, clients: int, text: str, rate: str, spare_faces: int =
     return result["frames_per_s"], result["p50_ms"], result["p99_ms"], stats["native_frames"], stats["native_steps"]
 
 
-async def client_main(path: str, port: int, clients: int, rate: str) -> dict:
+async def client_main(path: str, port: int, clients: int, rate: str, phases: str = "same") -> dict:
     """The client side: `clients` concurrent streams of one file; frames/s and latency."""
     text = Path(path).read_text()
+    period = 1.0 / float(text.split(maxsplit=3)[2])  # the header's frame rate
+    offsets = np.random.default_rng(7).uniform(0.0, period, clients) if phases == "random" else np.zeros(clients)
+
+    async def one(offset: float):
+        await asyncio.sleep(offset)
+        return await send_fap(text, port=port, rate=rate, timeout=300)
+
     t0 = time.perf_counter()
-    reports = await asyncio.gather(*[send_fap(text, port=port, rate=rate, timeout=300) for _ in range(clients)])
+    reports = await asyncio.gather(*[one(float(o)) for o in offsets])
     wall = time.perf_counter() - t0
     bad = [r.summary() for r in reports if not r.complete]
     if bad:
@@ -136,9 +147,10 @@ def main() -> int:
     ap.add_argument("--port", type=int, default=0, help=argparse.SUPPRESS)
     ap.add_argument("--clients", type=int, default=1, help=argparse.SUPPRESS)
     ap.add_argument("--rate", default="max", help=argparse.SUPPRESS)
+    ap.add_argument("--phases", default="same", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.client:
-        print(json.dumps(asyncio.run(client_main(args.client, args.port, args.clients, args.rate))))
+        print(json.dumps(asyncio.run(client_main(args.client, args.port, args.clients, args.rate, args.phases))))
         return 0
     if not FAP.is_file():
         print(f"bench_serve: {FAP} not found", file=sys.stderr)
@@ -166,10 +178,12 @@ def main() -> int:
         print(f"{clients:2d} client(s), max rate: {fps:,.0f} frames/s ingested ({fps / base:.2f}x baseline), "
               f"{frames} frames in {steps} face steps, latency p50 {p50:.2f} ms p99 {p99:.2f} ms")
     for rate in (float(r) for r in args.paced_fps.split(",")):
-        for clients in (1, 10):
+        for clients, phases in ((1, "same"), (10, "same"), (10, "random")):
             paced = long_stream(int(max(rate, 25.0) * 4), rate)
-            fps, p50, p99, frames, steps = asyncio.run(served(factory, clients, paced, "realtime", spare_faces=clients))
-            print(f"{clients:2d} client(s), paced {rate:g} frames/s each: {fps:,.0f} frames/s, "
+            fps, p50, p99, frames, steps = asyncio.run(served(factory, clients, paced, "realtime", spare_faces=clients,
+                                                              phases=phases))
+            how = "" if clients == 1 else (" in phase" if phases == "same" else " at random phases")
+            print(f"{clients:2d} client(s), paced {rate:g} frames/s each{how}: {fps:,.0f} frames/s, "
                   f"{frames} frames in {steps} face steps, latency p50 {p50:.2f} ms p99 {p99:.2f} ms")
     return 0
 
