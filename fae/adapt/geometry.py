@@ -13,6 +13,9 @@ from fae.warp_setup import wp
 
 from fae.adapt.query import init_warp
 
+# nothing here is differentiated: no adjoint code to compile
+wp.set_module_options({"enable_backward": False})
+
 
 @wp.kernel
 def _face_sums_kernel(V: wp.array(dtype=wp.vec3d), F: wp.array(dtype=wp.int32), normal: wp.array(dtype=wp.vec3d),

@@ -11,6 +11,9 @@ from __future__ import annotations
 import numpy as np
 from fae.warp_setup import wp
 
+# nothing here is differentiated: no adjoint code to compile
+wp.set_module_options({"enable_backward": False})
+
 _initialized = False
 
 

@@ -14,6 +14,9 @@ from collections import OrderedDict
 import numpy as np
 import warp as wp
 
+# nothing here is differentiated: no adjoint code to compile
+wp.set_module_options({"enable_backward": False})
+
 # Grids already computed in this process, by mesh content and grid settings: every Player
 # (one per client in `fae serve`) of the same head reuses them instead of spending seconds.
 _GRID_CACHE: OrderedDict[bytes, tuple[np.ndarray, np.ndarray, float]] = OrderedDict()

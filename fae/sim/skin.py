@@ -14,7 +14,8 @@ import warp as wp
 from fae.sim.model import Control, SkinModel, State
 from fae.sim.solver import LaunchCache, call_first_alone
 
-wp.set_module_options({"fast_math": True})
+# fast math and no adjoint code, as the solver's kernels (fae.sim.springs)
+wp.set_module_options({"fast_math": True, "enable_backward": False})
 
 CPU_VERTEX_CHUNK = 32  # vertices per Warp thread on the CPU (see fae.sim.springs)
 
