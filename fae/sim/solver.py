@@ -29,8 +29,9 @@ Contact is a position projection (no stiff penalty springs): a step that reached
 ends on its surface, skin the bone moved onto is pushed out on the side it belongs to
 (fae.sim.collision). Kernels are compiled with fast math.
 
-Per substep the solver replays two recorded launches (Warp's `record_cmd`), made once per
-(states, control): a plain `wp.launch` packs its 36 arguments anew each time, which cost
+The kernels read each spring's and each particle's constants as one record
+(`packed_arrays`). Per substep the solver replays two recorded launches (Warp's `record_cmd`), made once per
+(states, control): a plain `wp.launch` packs its 26 arguments anew each time, which cost
 as much as the springs themselves. (Warp's graph capture would replay a whole frame in one
 call, but on the CPU it records every Warp call of the process while it captures, so a
 second face being built in another thread, as `fae serve` does, breaks it.)
@@ -123,6 +124,30 @@ class LaunchCache:
         return entry[0]
 
 
+def packed_arrays(model: SkinModel) -> tuple[wp.array, wp.array]:
+    """(springs (S,) fae.sim.springs.Spring, particle_static (P,) fae.sim.integrate.ParticleStatic):
+    the model's spring and particle constants as one record each, on its device; made once
+    per model and shared by all its solvers (a server's faces)."""
+    if model._packed is None:
+        springs = np.zeros(model.spring_count, dtype=_springs.Spring.numpy_dtype())
+        pairs = model.spring_indices.numpy().reshape(-1, 2)
+        springs["i"], springs["j"] = pairs[:, 0], pairs[:, 1]
+        springs["rest_length"] = model.spring_rest_length.numpy()
+        springs["stiffness"] = model.spring_stiffness.numpy()
+        static = np.zeros(model.particle_count, dtype=_integrate.ParticleStatic.numpy_dtype())
+        start = model.row_influence_start.numpy()
+        for name, values in (("rest", model.particle_q), ("jaw", model.particle_jaw),
+                             ("inv_mass", model.particle_inv_mass), ("anchor_stiffness", model.particle_anchor_stiffness),
+                             ("below", model.particle_below), ("normal", model.particle_normal),
+                             ("height", model.particle_height), ("collider", model.particle_collider),
+                             ("clearance", model.particle_clearance)):
+            static[name] = values.numpy()
+        static["influence_first"], static["influence_end"] = start[:-1], start[1:]
+        model._packed = (wp.array(springs, dtype=_springs.Spring, device=model.device),
+                         wp.array(static, dtype=_integrate.ParticleStatic, device=model.device))
+    return model._packed
+
+
 class SkinSolver:
     """Advances a SkinModel's State under a Control; allocates its scratch arrays once."""
 
@@ -168,19 +193,17 @@ class SkinSolver:
         """[springs, particles, h] recorded launches from src to dst, their step set to h."""
         def record() -> list:
             m = self.model
+            spring_records, particle_static = packed_arrays(m)
             springs = wp.launch(_springs.eval_springs, dim=-(-m.spring_count // self.spring_chunk), device=m.device,
-                                inputs=[src.particle_q, m.spring_indices, m.spring_rest_length, m.spring_stiffness,
-                                        m.spring_count, self.spring_chunk],
+                                inputs=[src.particle_q, spring_records, m.spring_count, self.spring_chunk],
                                 outputs=[self.particle_f], record_cmd=True)
             particles = wp.launch(
                 _integrate.step_particles, dim=-(-m.particle_count // self.particle_chunk), device=m.device,
-                inputs=[src.particle_q, src.particle_qd, self.particle_f, m.particle_inv_mass, m.particle_q,
-                        m.particle_jaw, m.particle_anchor_stiffness,
-                        m.row_influence_start, m.influence_muscle, m.influence_weight,
+                inputs=[src.particle_q, src.particle_qd, self.particle_f, particle_static,
+                        m.influence_muscle, m.influence_weight,
                         m.muscle_kind, self._muscle_point, self._muscle_axis_u, self._muscle_axis_v,
                         m.muscle_scale, control.muscle_activation, control.bone_rotation,
-                        control.bone_translation, m.particle_below, m.particle_normal, m.particle_height,
-                        m.particle_collider, m.particle_clearance, *self._grids, float(m.contact_depth),
+                        control.bone_translation, *self._grids, float(m.contact_depth),
                         float(m.damping), float(h), m.particle_count, self.particle_chunk],
                 outputs=[dst.particle_q, dst.particle_qd], record_cmd=True)
             return [springs, particles, h]
