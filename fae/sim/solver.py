@@ -2,7 +2,7 @@
 
 Scheme. A frame of length dt is split into n = ceil(dt / dt_max) equal substeps h; each is
 
-    f = springs (a scatter over springs, fae.sim.springs);
+    f = springs (a scatter over rows of springs, fae.sim.springs);
     one pass over particles (fae.sim.integrate): f += muscles;
         v' = (v + h/m (f + k_a (hold - x))) / (1 + h c + h^2 (k_a + k_m) / m);  x' = x + h v';
         upper layers kept above the next; contact with skull and mandible (fae.sim.collision).
@@ -31,7 +31,7 @@ ends on its surface, skin the bone moved onto is pushed out on the side it belon
 
 The kernels read each spring's and each particle's constants as one record
 (`packed_arrays`). Per substep the solver replays two recorded launches (Warp's `record_cmd`), made once per
-(states, control): a plain `wp.launch` packs its 26 arguments anew each time, which cost
+(states, control): a plain `wp.launch` packs its 27 arguments anew each time, which cost
 as much as the springs themselves. (Warp's graph capture would replay a whole frame in one
 call, but on the CPU it records every Warp call of the process while it captures, so a
 second face being built in another thread, as `fae serve` does, breaks it.)
@@ -58,7 +58,7 @@ import fae.sim.springs as _springs
 from fae.sim.model import Control, SkinModel, State
 
 # consecutive springs / particles per Warp thread on the CPU (see fae.sim.springs)
-CPU_SPRING_CHUNK = 32
+CPU_SPRING_CHUNK = 16  # rows of springs (about seven springs each on the shipped head)
 CPU_PARTICLE_CHUNK = 64
 _LAUNCH_CACHE_SIZE = 16
 
@@ -124,16 +124,21 @@ class LaunchCache:
         return entry[0]
 
 
-def packed_arrays(model: SkinModel) -> tuple[wp.array, wp.array]:
-    """(springs (S,) fae.sim.springs.Spring, particle_static (P,) fae.sim.integrate.ParticleStatic):
-    the model's spring and particle constants as one record each, on its device; made once
-    per model and shared by all its solvers (a server's faces)."""
+def packed_arrays(model: SkinModel) -> tuple[wp.array, wp.array, wp.array]:
+    """(particle_spring_start (P+1,) int, springs (S,) fae.sim.springs.Spring, particle_static
+    (P,) fae.sim.integrate.ParticleStatic): the model's springs in rows (the springs of
+    particle i to higher-numbered ones are springs[start[i]:start[i + 1]]) and its particle
+    constants as one record each, on its device; made once per model and shared by all its
+    solvers (a server's faces)."""
     if model._packed is None:
+        pairs = model.spring_indices.numpy().reshape(-1, 2).astype(np.int64)
+        low, high = pairs.min(axis=1), pairs.max(axis=1)
+        order = np.lexsort((high, low))
         springs = np.zeros(model.spring_count, dtype=_springs.Spring.numpy_dtype())
-        pairs = model.spring_indices.numpy().reshape(-1, 2)
-        springs["i"], springs["j"] = pairs[:, 0], pairs[:, 1]
-        springs["rest_length"] = model.spring_rest_length.numpy()
-        springs["stiffness"] = model.spring_stiffness.numpy()
+        springs["j"] = high[order]
+        springs["rest_length"] = model.spring_rest_length.numpy()[order]
+        springs["stiffness"] = model.spring_stiffness.numpy()[order]
+        spring_start = np.concatenate([[0], np.cumsum(np.bincount(low, minlength=model.particle_count))])
         static = np.zeros(model.particle_count, dtype=_integrate.ParticleStatic.numpy_dtype())
         start = model.row_influence_start.numpy()
         for name, values in (("rest", model.particle_q), ("jaw", model.particle_jaw),
@@ -143,7 +148,8 @@ def packed_arrays(model: SkinModel) -> tuple[wp.array, wp.array]:
                              ("clearance", model.particle_clearance)):
             static[name] = values.numpy()
         static["influence_first"], static["influence_end"] = start[:-1], start[1:]
-        model._packed = (wp.array(springs, dtype=_springs.Spring, device=model.device),
+        model._packed = (wp.array(spring_start.astype(np.int32), dtype=int, device=model.device),
+                         wp.array(springs, dtype=_springs.Spring, device=model.device),
                          wp.array(static, dtype=_integrate.ParticleStatic, device=model.device))
     return model._packed
 
@@ -193,9 +199,10 @@ class SkinSolver:
         """[springs, particles, h] recorded launches from src to dst, their step set to h."""
         def record() -> list:
             m = self.model
-            spring_records, particle_static = packed_arrays(m)
-            springs = wp.launch(_springs.eval_springs, dim=-(-m.spring_count // self.spring_chunk), device=m.device,
-                                inputs=[src.particle_q, spring_records, m.spring_count, self.spring_chunk],
+            spring_start, spring_records, particle_static = packed_arrays(m)
+            springs = wp.launch(_springs.eval_springs, dim=-(-m.particle_count // self.spring_chunk), device=m.device,
+                                inputs=[src.particle_q, spring_start, spring_records, m.particle_count,
+                                        self.spring_chunk],
                                 outputs=[self.particle_f], record_cmd=True)
             particles = wp.launch(
                 _integrate.step_particles, dim=-(-m.particle_count // self.particle_chunk), device=m.device,
