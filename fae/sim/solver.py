@@ -177,7 +177,9 @@ class SkinSolver:
         self._muscle_axis_u = wp.zeros_like(self._muscle_point)
         self._muscle_axis_v = wp.zeros_like(self._muscle_point)
         self._pose_launches = LaunchCache()
-        call_first_alone(("SkinSolver", str(wp.get_device(model.device))), self._first_step)
+        # (a model without muscles or springs skips their kernels: its first step runs fewer)
+        call_first_alone(("SkinSolver", str(wp.get_device(model.device)), model.muscle_count > 0, model.spring_count > 0),
+                         self._first_step)
 
     def _first_step(self) -> None:
         """One step at rest, to run every kernel once (see `call_first_alone`)."""
