@@ -189,3 +189,28 @@ def test_a_strong_sphincter_stays_stable_at_the_largest_substep(model):
         solver.step(model, state, control, model.dt_max, state)
     q = state.particle_q.numpy()
     assert np.all(np.isfinite(q)) and np.abs(q - model.particle_q.numpy()).max() < 0.05
+
+
+def test_solvers_made_at_once_share_one_packed_copy_of_the_model(model):
+    """A server's faces make their solvers in several threads: one packing per model."""
+    import dataclasses
+    import threading
+
+    from fae.sim.solver import packed_arrays
+
+    fresh = dataclasses.replace(model)  # the same arrays, nothing packed yet
+    assert fresh._packed is None
+    start, got = threading.Barrier(8), []
+
+    def make():
+        start.wait()
+        got.append(packed_arrays(fresh))
+
+    threads = [threading.Thread(target=make) for _ in range(8)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert len(got) == 8 and all(g is got[0] for g in got)
+    rows, springs, static = got[0]
+    assert rows.numpy()[-1] == model.spring_count and static.shape == (model.particle_count,)

@@ -1,6 +1,6 @@
 """One substep of every particle in one pass: anchor, muscles, integration, layer order, contact.
 
-The springs' forces come in `particle_f` (a scatter over springs, fae.sim.springs); each
+The springs' forces come in `particle_f` (fae.sim.springs); each
 particle then adds its muscle influences (its rows of the model's per-particle arrays) and
 takes a symplectic Euler step in which its velocity drag c and its anchor (a zero-length
 spring of stiffness k_a to its hold: its rest place carried by the skull, the jaw, or a

@@ -18,6 +18,7 @@ radial fall-off around a feature point; the runtime uses them for motions no mus
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -31,6 +32,8 @@ MUSCLE_SPHINCTER = 1
 MUSCLE_FIELD = 2
 
 LAYER_COUNT = 3
+
+_lazy_arrays_lock = threading.Lock()
 
 
 @dataclass
@@ -124,8 +127,9 @@ class SkinModel:
     damping: float
     jaw_pivot: np.ndarray = field(default_factory=lambda: np.zeros(3))
     jaw_axis: np.ndarray = field(default_factory=lambda: np.array([1.0, 0.0, 0.0]))
-    _skin_arrays: tuple | None = field(default=None, repr=False, compare=False)
-    _packed: tuple | None = field(default=None, repr=False, compare=False)  # fae.sim.solver.packed_arrays
+    # arrays made from the ones above when first needed (not copied by dataclasses.replace)
+    _skin_arrays: tuple | None = field(default=None, init=False, repr=False, compare=False)
+    _packed: tuple | None = field(default=None, init=False, repr=False, compare=False)  # fae.sim.solver.packed_arrays
 
     def state(self) -> "State":
         """A State at rest, on the model's device."""
@@ -144,10 +148,11 @@ class SkinModel:
     def skin_arrays(self) -> tuple[wp.array, wp.array, wp.array]:
         """(skin_particle (V,) int, skin_rest (V,) vec3, skin_jaw (V,) float) as Warp arrays on
         the model's device, made once and shared by everything that draws this model's skin."""
-        if self._skin_arrays is None:
-            self._skin_arrays = (wp.array(self.skin_particle.astype(np.int32), dtype=int, device=self.device),
-                                 wp.array(self.skin_rest.astype(np.float32), dtype=wp.vec3, device=self.device),
-                                 wp.array(self.skin_jaw.astype(np.float32), dtype=float, device=self.device))
+        with _lazy_arrays_lock:  # a server's faces may ask at once
+            if self._skin_arrays is None:
+                self._skin_arrays = (wp.array(self.skin_particle.astype(np.int32), dtype=int, device=self.device),
+                                     wp.array(self.skin_rest.astype(np.float32), dtype=wp.vec3, device=self.device),
+                                     wp.array(self.skin_jaw.astype(np.float32), dtype=float, device=self.device))
         return self._skin_arrays
 
     def numpy_arrays(self) -> dict[str, np.ndarray]:

@@ -128,30 +128,43 @@ def packed_arrays(model: SkinModel) -> tuple[wp.array, wp.array, wp.array]:
     """(particle_spring_start (P+1,) int, springs (S,) fae.sim.springs.Spring, particle_static
     (P,) fae.sim.integrate.ParticleStatic): the model's springs in rows (the springs of
     particle i to higher-numbered ones are springs[start[i]:start[i + 1]]) and its particle
-    constants as one record each, on its device; made once per model and shared by all its
-    solvers (a server's faces)."""
-    if model._packed is None:
-        pairs = model.spring_indices.numpy().reshape(-1, 2).astype(np.int64)
-        low, high = pairs.min(axis=1), pairs.max(axis=1)
-        order = np.lexsort((high, low))
-        springs = np.zeros(model.spring_count, dtype=_springs.Spring.numpy_dtype())
-        springs["j"] = high[order]
-        springs["rest_length"] = model.spring_rest_length.numpy()[order]
-        springs["stiffness"] = model.spring_stiffness.numpy()[order]
-        spring_start = np.concatenate([[0], np.cumsum(np.bincount(low, minlength=model.particle_count))])
-        static = np.zeros(model.particle_count, dtype=_integrate.ParticleStatic.numpy_dtype())
-        start = model.row_influence_start.numpy()
-        for name, values in (("rest", model.particle_q), ("jaw", model.particle_jaw),
-                             ("inv_mass", model.particle_inv_mass), ("anchor_stiffness", model.particle_anchor_stiffness),
-                             ("below", model.particle_below), ("normal", model.particle_normal),
-                             ("height", model.particle_height), ("collider", model.particle_collider),
-                             ("clearance", model.particle_clearance)):
-            static[name] = values.numpy()
-        static["influence_first"], static["influence_end"] = start[:-1], start[1:]
-        model._packed = (wp.array(spring_start.astype(np.int32), dtype=int, device=model.device),
-                         wp.array(springs, dtype=_springs.Spring, device=model.device),
-                         wp.array(static, dtype=_integrate.ParticleStatic, device=model.device))
+    constants as one record each, on its device; made once per model (under a lock: a
+    server's faces may make their solvers at once) and shared by all its solvers. Made from
+    the model's arrays as they are then: a model is not to be changed after its first
+    solver."""
+    if model._packed is not None:
+        return model._packed
+    with _packing_lock:
+        if model._packed is None:
+            model._packed = _pack(model)
     return model._packed
+
+
+_packing_lock = threading.Lock()
+
+
+def _pack(model: SkinModel) -> tuple[wp.array, wp.array, wp.array]:
+    """The arrays of `packed_arrays`, made now."""
+    pairs = model.spring_indices.numpy().reshape(-1, 2).astype(np.int64)
+    low, high = pairs.min(axis=1), pairs.max(axis=1)
+    order = np.lexsort((high, low))
+    springs = np.zeros(model.spring_count, dtype=_springs.Spring.numpy_dtype())
+    springs["j"] = high[order]
+    springs["rest_length"] = model.spring_rest_length.numpy()[order]
+    springs["stiffness"] = model.spring_stiffness.numpy()[order]
+    spring_start = np.concatenate([[0], np.cumsum(np.bincount(low, minlength=model.particle_count))])
+    static = np.zeros(model.particle_count, dtype=_integrate.ParticleStatic.numpy_dtype())
+    start = model.row_influence_start.numpy()
+    for name, values in (("rest", model.particle_q), ("jaw", model.particle_jaw),
+                         ("inv_mass", model.particle_inv_mass), ("anchor_stiffness", model.particle_anchor_stiffness),
+                         ("below", model.particle_below), ("normal", model.particle_normal),
+                         ("height", model.particle_height), ("collider", model.particle_collider),
+                         ("clearance", model.particle_clearance)):
+        static[name] = values.numpy()
+    static["influence_first"], static["influence_end"] = start[:-1], start[1:]
+    return (wp.array(spring_start.astype(np.int32), dtype=int, device=model.device),
+            wp.array(springs, dtype=_springs.Spring, device=model.device),
+            wp.array(static, dtype=_integrate.ParticleStatic, device=model.device))
 
 
 class SkinSolver:

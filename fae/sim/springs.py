@@ -1,8 +1,8 @@
 """Elastic springs between particles (in-layer edges, layer-to-layer and cross springs).
 
 A spring of stiffness k and rest length r between particles i and j pulls i by
--k (L - r) d / L, d = x_i - x_j, L = |d|, and j by the opposite force (a scatter over
-springs). The springs carry no damping of their own: the solver's implicit drag damps
+-k (L - r) d / L, d = x_i - x_j, L = |d|, and j by the opposite force (a scatter: each
+spring adds to both ends). The springs carry no damping of their own: the solver's implicit drag damps
 the skin (an explicit damper along each spring would shrink the stable substep).
 
 The springs are evaluated in rows, one row per particle i holding its springs to
@@ -11,9 +11,9 @@ position is read and its force written once per row, not once per spring (the pa
 faster on the CPU), and a spring's constants are one record (`Spring`: every array read in
 a Warp kernel also tests for a negative index; one read instead of three, 13 % faster).
 On the CPU each Warp thread evaluates the rows of `chunk` consecutive particles: a launch
-copies the kernel's arguments once per thread, which cost more than a spring (the full
-skin's 163k springs: 3.8 ms one spring per thread, 1.5 ms in chunks of 32). On CUDA a
-chunk is one row.
+copies the kernel's arguments once per thread, which costs more than a spring (measured
+with one spring per thread: 3.8 ms for 163k springs, 1.5 ms in chunks of 32). On CUDA a
+chunk is one row, and both ends' additions are atomic (other rows add to a row's particle).
 """
 
 from __future__ import annotations
