@@ -114,7 +114,9 @@ async def served(factory, clients: int, text: str, rate: str, spare_faces: int =
 async def client_main(path: str, port: int, clients: int, rate: str, phases: str = "same") -> dict:
     """The client side: `clients` concurrent streams of one file; frames/s and latency."""
     text = Path(path).read_text()
-    period = 1.0 / float(text.split(maxsplit=3)[2])  # the header's frame rate
+    header = FapParser(path)
+    header.feed_line(split_fap_text(text)[0], 1)
+    period = 1.0 / header.header.fps
     offsets = np.random.default_rng(7).uniform(0.0, period, clients) if phases == "random" else np.zeros(clients)
 
     async def one(offset: float):
