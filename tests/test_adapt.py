@@ -7,7 +7,6 @@ import pytest
 
 from fae.adapt.calibration import apply_transform, calibration_transform
 from fae.adapt.csrbf import csrbf_interpolant, csrbf_weights
-from fae.adapt.multilevel import fit_template
 from fae.adapt.rbf import rbf_interpolant, rbf_weights
 from fae.adapt.synthetic import synthetic_head, synthetic_scan
 from fae.adapt.transfer import adapt_surface

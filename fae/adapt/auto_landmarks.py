@@ -40,7 +40,6 @@ from scipy.spatial import cKDTree
 
 from fae.adapt.calibration import apply_transform, scan_unit, similarity_transform
 from fae.adapt.errors import surface
-from fae.adapt.geometry import per_vertex_normals
 from fae.adapt.query import MeshQuery
 from fae.adapt.rbf import rbf_interpolant, rbf_weights
 from fae.io.facemodel import FaceModel

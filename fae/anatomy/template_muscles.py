@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from fae.io.facemodel import Muscle, SurfacePoint
+from fae.io.facemodel import Muscle
 
 MM = 1e-3
 
