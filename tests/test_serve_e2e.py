@@ -305,3 +305,17 @@ def test_ten_clients_starting_at_once_are_all_served_by_the_real_player(head):
     for report in reports:
         assert report.complete and report.frames_ok == len(frames), report.summary()
     assert code == 0 and "Traceback" not in err, err
+
+
+def test_the_face_factory_spawns_every_face_from_a_player_it_is_given(head):
+    """`fae serve` on a head without a mapping calibrates it with one Player, which then
+    serves as the template of every client's face (no second build)."""
+    from fae.animate.player import Player
+    from fae.io.facemodel_gltf import read_facemodel
+    from fae.net.faces import player_face_factory
+
+    player = Player(read_facemodel(head))
+    factory = player_face_factory(player.face, first=player)
+    faces = [factory(), factory()]
+    assert all(f.player.sim is player.sim and f.player is not player for f in faces)
+    assert faces[0].player is not faces[1].player

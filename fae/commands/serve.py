@@ -46,11 +46,11 @@ def register(subparsers) -> None:
     parser.set_defaults(func=run)
 
 
-async def _serve(args, model) -> int:
+async def _serve(args, model, player=None) -> int:
     from fae.net.faces import player_face_factory
 
-    server = FapServer(player_face_factory(model, args.device), args.host, args.port, fap_dir=args.fap_dir,
-                       spare_faces=1)
+    server = FapServer(player_face_factory(model, args.device, first=player), args.host, args.port,
+                       fap_dir=args.fap_dir, spare_faces=1)
     recorder = None
     if args.record:
         from fae.net.record import StreamRecorder
@@ -93,23 +93,25 @@ def run(args) -> int:
         return 2
     from fae.io.facemodel_gltf import read_facemodel
 
-    from fae.net.faces import playable_model
-
     try:
         model = read_facemodel(args.head)
     except (OSError, ValueError) as exc:
         print(f"fae serve: --head {args.head}: {exc}", file=sys.stderr)
         return 2
+    player = None
     if not model.fap_mapping:  # calibrate once here, not in every client's face
+        from fae.animate.player import Player
+
         print(f"fae serve: {args.head} carries no FAP mapping; calibrating it once (tens of seconds)",
               file=sys.stderr, flush=True)
         try:
-            model = playable_model(model, args.device)
+            player = Player(model, device=args.device)  # the template of every client's face
         except (RuntimeError, ValueError) as exc:
             print(f"fae serve: --head {args.head}: cannot animate it: {exc}", file=sys.stderr)
             return 2
+        model = player.face
     try:
-        return asyncio.run(_serve(args, model))
+        return asyncio.run(_serve(args, model, player))
     except OSError as exc:
         print(f"fae serve: cannot listen on {args.host}:{args.port}: {exc}", file=sys.stderr)
         return 2

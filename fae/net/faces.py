@@ -196,7 +196,8 @@ def playable_model(model, device: str = "cpu"):
     else a copy holding the mapping calibrated now (tens of seconds, once).
 
     Building one Player here also compiles (or loads) the simulation kernels, so the
-    first client does not wait for them.
+    first client does not wait for them. (`fae serve` keeps that Player as its faces'
+    template instead, see `player_face_factory`.)
     """
     from fae.animate.player import Player
 
@@ -206,19 +207,19 @@ def playable_model(model, device: str = "cpu"):
     return replace(model, fap_mapping=player.fap_mapping)
 
 
-def player_face_factory(model, device: str = "cpu") -> FaceFactory:
+def player_face_factory(model, device: str = "cpu", first=None) -> FaceFactory:
     """A factory building a new PlayerFace on `model` for each stream. The first face builds
-    the head's simulation (seconds); every later one spawns from it (milliseconds), sharing
-    its static arrays."""
-    first: list = []
+    the head's simulation (seconds; or `first`, a Player of `model` already built, is used);
+    every later one spawns from it (milliseconds), sharing its static arrays."""
+    template: list = [] if first is None else [first]
     lock = threading.Lock()
 
     def build() -> PlayerFace:
         from fae.animate.player import Player
 
         with lock:
-            if not first:
-                first.append(Player(model, device=device))
-            return PlayerFace(model, device, first[0].spawn())
+            if not template:
+                template.append(Player(model, device=device))
+            return PlayerFace(model, device, template[0].spawn())
 
     return build
