@@ -6,9 +6,9 @@ Throughput runs send as fast as the server takes frames; paced runs send each cl
 frames at each rate of --paced-fps (25 frames/s, the sample streams' own, and 100).
 Paced clients start together (in phase: every client's frame k is sent at the same moment,
 the worst case) and, in a second run, at random moments within one frame period, as
-independent programs would. Latency is frame sent -> its `ok` read (positions ready). When frames arrive faster than
-a face steps, the server coalesces them (one step with the latest held values; see
-docs/protocol.md): the output shows frames vs face steps.
+independent programs would. Latency is frame sent -> its `ok` read (positions ready).
+When frames arrive faster than a face steps, the server coalesces them (one step with the
+latest held values; see docs/protocol.md): the output shows frames vs face steps.
 
     .venv/bin/python tools/bench_serve.py                      # Player on the shipped head
     .venv/bin/python tools/bench_serve.py --face linear        # protocol cost only
@@ -114,9 +114,9 @@ async def served(factory, clients: int, text: str, rate: str, spare_faces: int =
 async def client_main(path: str, port: int, clients: int, rate: str, phases: str = "same") -> dict:
     """The client side: `clients` concurrent streams of one file; frames/s and latency."""
     text = Path(path).read_text()
-    header = FapParser(path)
-    header.feed_line(split_fap_text(text)[0], 1)
-    period = 1.0 / header.header.fps
+    parser = FapParser(path)
+    parser.feed_line(split_fap_text(text)[0], 1)
+    period = 1.0 / parser.header.fps
     offsets = np.random.default_rng(7).uniform(0.0, period, clients) if phases == "random" else np.zeros(clients)
 
     async def one(offset: float):

@@ -13,7 +13,7 @@ import asyncio
 import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Callable, Protocol
 
 import numpy as np
@@ -201,10 +201,7 @@ def playable_model(model, device: str = "cpu"):
     """
     from fae.animate.player import Player
 
-    player = Player(model, device=device)
-    if player.fap_mapping is model.fap_mapping:
-        return model
-    return replace(model, fap_mapping=player.fap_mapping)
+    return Player(model, device=device).face  # the model itself, or its calibrated copy
 
 
 def player_face_factory(model, device: str = "cpu", first=None) -> FaceFactory:

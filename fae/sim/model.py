@@ -148,12 +148,22 @@ class SkinModel:
     def skin_arrays(self) -> tuple[wp.array, wp.array, wp.array]:
         """(skin_particle (V,) int, skin_rest (V,) vec3, skin_jaw (V,) float) as Warp arrays on
         the model's device, made once and shared by everything that draws this model's skin."""
-        with _lazy_arrays_lock:  # a server's faces may ask at once
-            if self._skin_arrays is None:
-                self._skin_arrays = (wp.array(self.skin_particle.astype(np.int32), dtype=int, device=self.device),
-                                     wp.array(self.skin_rest.astype(np.float32), dtype=wp.vec3, device=self.device),
-                                     wp.array(self.skin_jaw.astype(np.float32), dtype=float, device=self.device))
-        return self._skin_arrays
+        return self.made_once("_skin_arrays", lambda m: (
+            wp.array(m.skin_particle.astype(np.int32), dtype=int, device=m.device),
+            wp.array(m.skin_rest.astype(np.float32), dtype=wp.vec3, device=m.device),
+            wp.array(m.skin_jaw.astype(np.float32), dtype=float, device=m.device)))
+
+    def made_once(self, name: str, make):
+        """The model's attribute `name`, made by make(model) when it is first asked for (under
+        a lock: a server's faces may ask at once), from the arrays as they are then."""
+        value = getattr(self, name)
+        if value is None:
+            with _lazy_arrays_lock:
+                value = getattr(self, name)
+                if value is None:
+                    value = make(self)
+                    setattr(self, name, value)
+        return value
 
     def numpy_arrays(self) -> dict[str, np.ndarray]:
         """All Warp arrays of the model as numpy arrays (for the reference step and tests)."""

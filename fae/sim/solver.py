@@ -128,19 +128,9 @@ def packed_arrays(model: SkinModel) -> tuple[wp.array, wp.array, wp.array]:
     """(particle_spring_start (P+1,) int, springs (S,) fae.sim.springs.Spring, particle_static
     (P,) fae.sim.integrate.ParticleStatic): the model's springs in rows (the springs of
     particle i to higher-numbered ones are springs[start[i]:start[i + 1]]) and its particle
-    constants as one record each, on its device; made once per model (under a lock: a
-    server's faces may make their solvers at once) and shared by all its solvers. Made from
-    the model's arrays as they are then: a model is not to be changed after its first
-    solver."""
-    if model._packed is not None:
-        return model._packed
-    with _packing_lock:
-        if model._packed is None:
-            model._packed = _pack(model)
-    return model._packed
-
-
-_packing_lock = threading.Lock()
+    constants as one record each, on its device; made once per model (SkinModel.made_once)
+    and shared by all its solvers: a model is not to be changed after its first solver."""
+    return model.made_once("_packed", _pack)
 
 
 def _pack(model: SkinModel) -> tuple[wp.array, wp.array, wp.array]:
