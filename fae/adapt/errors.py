@@ -121,3 +121,37 @@ def symmetric_rms(model: Surface, scan: Surface, max_distance: float, scored: np
         "scan_covered_fraction": float(ok_sm.mean()),
         "model_matched_fraction": float(ok_ms.mean()),
     }
+
+
+FACE_REGIONS = ("forehead", "eyelid_upper_l", "eyelid_upper_r", "eyelid_lower_l", "eyelid_lower_r", "nose",
+                "cheek_l", "cheek_r", "lip_upper", "lip_lower", "chin", "jaw_l", "jaw_r")
+COVER_SHARE = 0.02  # of the head's diagonal: a point farther than this from the other surface is a hole, not an error
+
+
+def scan_fit_errors(skin_V: np.ndarray, skin_F: np.ndarray, face: np.ndarray, scan_V: np.ndarray,
+                    scan_F: np.ndarray) -> dict[str, float]:
+    """How far an adapted skin lies from the head part of its scan, in the scan's own frame.
+
+    skin_V (n, 3), skin_F: the skin mapped into the scan's frame and unit (through its
+    scan_transform, no refit); face (n,) bool: the skin of the face regions (FACE_REGIONS)
+    that a scanner sees; scan_V (k, 3), scan_F: the head part of the scan, same frame.
+    The diagonal is the head part's bounding-box diagonal. Distances beyond COVER_SHARE
+    of it fall on holes of the other surface: they are left out of the RMS and counted
+    against coverage, which is reported beside each RMS.
+    Returns face_to_scan_rms, scan_to_skin_rms (scan units), both also / diagonal
+    (*_rel), face_coverage, scan_coverage, diagonal.
+    """
+    skin_V = np.asarray(skin_V, dtype=np.float64)
+    scan_V = np.asarray(scan_V, dtype=np.float64)
+    diagonal = float(np.linalg.norm(np.ptp(scan_V, axis=0)))
+    reach = COVER_SHARE * diagonal
+    on_scan = MeshQuery(scan_V, scan_F).closest_points(skin_V[face], reach)[1]
+    on_skin = MeshQuery(skin_V, skin_F).closest_points(scan_V, reach)[1]
+    out = {"diagonal": diagonal}
+    for key, d in (("face_to_scan", on_scan), ("scan_to_skin", on_skin)):
+        hit = np.isfinite(d)
+        rms = float(np.sqrt(np.mean(d[hit] ** 2))) if hit.any() else float("inf")
+        out[f"{key}_rms"] = rms
+        out[f"{key}_rms_rel"] = rms / diagonal if diagonal > 0 else float("inf")
+        out[f"{key.split('_to_')[0]}_coverage"] = float(hit.mean()) if len(hit) else 0.0
+    return out

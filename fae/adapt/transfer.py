@@ -277,6 +277,10 @@ def eye_in_socket(template: FaceModel, model: FaceModel, name: str) -> tuple[np.
     return c, float(min(R / r0, limit))
 
 
+EYE_MIN_SHARE = 0.9  # of the ratio of the outer eye corners' distance: no eyeball is scaled below this
+EYE_SINK_STEP = 0.0005  # m: an eyeball that crosses its lids moves back by this much at a time
+EYE_MAX_SINK_STEPS = 12
+
 MUSCLE_SEARCH_RADIUS = 0.015  # m: how far a linear muscle's attachment may move on its bone
 
 
@@ -326,7 +330,8 @@ def adapt_facemodel(template: FaceModel, scan_V: np.ndarray, scan_F: np.ndarray,
                     scan_landmarks: dict[str, np.ndarray], method: str = "multilevel", levels: int = 1,
                     progress: Callable[[str], None] | None = None) -> tuple[FaceModel, dict]:
     """A personalized copy of `template` fitted to the scan (V (n, 3), F (m, 3) in the scan's
-    frame and unit; landmarks FDP name -> (3,) in the same). Returns (model, report dict)."""
+    frame and unit; landmarks FDP name -> (3,) in the same) by one of the paper methods of
+    fae.adapt.multilevel. Returns (model, report dict)."""
     t0 = time.perf_counter()
     fdp_old = template.feature_point_positions()
     skin_fdp = {n: p for n, p in fdp_old.items() if template.feature_points[n].part == "skin"}
@@ -338,14 +343,27 @@ def adapt_facemodel(template: FaceModel, scan_V: np.ndarray, scan_F: np.ndarray,
     for i in fit.dropped_landmarks:
         ignored[names[i]] = "folds the skin (mouth or eyes open on the scan, closed on the template?)"
     names = [n for i, n in enumerate(names) if i not in fit.dropped_landmarks]
+    model, report = personalize(template, fit.vertices, T, unit, method)
+    report.update({"landmarks_used": names, "ignored_landmarks": ignored, "levels": fit.levels,
+                   "chosen_level": fit.chosen_level, "final": dict(fit.final)})
+    report["final"]["seconds"] = time.perf_counter() - t0
+    return model, report
+
+
+def personalize(template: FaceModel, skin: np.ndarray, T: np.ndarray, unit: str, method: str
+                ) -> tuple[FaceModel, dict]:
+    """A copy of `template` whose skin is `skin` (n, 3) metres, fitted in the face frame,
+    with the anatomy carried over (see the module docstring); T (4, 4) maps the scan's
+    frame to the face frame. Returns the model and a report of what moved."""
+    fdp_old = template.feature_point_positions()
     model = copy.deepcopy(template)
-    model.skin_vertices = fit.vertices.copy()
+    model.skin_vertices = np.asarray(skin, dtype=np.float64).copy()
     fdp_new = model.feature_point_positions()
     mouth = _ratio(fdp_old, fdp_new, "8.3", "8.4") or 1.0
     eye_l = _ratio(fdp_old, fdp_new, "3.7", "3.11") or mouth
     eye_r = _ratio(fdp_old, fdp_new, "3.8", "3.12") or mouth
     rigid_scale = {"eye_l": eye_l, "eye_r": eye_r, "upper_teeth": mouth, "lower_teeth": mouth, "tongue": mouth}
-    field = interior_field(template.skin_vertices, fit.vertices)
+    field = interior_field(template.skin_vertices, model.skin_vertices)
     for name, part in model.parts.items():
         if name in rigid_scale:
             c_old = template.eye_centers[name] if name in template.eye_centers else part.vertices.mean(axis=0)
@@ -360,6 +378,13 @@ def adapt_facemodel(template: FaceModel, scan_V: np.ndarray, scan_F: np.ndarray,
         if name in model.parts and name in template.eye_centers:
             c, s = eye_in_socket(template, model, name)
             rel = template.parts[name].vertices - template.eye_centers[name]
+            # a socket the scan closed (sculpted or shut eyes) would shrink the eye: it keeps
+            # at least EYE_MIN_SHARE of the eye's width ratio and sits deeper instead
+            s = max(s, EYE_MIN_SHARE * (_ratio(fdp_old, fdp_new, "3.7", "3.8") or rigid_scale[name]))
+            for _ in range(EYE_MAX_SINK_STEPS):
+                if not skin.query.inside(rel * s + c).any():
+                    break
+                c = c - np.array([0.0, 0.0, EYE_SINK_STEP])
             for _ in range(20):  # the socket fit is least squares: make sure no eyelid is crossed
                 if not skin.query.inside(rel * s + c).any():
                     break
@@ -393,12 +418,11 @@ def adapt_facemodel(template: FaceModel, scan_V: np.ndarray, scan_F: np.ndarray,
     model.scan_transform = np.linalg.inv(T)
     model.meta = dict(template.meta)
     model.meta.update({"generator": "fae adapt", "adapt_method": method, "scan_unit": unit, "symmetric": False})
-    report = {"method": method, "scan_unit": unit, "landmarks_used": names, "ignored_landmarks": ignored,
-              "bone_vertices_pushed_under_skin": pushed, "fapu_ratio": fapu_ratio,
-              "eye_scale": eye_scale, "muscle_attachments_moved": moved_muscles,
-              "levels": fit.levels, "chosen_level": fit.chosen_level, "final": dict(fit.final)}
-    report["final"]["seconds"] = time.perf_counter() - t0
+    report = {"method": method, "scan_unit": unit, "bone_vertices_pushed_under_skin": pushed,
+              "fapu_ratio": fapu_ratio, "eye_scale": eye_scale, "muscle_attachments_moved": moved_muscles}
     return model, report
+
+
 
 
 def _fapu_ratio(old: dict, new: dict) -> float:

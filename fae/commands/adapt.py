@@ -1,8 +1,18 @@
 """`fae adapt SCAN [--landmarks FILE] [--template FILE] [--method M] -o HEAD.glb [--report R.json] [--plot R.png]`
 
-Fits the template head to a scan and writes the personalized FaceModel. Without
---landmarks the feature points are found on the scan (fae.adapt.auto_landmarks). Exit 0 on success,
-2 on bad input (the reason, naming the file and field, on stderr).
+Fits the template head to a scan and writes the personalized FaceModel.
+
+The default method, "surface": the head is found in the scan (any unit and orientation;
+plinth, shoulders and chest left out: fae.adapt.head_pose), corresponding points are
+found by a face-landmark model looking at the template and at the scan from the same
+camera (fae.render.landmarks; feature points given with --landmarks join them), the skin
+is fitted to the head part without folds (fae.adapt.nonrigid) and the anatomy carried
+over (fae.adapt.transfer). The paper methods ("multilevel", "rbf", "wendland",
+"multiquadric") fit the whole scan from feature points, as in papers 000-002.
+
+Exit 0 on success; 2 on bad input, or when fae cannot find the head or its face, or the
+result is not to be trusted (folded skin, a face far from the scan): the reason goes to
+stderr and nothing is written. --force writes such a head anyway.
 """
 
 from __future__ import annotations
@@ -13,6 +23,8 @@ import sys
 import time
 
 from fae.adapt.multilevel import METHODS
+
+ADAPT_METHODS = ("surface",) + METHODS
 
 DEFAULT_TEMPLATE = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))),
                                 "templates", "generic_head.glb")
@@ -30,11 +42,15 @@ def register(subparsers) -> None:
                    help="without --landmarks: refine the found feature points by the template fit (default) or "
                    "by paper 003's genetic algorithm")
     p.add_argument("--template", metavar="FILE", default=DEFAULT_TEMPLATE, help="template FaceModel .glb")
-    p.add_argument("--method", choices=METHODS, default="multilevel", help="fitting method (default: multilevel)")
+    p.add_argument("--method", choices=ADAPT_METHODS, default="surface",
+                   help="fitting method (default: surface; the others are the papers' feature-point fits)")
     p.add_argument("--levels", type=int, default=1, help="refinement levels after the first (multilevel)")
     p.add_argument("-o", "--output", required=True, metavar="HEAD.glb", help="personalized FaceModel to write")
     p.add_argument("--report", metavar="R.json", help="write the per-level error report as JSON")
-    p.add_argument("--plot", metavar="R.png", help="plot the errors per level (PNG)")
+    p.add_argument("--plot", metavar="R.png", help="plot the errors per level (PNG; paper methods)")
+    p.add_argument("--compare", metavar="C.png", help="picture of the scan beside the adapted head and both "
+                   "overlaid, front and profile (PNG)")
+    p.add_argument("--force", action="store_true", help="write the head even when the fit is not to be trusted")
     p.add_argument("--no-calibrate", action="store_true",
                    help="skip deriving the runtime's FAP mapping for the new head (the player then "
                    "derives it each time it loads the head, which takes minutes)")
@@ -66,14 +82,15 @@ def write_plot(report: dict, path: str) -> None:
 
 
 def run(args) -> int:
-    from tqdm import tqdm
-
-    from fae.adapt.transfer import adapt_facemodel
-    from fae.io.atomic import atomic_open
-    from fae.io.facemodel_gltf import read_facemodel, write_facemodel
+    from fae.io.facemodel_gltf import read_facemodel
     from fae.io.scan import LandmarkError, read_landmarks, read_scan
 
+    if args.method != "surface" and args.compare:
+        print("fae adapt: --compare needs --method surface", file=sys.stderr)
+        return 2
     try:
+        if os.path.abspath(args.output) == os.path.abspath(args.scan):
+            raise ValueError(f"{args.output}: the output would overwrite the scan")
         V, F = read_scan(args.scan)
         landmarks = read_landmarks(args.landmarks, V) if args.landmarks else None
         if not os.path.isfile(args.template):
@@ -83,6 +100,146 @@ def run(args) -> int:
     except (OSError, ValueError, LandmarkError) as exc:
         print(f"fae adapt: {exc}", file=sys.stderr)
         return 2
+    if args.method == "surface":
+        return _run_surface(args, template, V, F, landmarks)
+    return _run_paper(args, template, V, F, landmarks)
+
+
+def _say(msg: str) -> None:
+    print(f"fae adapt: {msg}", file=sys.stderr)
+
+
+def _run_surface(args, template, V, F, landmarks) -> int:
+    import numpy as np
+
+    from fae.adapt.calibration import apply_transform, outlier_landmarks
+    from fae.adapt.from_scan import adapt_to_scan
+    from fae.adapt.head_pose import MAX_HEAD_RESIDUAL, MIN_FACE_COVERAGE, find_head, head_from_landmarks, kept_part
+    from fae.adapt.transfer import visible_skin
+    from fae.render.framing import camera_view
+    from fae.render.landmarks import LandmarkModelMissing, landmark_pairs
+
+    started = time.perf_counter()
+    try:
+        if landmarks:
+            fdp = template.feature_point_positions()
+            names = [n for n in landmarks if n in fdp and template.feature_points[n].part == "skin"
+                     and np.all(np.isfinite(landmarks[n]))]
+            if len(names) < 4:
+                _say(f"{args.landmarks}: {len(names)} usable feature points of the template's skin; at least 4 "
+                     "are needed (or leave --landmarks out to find the head without them)")
+                return 2
+            A = np.array([fdp[n] for n in names])
+            B = np.array([landmarks[n] for n in names])
+            wrong = set(outlier_landmarks(B, A, names))
+            for n in sorted(wrong):
+                _say(f"ignored feature point {n}: disagrees with the others (wrong placement?)")
+            names = [n for n in names if n not in wrong]
+            landmarks = {n: landmarks[n] for n in names}
+            head = head_from_landmarks(template, V, F, np.array([fdp[n] for n in names]),
+                                       np.array([landmarks[n] for n in names]))
+        else:
+            head = find_head(template, V, F)
+            if not head.trusted:
+                _say(f"{args.scan}: could not find a head that matches the template (face covered "
+                     f"{head.face_coverage * 100:.0f} %, at least {MIN_FACE_COVERAGE * 100:.0f} % needed; "
+                     f"residual {head.residual * 1000:.1f} mm, at most {MAX_HEAD_RESIDUAL * 1000:.0f} mm); "
+                     "give feature points with --landmarks")
+                return 2
+        part_V, part_F = kept_part(apply_transform(head.transform, V), F, head.keep)
+        pairs = None
+        try:
+            found = landmark_pairs(template, part_V, part_F, camera_view(template, "front", aspect=1.0),
+                                   seen=visible_skin(template))
+        except LandmarkModelMissing as exc:
+            if not landmarks:
+                _say(f"{exc}")
+                return 2
+            found = None
+        if found is None or len(found.face) < 20:
+            if not landmarks:
+                _say(f"{args.scan}: no face found on the head part of the scan (eyes, nose and mouth); "
+                     "give feature points with --landmarks")
+                return 2
+        else:
+            pairs = (found.face, found.bary, found.scan_points)
+        model, report = adapt_to_scan(template, V, F, head, pairs, landmarks)
+    except ValueError as exc:
+        _say(f"{args.scan}: {exc}")
+        return 2
+    if found is not None:
+        report["feature_pair_search"] = found.report
+    return _finish(args, model, report, V, F, head.keep, started)
+
+
+def _finish(args, model, report, V, F, keep, started) -> int:
+    from fae.io.atomic import atomic_open, atomic_path
+    from fae.io.facemodel_gltf import write_facemodel
+
+    verdict = report.get("verdict", [])
+    if verdict and not args.force:
+        for why in verdict:
+            _say(f"{args.scan}: {why}")
+        _say(f"not writing {args.output}: the head is not to be trusted (--force writes it anyway; "
+             "--landmarks may help)")
+        if args.report:
+            with atomic_open(args.report, "w") as fh:
+                json.dump(_json_safe(report), fh, indent=1)
+        return 2
+    if not args.no_calibrate:
+        # Setup work belongs here, once per head: the player then loads the head at once.
+        from fae.animate.calibrate import calibrate
+
+        _say("deriving the FAP mapping of the new head (once per head)")
+        t = time.perf_counter()
+        model = calibrate(model)
+        report["calibration_seconds"] = time.perf_counter() - t
+    report["total_seconds"] = time.perf_counter() - started
+    write_facemodel(model, args.output)
+    if args.report:
+        with atomic_open(args.report, "w") as fh:
+            json.dump(_json_safe(report), fh, indent=1)
+    if args.compare:
+        from fae.render.compare import comparison_image
+        from fae.render.png import write_png
+
+        with atomic_path(args.compare) as tmp:
+            write_png(tmp, comparison_image(model, V, F, keep))
+    e = report["errors"]
+    part = report["head_part"]
+    print(f"{args.output}: head part {part['head_vertices']} of {part['scan_vertices']} scan vertices; face skin->scan "
+          f"RMS {e['face_to_scan_rms_rel'] * 100:.3f} % of the head diagonal ({e['face_coverage'] * 100:.0f} % "
+          f"covered), scan->skin RMS {e['scan_to_skin_rms_rel'] * 100:.3f} % ({e['scan_coverage'] * 100:.0f} % "
+          f"covered); {report['folded_triangles']['visible']} folded triangles; {report['total_seconds']:.1f} s")
+    return 0
+
+
+def _json_safe(value):
+    """The report with non-finite floats as null (JSON has no Infinity or NaN)."""
+    import math
+
+    import numpy as np
+
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    if isinstance(value, (float, np.floating)):
+        return float(value) if math.isfinite(value) else None
+    if isinstance(value, np.integer):
+        return int(value)
+    if isinstance(value, np.ndarray):
+        return _json_safe(value.tolist())
+    return value
+
+
+def _run_paper(args, template, V, F, landmarks) -> int:
+    from tqdm import tqdm
+
+    from fae.adapt.transfer import adapt_facemodel
+    from fae.io.atomic import atomic_open
+    from fae.io.facemodel_gltf import write_facemodel
+
     bar = tqdm(total=args.levels + 6, desc="adapt", unit="level", file=sys.stderr)
 
     def progress(msg: str) -> None:
@@ -95,34 +252,33 @@ def run(args) -> int:
             from fae.adapt.auto_landmarks import auto_landmarks
 
             landmarks, auto = auto_landmarks(template, V, F, method=args.feature_search)
-            print(f"fae adapt: {len(landmarks)} feature points found automatically ({args.feature_search}; "
-                  f"nose tip detected: {'9.3' in auto['detected']})", file=sys.stderr)
+            _say(f"{len(landmarks)} feature points found automatically ({args.feature_search}; "
+                 f"nose tip detected: {'9.3' in auto['detected']})")
         model, report = adapt_facemodel(template, V, F, landmarks, method=args.method, levels=args.levels,
                                         progress=progress)
     except ValueError as exc:
         bar.close()
-        print(f"fae adapt: {args.scan}: {exc}", file=sys.stderr)
+        _say(f"{args.scan}: {exc}")
         return 2
     bar.close()
     if auto is not None:
         report["automatic_feature_points"] = auto
     if not args.no_calibrate:
-        # Setup work belongs here, once per head: the player then loads the head at once.
         from fae.animate.calibrate import calibrate
 
-        print("fae adapt: deriving the FAP mapping of the new head (once per head)", file=sys.stderr)
+        _say("deriving the FAP mapping of the new head (once per head)")
         started = time.perf_counter()
         model = calibrate(model)
         report["calibration_seconds"] = time.perf_counter() - started
     write_facemodel(model, args.output)
     if args.report:
         with atomic_open(args.report, "w") as fh:
-            json.dump(report, fh, indent=1)
+            json.dump(_json_safe(report), fh, indent=1)
     if args.plot:
         write_plot(report, args.plot)
     f = report["final"]
     for name, why in report["ignored_landmarks"].items():
-        print(f"fae adapt: ignored feature point {name}: {why}", file=sys.stderr)
+        _say(f"ignored feature point {name}: {why}")
     print(f"{args.output}: scan->model RMS {f['scan_to_model_rms'] * 1000:.3f} mm, model->scan RMS "
           f"{f['model_to_scan_rms'] * 1000:.3f} mm, marker error {f['marker_error'] * 1000:.3f} mm, "
           f"{f['seconds']:.1f} s")

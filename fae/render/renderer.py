@@ -293,12 +293,15 @@ class FaceRenderer:
                  has no multisampling). Costs about k^2 in fragment work.
     background   linear RGB floats in [0, 1], used as-is
     show_bones   also draw the cranium and mandible (hidden under the skin on a real face)
+    camera       a CameraView to use instead of the `view` preset framed on this head (to
+                 draw two heads, or a head and a scan, from one camera)
 
     Use as a context manager or call `close()` to free the GL context.
     """
 
     def __init__(self, model: FaceModel, size: tuple[int, int] = (640, 480), view: str = "front",
-                 supersample: int = 1, background=BACKGROUND, show_bones: bool = False):
+                 supersample: int = 1, background=BACKGROUND, show_bones: bool = False,
+                 camera: CameraView | None = None):
         width, height = (int(s) for s in size)
         if width <= 0 or height <= 0:
             raise ValueError(f"image size {width}x{height}: expected positive width and height")
@@ -315,7 +318,7 @@ class FaceRenderer:
         self.view = view
         self.show_bones = bool(show_bones)
         self._vw, self._vh = width * self.supersample, height * self.supersample
-        self.camera: CameraView = camera_view(model, view, aspect=width / height)
+        self.camera: CameraView = camera_view(model, view, aspect=width / height) if camera is None else camera
         self._background = tuple(float(c) for c in bg[:3])
 
         rest = np.asarray(model.skin_vertices, dtype=np.float64)

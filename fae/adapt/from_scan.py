@@ -1,0 +1,121 @@
+"""A personalized head from a real scan: the template found in the scan, fitted to its
+head part without folds, the anatomy carried over, and the result measured honestly.
+
+    adapt_to_scan(template, scan_V, scan_F, head, pairs=None, landmarks=None) -> (FaceModel, report)
+
+`head` (fae.adapt.head_pose.HeadInScan) says where the head is and which part of the scan
+is head; `pairs` are corresponding points found by looking at both faces
+(fae.render.landmarks.landmark_pairs, in the face frame); `landmarks` are MPEG-4 feature
+points the user gave (scan frame). The skin is fitted by fae.adapt.nonrigid.fit_to_scan,
+the anatomy carried by fae.adapt.transfer.personalize, and the errors measured in the
+scan's own frame through the head's scan_transform (fae.adapt.errors.scan_fit_errors).
+
+The report's "verdict" lists what makes the head untrustworthy (empty when none): a
+folded skin, a face that does not reach its scan. `fae adapt` refuses to write a head with
+a verdict (exit status 2).
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from fae.adapt.calibration import apply_transform
+from fae.adapt.errors import FACE_REGIONS, scan_fit_errors, surface
+from fae.adapt.head_pose import HeadInScan, kept_part
+from fae.adapt.nonrigid import fit_to_scan, folded_triangles
+from fae.adapt.transfer import personalize, visible_skin
+from fae.io.facemodel import FaceModel
+
+# Smoothness multiplier per skin region: thin, creased skin bends as a piece.
+REGION_STIFFNESS = {"eyelid_upper_l": 3.0, "eyelid_upper_r": 3.0, "eyelid_lower_l": 3.0, "eyelid_lower_r": 3.0,
+                    "ear_l": 2.0, "ear_r": 2.0, "lip_upper": 1.5, "lip_lower": 1.5, "mouth_cavity": 2.0}
+EYE_RIM = 0.0025  # m: skin this close to an eyeball follows its neighbours, not the scan
+MAX_FACE_RMS_REL = 0.004  # face skin -> scan RMS / head diagonal beyond which the fit failed
+MIN_FACE_COVERAGE = 0.8  # share of the face skin within reach of the scan below which it failed
+
+
+def skin_regions(template: FaceModel, names) -> np.ndarray:
+    """(n,) bool: skin vertices in any of the regions `names`."""
+    idx = [template.region_names.index(r) for r in names if r in template.region_names]
+    return np.isin(np.asarray(template.skin_region), idx)
+
+
+def near_eyeballs(template: FaceModel, reach: float) -> np.ndarray:
+    """(n,) bool: skin vertices within `reach` metres of an eyeball."""
+    from fae.adapt.query import MeshQuery
+
+    near = np.zeros(len(template.skin_vertices), dtype=bool)
+    for name in ("eye_l", "eye_r"):
+        if name in template.parts:
+            V, F = template.mesh(name)
+            near |= np.isfinite(MeshQuery(V, F).closest_points(template.skin_vertices, reach)[1])
+    return near
+
+
+def adapt_to_scan(template: FaceModel, scan_V: np.ndarray, scan_F: np.ndarray, head: HeadInScan,
+                  pairs: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+                  landmarks: dict[str, np.ndarray] | None = None) -> tuple[FaceModel, dict]:
+    """A personalized copy of `template` fitted to the head part of a scan (V (n, 3), F (m, 3)
+    in its own frame and unit). pairs: (template skin faces (k,), bary (k, 3), scan points
+    (k, 3) in the face frame); landmarks: FDP name -> (3,) in the scan's frame."""
+    t0 = time.perf_counter()
+    T = head.transform
+    part_V, part_F = kept_part(apply_transform(T, scan_V), scan_F, head.keep)
+    if len(part_F) < 100:
+        raise ValueError(f"the head part of the scan has {len(part_F)} triangles: too few to fit")
+    scan = surface(part_V, part_F)
+    P, F = template.skin_vertices, np.asarray(template.skin_faces, dtype=np.int64)
+    # skin a scanner sees, less the lids' rims over the eyeballs: a scan shows the eye
+    # itself there (sculpted, or shut), and pulling the rims onto it closes the socket
+    seen = visible_skin(template) & ~near_eyeballs(template, EYE_RIM)
+    faces, bary, points = [], [], []
+    if pairs is not None and len(pairs[0]):
+        faces.append(np.asarray(pairs[0], np.int64))
+        bary.append(np.asarray(pairs[1], np.float64))
+        points.append(np.asarray(pairs[2], np.float64))
+    used_landmarks = []
+    for name, q in (landmarks or {}).items():
+        fp = template.feature_points.get(name)
+        if fp is None or fp.part != "skin" or not np.all(np.isfinite(q)):
+            continue
+        faces.append(np.array([fp.triangle]))
+        bary.append(np.asarray(fp.bary, np.float64)[None])
+        points.append(apply_transform(T, np.asarray(q, np.float64)[None]))
+        used_landmarks.append(name)
+    lm = (np.concatenate(faces), np.vstack(bary), np.vstack(points)) if faces else None
+    stiffness = np.ones(len(P))
+    for region, k in REGION_STIFFNESS.items():
+        stiffness[skin_regions(template, [region])] = k
+    fit = fit_to_scan(P, F, scan, seen, landmarks=lm, stiffness=stiffness)
+    t_fit = time.perf_counter() - t0
+    model, report = personalize(template, fit.vertices, T, head.unit, "surface")
+    # the errors, in the scan's own frame through the head's scan_transform (no refit)
+    S = model.scan_transform
+    face = skin_regions(template, FACE_REGIONS) & seen
+    errors = scan_fit_errors(apply_transform(S, model.skin_vertices), F, face,
+                             apply_transform(np.linalg.inv(T), part_V), part_F)
+    visible_faces = seen[F].all(axis=1)
+    folded = folded_triangles(P, model.skin_vertices, F)
+    verdict = []
+    if folded[visible_faces].any():
+        verdict.append(f"{int(folded[visible_faces].sum())} visible skin triangles folded")
+    if errors["face_to_scan_rms_rel"] > MAX_FACE_RMS_REL:
+        verdict.append(f"the face lies {errors['face_to_scan_rms_rel'] * 100:.2f} % of the head's diagonal from "
+                       f"the scan (RMS; at most {MAX_FACE_RMS_REL * 100:.2f} % expected)")
+    if errors["face_coverage"] < MIN_FACE_COVERAGE:
+        verdict.append(f"only {errors['face_coverage'] * 100:.0f} % of the face reaches the scan "
+                       f"(at least {MIN_FACE_COVERAGE * 100:.0f} % expected)")
+    report.update({
+        "head_part": head.report(scan_V),
+        "feature_pairs": 0 if lm is None else int(len(lm[0])),
+        "landmarks_used": used_landmarks,
+        "errors": errors,
+        "folded_triangles": {"visible": int(folded[visible_faces].sum()), "all": int(folded.sum())},
+        "fit_stages": fit.stages,
+        "fit_seconds": t_fit,
+        "seconds": time.perf_counter() - t0,
+        "verdict": verdict,
+    })
+    return model, report

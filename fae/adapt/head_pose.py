@@ -1,0 +1,379 @@
+"""The head in a real scan: its pose, scale and the part of the scan the template models.
+
+    find_head(template, scan_V, scan_F) -> HeadInScan
+
+A user's scan arrives in any unit and orientation, with a plinth, shoulders, chest, hair,
+holes and stray pieces. The template models a head and the top of a neck; nothing below
+may pull its skin.
+
+1. Pose and scale (head_pose): the template's head (its visible skin above the chin,
+   cranium, face and ears) is placed onto the scan by trimmed similarity ICP from many
+   starts: the template's up along each of the scan's axes and principal axes (both
+   signs), turned about it in 45-degree steps, sized to three shares of the scan's extent
+   along that up and set at its top. Each start is scored in the template's frame by
+   two trimmed mean distances: template head -> scan (the head must lie on the scan) and
+   scan -> template head for the scan inside the template head's box (the scan there must
+   be head: a template shrunk into a corner of a plinth or a shoulder leaves scan
+   unexplained). The template moves, not the scan, so the shoulders below the box count
+   for nothing.
+2. The head part (head_part): in the face frame, scan vertices above the template's neck
+   end, and below the jaw only those within NECK_RADIUS_SHARE of the template neck's own
+   radius from the neck's axis (shoulders and chest fall outside); then only the
+   connected piece that holds the face. The report names its vertex count and bounds.
+   A scan whose pose this does not trust (a face without the rest of the head) is
+   searched again with the template's face alone.
+3. Confidence: the share of the template's face that the scan covers within
+   FACE_NEAR metres after the rigid fit, and the trimmed residual over the face. Below
+   MIN_FACE_COVERAGE, or above MAX_HEAD_RESIDUAL, the pose is not to be trusted and
+   fae adapt stops with exit status 2 (see fae.commands.adapt).
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from fae.adapt.calibration import scan_unit, similarity_transform
+from fae.io.facemodel import FaceModel
+
+SAMPLE_COUNT = 1500  # template head points used by the pose search
+SCAN_SAMPLES = 20000  # scan vertices (at most) used by the pose search
+YAW_STEPS = 8  # starts turned about each up direction (45 degrees apart)
+HEAD_SHARES = (0.35, 0.6, 0.95)  # starting head height (chin to crown) / scan extent along up
+KEEP = 0.85  # trimmed ICP: share of pairs kept
+FACE_WEIGHT = 2.0  # of the face's distance in a start's score
+CHIN_MARGIN = 0.01  # m: the neck rule starts this far below the chin
+NECK_RADIUS_SHARE = 1.3  # below the chin, scan within this many template neck radii of its axis
+NECK_MAX_UPWARD = 0.5  # ... whose normal is within 60 degrees of horizontal
+FACE_NEAR = 0.008  # m: a face sample is covered when the scan is this close after the rigid fit
+MIN_FACE_COVERAGE = 0.6  # below this share of the face covered, the pose is not trusted
+UNIT_SNAP = 1.3  # a fitted scale within this factor of a length unit is taken as that unit
+MAX_HEAD_RESIDUAL = 0.012  # m: trimmed mean template head -> scan distance beyond which it is not
+
+
+@dataclass
+class HeadInScan:
+    """Where the template's head lies in a scan.
+
+    transform   (4, 4) scan frame and unit -> the template's face frame (metres)
+    unit        the scan's length unit ("mm", "m", ...; "unknown" when none fits the scale)
+    keep        (n,) bool over the scan's vertices: the head part (the rest is ignored)
+    face_coverage  share of the template face's samples with scan within FACE_NEAR metres
+    residual    trimmed mean distance, template face -> scan, metres, after the rigid fit
+    scale       scan units -> metres as fitted (before snapping to a unit)
+    template_to_scan  (4, 4) the similarity found, the template's face frame -> the scan's
+    """
+
+    transform: np.ndarray
+    unit: str
+    keep: np.ndarray
+    face_coverage: float
+    residual: float
+    scale: float
+    template_to_scan: np.ndarray
+
+    @property
+    def trusted(self) -> bool:
+        return self.face_coverage >= MIN_FACE_COVERAGE and self.residual <= MAX_HEAD_RESIDUAL
+
+    def report(self, scan_V: np.ndarray) -> dict:
+        """JSON-ready description of the head part (in the scan's own frame and unit)."""
+        part = np.asarray(scan_V)[self.keep]
+        return {"scan_vertices": int(len(self.keep)), "head_vertices": int(self.keep.sum()),
+                "head_bounds_min": part.min(axis=0).tolist() if len(part) else None,
+                "head_bounds_max": part.max(axis=0).tolist() if len(part) else None,
+                "scan_unit": self.unit, "face_coverage": self.face_coverage,
+                "pose_residual_m": self.residual, "trusted": self.trusted}
+
+
+@dataclass
+class TemplateHead:
+    """The template's parts the search needs, in its face frame (metres).
+
+    head        (k, 3) samples of the visible skin above the chin (cranium, face, ears)
+    face        (f, 3) samples of the front of the face (brow to chin, in front of the ears)
+    box_min, box_max  (3,) the head samples' bounds, a little enlarged
+    chin_y      height of the chin (2.1)
+    jaw_y       height below which the skin is neck (the jaw's angle)
+    neck_bottom height where the template's neck ends
+    neck_axis   (2,) x, z of the neck's axis; neck_radius its mean radius
+    """
+
+    head: np.ndarray
+    face: np.ndarray
+    box_min: np.ndarray
+    box_max: np.ndarray
+    chin_y: float
+    jaw_y: float
+    neck_bottom: float
+    neck_axis: np.ndarray
+    neck_radius: float
+
+
+def template_head(template: FaceModel) -> TemplateHead:
+    """The template's head, face and neck measurements (see TemplateHead)."""
+    from fae.adapt.correspondence import grid_sample
+    from fae.adapt.transfer import visible_skin
+
+    V = np.asarray(template.skin_vertices, dtype=np.float64)
+    seen = visible_skin(template)
+    fdp = template.feature_point_positions()
+    chin_y = float(fdp["2.1"][1]) if "2.1" in fdp else float(V[:, 1].min() + 0.3 * np.ptp(V[:, 1]))
+    jaw_y = float(max(fdp[n][1] for n in ("2.13", "2.14") if n in fdp)) if "2.13" in fdp else chin_y
+    head_mask = seen & (V[:, 1] >= chin_y - 0.005)
+    spacing = max(float(np.ptp(V[head_mask], axis=0).max()) / 40.0, 1e-4)
+    head = V[grid_sample(V, spacing, head_mask)]
+    front_z = min(fdp[n][2] for n in ("10.9", "10.10")) if "10.9" in fdp and "10.10" in fdp else np.median(V[:, 2])
+    top_face = fdp["11.1"][1] if "11.1" in fdp else V[:, 1].max()
+    face_mask = seen & (V[:, 1] >= chin_y - 0.003) & (V[:, 1] <= top_face) & (V[:, 2] >= front_z)
+    face = V[grid_sample(V, spacing / 2, face_mask)]
+    names = list(template.region_names)
+    if "neck" in names:
+        neck = V[(np.asarray(template.skin_region) == names.index("neck")) & (V[:, 1] < chin_y)]
+    else:
+        neck = V[V[:, 1] < chin_y]
+    neck_bottom = float(V[:, 1].min())
+    low = neck[neck[:, 1] < 0.5 * (chin_y + neck_bottom)] if len(neck) else V[V[:, 1] < chin_y]
+    axis = 0.5 * (low[:, [0, 2]].min(axis=0) + low[:, [0, 2]].max(axis=0))
+    radius = float(np.mean(np.linalg.norm(low[:, [0, 2]] - axis, axis=1)))
+    pad = 0.1 * np.ptp(head, axis=0)
+    return TemplateHead(head=head, face=face, box_min=head.min(axis=0) - pad, box_max=head.max(axis=0) + pad,
+                        chin_y=chin_y, jaw_y=jaw_y, neck_bottom=neck_bottom, neck_axis=axis, neck_radius=radius)
+
+
+def _rotation_to(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation taking unit vector a to unit vector b (the shortest turn)."""
+    v = np.cross(a, b)
+    c = float(np.dot(a, b))
+    if np.linalg.norm(v) < 1e-12:
+        if c > 0:
+            return np.eye(3)
+        axis = np.cross(a, [1.0, 0.0, 0.0] if abs(a[0]) < 0.9 else [0.0, 1.0, 0.0])
+        axis /= np.linalg.norm(axis)
+        return 2.0 * np.outer(axis, axis) - np.eye(3)
+    K = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    return np.eye(3) + K + K @ K / (1.0 + c)
+
+
+def _axis_angle(axis: np.ndarray, angle: float) -> np.ndarray:
+    axis = axis / np.linalg.norm(axis)
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(angle) * K + (1.0 - np.cos(angle)) * K @ K
+
+
+def _up_candidates(S: np.ndarray) -> list[np.ndarray]:
+    """Unit directions the head's up may take in the scan: its axes and principal axes,
+    both signs, without near-duplicates (within 15 degrees)."""
+    c = S.mean(axis=0)
+    _, _, Vt = np.linalg.svd(S - c, full_matrices=False)
+    out: list[np.ndarray] = []
+    for d in itertools.chain(np.eye(3), Vt):
+        for sign in (1.0, -1.0):
+            u = sign * d / np.linalg.norm(d)
+            if all(np.dot(u, w) < np.cos(np.radians(15.0)) for w in out):
+                out.append(u)
+    return out
+
+
+def _icp(head: TemplateHead, A: np.ndarray, S: np.ndarray, tree: cKDTree, s: float, R: np.ndarray,
+         t: np.ndarray, iterations: int) -> tuple[float, np.ndarray, np.ndarray]:
+    """Trimmed symmetric similarity ICP: x -> s R x + t taking template head points A (n, 3)
+    onto the scan cloud S (tree over S). Pairs go both ways: each template point to its
+    closest scan point, and each scan point inside the template head's box to its closest
+    template point; so the template can neither swell around the scan (the scan inside it
+    pulls it in) nor shrink into a corner of it."""
+    treeA = cKDTree(A)
+    for _ in range(iterations):
+        Y = s * A @ R.T + t
+        d1, j1 = tree.query(Y)
+        good1 = d1 <= np.quantile(d1, KEEP)
+        X = (S - t) @ R / s
+        inbox = np.flatnonzero(np.all((X >= head.box_min) & (X <= head.box_max), axis=1))
+        src, dst = [A[good1]], [S[j1[good1]]]
+        if len(inbox) > 10:
+            d2, j2 = treeA.query(X[inbox])
+            d2 = d2 * s
+            good2 = d2 <= np.quantile(d2, KEEP)
+            src.append(A[j2[good2]])
+            dst.append(S[inbox[good2]])
+        s, R, t = similarity_transform(np.vstack(src), np.vstack(dst))
+    return s, R, t
+
+
+def _trimmed_mean(d: np.ndarray, keep: float = KEEP) -> float:
+    if len(d) == 0:
+        return np.inf
+    d = np.sort(d)[: max(1, int(keep * len(d)))]
+    return float(np.mean(d))
+
+
+def head_pose(head: TemplateHead, scan_V: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, float]:
+    """x -> s R x + t taking the template's face frame into the scan's frame (so the
+    inverse takes the scan into the face frame), and the start's score (metres of the
+    template frame; lower is better). See the module docstring."""
+    V = np.asarray(scan_V, dtype=np.float64)
+    S = V[:: max(1, len(V) // SCAN_SAMPLES)]
+    tree = cKDTree(S)
+    A = head.head
+    top = A[np.argmax(A[:, 1])]
+    centre = A.mean(axis=0)
+    height = float(A[:, 1].max() - head.chin_y)
+    probe = A[:: max(1, len(A) // 400)]
+    face_probe = head.face[:: max(1, len(head.face) // 400)]
+    A = np.vstack([A, head.face])  # the face counts twice: it tells front from back
+
+    def score(s, R, t) -> float:
+        # in the template's frame: template head -> scan, and scan in the head's box -> head
+        d1 = tree.query(s * probe @ R.T + t)[0] / s
+        d3 = tree.query(s * face_probe @ R.T + t)[0] / s
+        X = (S - t) @ R / s
+        inbox = np.all((X >= head.box_min) & (X <= head.box_max), axis=1)
+        d2 = cKDTree(A).query(X[inbox])[0] if inbox.sum() > 10 else np.full(1, np.inf)
+        return _trimmed_mean(d1) + _trimmed_mean(d2) + FACE_WEIGHT * _trimmed_mean(d3, 0.95)
+
+    starts = []
+    for up in _up_candidates(S):
+        along = S @ up
+        extent = float(np.ptp(along))
+        R_up = _rotation_to(np.array([0.0, 1.0, 0.0]), up)
+        top_point = S[np.argmax(along)]
+        high = S[along >= along.max() - 0.3 * extent]
+        for share in HEAD_SHARES:
+            s = share * extent / height
+            for k in range(YAW_STEPS):
+                R = _axis_angle(up, 2 * np.pi * k / YAW_STEPS) @ R_up
+                # the template's crown at the scan's top, its centre over the top part's centre
+                t = top_point - s * R @ top
+                delta = high.mean(axis=0) - (s * R @ centre + t)
+                t = t + delta - up * np.dot(delta, up)  # across up only: the crown stays at the top
+                starts.append((s, R, t))
+    scored = []
+    coarse, coarse_tree = S[::4], cKDTree(S[::4])
+    for s, R, t in starts:
+        s, R, t = _icp(head, A[::4], coarse, coarse_tree, s, R, t, iterations=5)
+        scored.append((score(s, R, t), s, R, t))
+    scored.sort(key=lambda x: x[0])
+    best = (np.inf, 1.0, np.eye(3), np.zeros(3))
+    for _, s, R, t in scored[:8]:
+        s, R, t = _icp(head, A, S, tree, s, R, t, iterations=30)
+        e = score(s, R, t)
+        if e < best[0]:
+            best = (e, s, R, t)
+    e, s, R, t = best
+    # the face decides the last turn: a head turned on its neck, hair or a wreath must not
+    for _ in range(20):
+        d, j = tree.query(s * head.face @ R.T + t)
+        good = d <= np.quantile(d, 0.8)
+        s, R, t = similarity_transform(head.face[good], S[j[good]])
+    return s, R, t, e
+
+
+def head_part(head: TemplateHead, X: np.ndarray, F: np.ndarray) -> np.ndarray:
+    """(n,) bool: scan vertices X (n, 3), already in the face frame (metres), that belong to
+    the head and neck the template models (see the module docstring); F (m, 3) the scan's
+    faces, for its connected pieces."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    X = np.asarray(X, dtype=np.float64)
+    F = np.asarray(F, dtype=np.int64)
+    radial = np.linalg.norm(X[:, [0, 2]] - head.neck_axis, axis=1)
+    keep = X[:, 1] >= head.neck_bottom
+    neck_like = radial <= NECK_RADIUS_SHARE * head.neck_radius
+    if len(F):  # a neck's surface faces sideways; the top of a chest or shoulder faces up
+        from fae.adapt.geometry import per_vertex_normals
+
+        neck_like &= np.abs(per_vertex_normals(X, F)[:, 1]) <= NECK_MAX_UPWARD
+    keep &= (X[:, 1] >= head.chin_y - CHIN_MARGIN) | neck_like
+    keep &= np.all(X[:, [0, 2]] >= head.box_min[[0, 2]] - 0.05, axis=1)
+    keep &= np.all(X[:, [0, 2]] <= head.box_max[[0, 2]] + 0.05, axis=1)
+    keep &= X[:, 1] <= head.box_max[1] + 0.05
+    if len(F) == 0:
+        return keep
+    # texture seams split a scan's vertices: pieces are found on welded positions
+    _, weld = np.unique(np.round(X / 1e-6).astype(np.int64), axis=0, return_inverse=True)
+    weld = weld.reshape(-1)
+    both = keep[F].all(axis=1)
+    G = weld[F[both]]
+    n = len(X)
+    graph = coo_matrix((np.ones(2 * len(G)), (np.r_[G[:, 0], G[:, 1]], np.r_[G[:, 1], G[:, 2]])), shape=(n, n))
+    _, label = connected_components(graph, directed=False)
+    # the piece that holds the face: the one nearest the template's face samples
+    near = cKDTree(X[keep]).query(head.face)[1]
+    face_labels = label[weld[np.flatnonzero(keep)[near]]]
+    main = np.bincount(face_labels).argmax()
+    return keep & (label[weld] == main)
+
+
+def kept_part(V: np.ndarray, F: np.ndarray, keep: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The mesh V (n, 3), F (m, 3) cut to the vertices `keep` (n,) bool: (V' (k, 3), F' (m', 3)),
+    the faces whose corners are all kept, renumbered."""
+    keep = np.asarray(keep, dtype=bool)
+    F = np.asarray(F, dtype=np.int64)
+    faces = F[keep[F].all(axis=1)]
+    used = np.zeros(len(V), dtype=bool)
+    used[faces.ravel()] = True
+    new = np.full(len(V), -1, dtype=np.int64)
+    new[used] = np.arange(int(used.sum()))
+    return np.asarray(V)[used], new[faces]
+
+
+def find_head(template: FaceModel, scan_V: np.ndarray, scan_F: np.ndarray) -> HeadInScan:
+    """The template's head found in a scan in any frame and unit (see the module docstring)."""
+    V = np.asarray(scan_V, dtype=np.float64)
+    if len(V) < 100:
+        raise ValueError(f"the scan has {len(V)} vertices: too few to find a head in")
+    head = template_head(template)
+    s, R, t, _ = head_pose(head, V)
+    found = _head_in_scan(head, V, scan_F, s, R, t)
+    if not found.trusted:  # a face without the rest of the head (a face scan, a mask)
+        pad = 0.1 * np.ptp(head.face, axis=0)
+        face_only = replace(head, head=head.face, box_min=head.face.min(axis=0) - pad,
+                            box_max=head.face.max(axis=0) + pad)
+        s2, R2, t2, _ = head_pose(face_only, V)
+        second = _head_in_scan(head, V, scan_F, s2, R2, t2)
+        if second.residual < found.residual:
+            found = second
+    return found
+
+
+def _head_in_scan(head: TemplateHead, V: np.ndarray, scan_F: np.ndarray, s: float, R: np.ndarray,
+                  t: np.ndarray) -> HeadInScan:
+    """HeadInScan from the similarity x -> s R x + t taking the face frame into the scan's."""
+    X = (V - t) @ R / s  # the scan in the face frame at the template's size
+    keep = head_part(head, X, scan_F)
+    if keep.any():
+        tree = cKDTree(X[keep])
+        coverage = float(np.mean(tree.query(head.face)[0] <= FACE_NEAR))
+        residual = _trimmed_mean(tree.query(head.face)[0])
+    else:
+        coverage, residual = 0.0, np.inf
+    # The face frame keeps the person's true size where the scale fits a length unit: the
+    # scan is scaled about the template head's centre, so the two still overlap.
+    unit, factor = scan_unit(1.0 / s)
+    if unit == "unknown" or abs(np.log(factor * s)) > np.log(UNIT_SNAP):
+        unit, factor = "unknown", 1.0 / s
+    k = factor * s
+    pivot = head.head.mean(axis=0)
+    T = np.eye(4)
+    T[:3, :3] = (k / s) * R.T
+    T[:3, 3] = -(k / s) * R.T @ t + (1.0 - k) * pivot
+    M = np.eye(4)
+    M[:3, :3] = s * R
+    M[:3, 3] = t
+    return HeadInScan(T, unit, keep, coverage, residual, 1.0 / s, M)
+
+
+def head_from_landmarks(template: FaceModel, scan_V: np.ndarray, scan_F: np.ndarray,
+                        template_points: np.ndarray, scan_points: np.ndarray) -> HeadInScan:
+    """The head found from feature points given on the scan: the same feature points on the
+    template (k, 3) metres and on the scan (k, 3) in its frame and unit, k >= 3. The pose
+    is their least-squares similarity; the unit is snapped as in find_head."""
+    V = np.asarray(scan_V, dtype=np.float64)
+    head = template_head(template)
+    s_ts, R_ts, t_ts = similarity_transform(np.asarray(template_points, np.float64),
+                                            np.asarray(scan_points, np.float64))
+    return _head_in_scan(head, V, scan_F, s_ts, R_ts, t_ts)

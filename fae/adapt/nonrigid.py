@@ -1,0 +1,293 @@
+"""The template's skin carried onto a real scan without folding it.
+
+    fit_to_scan(P, F, scan, movable, landmarks=None) -> SurfaceFit
+
+The scan is already in the face frame and cut to the head (fae.adapt.head_pose). Three
+stages, each on the output of the last:
+
+1. Affine (affine_to_scan): trimmed affine ICP of the template's visible head onto the
+   scan; the template takes the person's size and proportions at once.
+2. Regularized non-rigid ICP (Amberg et al. 2007's idea, with a Laplacian instead of
+   their per-vertex affine stiffness): per stiffness `a` of STIFFNESS, a few rounds of
+       min_D  sum_i w_i |x_i + d_i - q_i|^2 + a^2 |L D|^2 + w_L sum_k |b_k . (X + D) - l_k|^2
+   over the displacement D (n, 3) of the skin X, with q_i the closest compatible scan
+   point of vertex i (normals within MAX_NORMAL_ANGLE, closer than a reach that shrinks
+   with the stiffness, not on the scan's cut edge), L the graph Laplacian of the template
+   mesh (smooth displacement: a stiff start moves whole regions, a soft end follows
+   detail) and l_k given feature points bound to the skin by barycentric rows b_k.
+   One sparse factorization per round solves x, y and z together. Skin no scanner sees
+   (mouth, nostrils, behind the eyelids) and skin with no scan nearby (the neck below
+   the scan's cut) has no data term and follows its neighbours.
+3. Projection (paper 001's local step): each movable vertex moves to its closest
+   compatible scan point when that is within PROJECT_REACH; any triangle this turns by
+   more than 90 degrees against the regularized fit is put back.
+
+Folds are counted (folded_triangles) as triangles whose normal turned by more than 90
+degrees from the template's; fit_to_scan reports them.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.linalg import splu
+
+from fae.adapt.calibration import apply_transform
+from fae.adapt.errors import Surface
+from fae.adapt.query import MeshQuery
+from fae.adapt.untangle import mesh_edges, untangle
+from fae.adapt.geometry import adjacency_matrix, coincident_groups, face_normal_vectors, group_means, per_vertex_normals
+
+STIFFNESS = (30.0, 12.0, 5.0, 2.0, 1.0, 0.5)  # a per stage, coarse to fine
+NEIGHBOUR_RADIUS = 0.006  # m: vertices this close are neighbours in the smoothness term
+SIMILARITY_START = True  # the start: one scale (True) or a full affine map
+BLEND_RINGS = 1  # rings around a fold blended back to the last fold-free surface
+BLEND_ROUNDS = 12  # rounds at most (the zone widens every second)
+DETAIL_STIFFNESS = 5.0  # stages below this stiffness match only the `detail` skin
+ROUNDS = 3  # correspondence rounds per stiffness
+REACH = (0.04, 0.004)  # m: pairs farther than this are dropped, from the first stage to the last
+MAX_NORMAL_ANGLE = 60.0  # degrees between a vertex's and its scan point's normals
+LANDMARK_WEIGHT = 1.0  # of a feature point's row against a vertex's, at the stiffest stage
+LANDMARK_FADE = 1.0  # the weight falls as (stiffness / the first stiffness) ** this
+PROJECT_REACH = 0.004  # m: the last stage moves a vertex onto the scan when this close
+FOLD_ANGLE = 90.0  # degrees: a triangle turned further than this from the template is folded
+DEGENERATE_SHARE = 1e-4  # of the median triangle area: smaller triangles have no normal to fold
+
+
+@dataclass
+class SurfaceFit:
+    """Result of fit_to_scan: vertices (n, 3) metres, the affine start (4, 4) and a
+    report per stage (pairs, RMS of the pairs, seconds)."""
+
+    vertices: np.ndarray
+    affine: np.ndarray
+    stages: list[dict] = field(default_factory=list)
+    folded: int = 0
+
+
+def folded_triangles(X0: np.ndarray, X: np.ndarray, F: np.ndarray, angle: float = FOLD_ANGLE) -> np.ndarray:
+    """(m,) bool: triangles of F whose normal on X (n, 3) turned more than `angle` degrees
+    from their normal on the reference X0 (n, 3). Triangles without a normal (area below
+    DEGENERATE_SHARE of the median, on either surface: the template has collapsed ones
+    at its seams) are never counted."""
+    N0, N = face_normal_vectors(X0, F), face_normal_vectors(X, F)
+    a0, a = np.linalg.norm(N0, axis=1), np.linalg.norm(N, axis=1)
+    real = (a0 > DEGENERATE_SHARE * np.median(a0)) & (a > DEGENERATE_SHARE * np.median(a))
+    c = np.sum(N0 * N, axis=1) / np.maximum(a0 * a, 1e-300)
+    return real & (c < np.cos(np.radians(angle)))
+
+
+def graph_laplacian(F: np.ndarray, n: int, P: np.ndarray | None = None, radius: float = 0.0) -> sp.csr_matrix:
+    """(n, n) uniform graph Laplacian I - D^-1 A of the mesh F (m, 3); with points P (n, 3)
+    and a radius (metres), every pair of vertices closer than that is a neighbour too, so
+    the smoothness is the same over a dense patch of slivers as over a coarse one."""
+    A = adjacency_matrix(F, n).astype(np.float64)
+    if P is not None and radius > 0:
+        from scipy.spatial import cKDTree
+
+        pairs = cKDTree(P).query_pairs(radius, output_type="ndarray")
+        A = A + sp.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+        A = (A + A.T).tocsr()
+    A.data[:] = 1.0
+    deg = np.asarray(A.sum(axis=1)).ravel()
+    return (sp.identity(n, format="csr") - sp.diags(1.0 / np.maximum(deg, 1.0)) @ A).tocsr()
+
+
+def scan_pairs(X: np.ndarray, NX: np.ndarray, scan: Surface, reach: float, candidates: np.ndarray,
+               along_normal: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices (k,) of X (n, 3) among `candidates` (n,) bool paired with their closest
+    compatible scan points (k, 3): within `reach` metres, normals within
+    MAX_NORMAL_ANGLE, not on a face at the scan's boundary. along_normal: the target is
+    the vertex's projection onto the scan's tangent plane there instead (point-to-plane:
+    the data moves vertices across the surface, never along it, so they do not bunch up
+    into slivers that flip)."""
+    idx = np.flatnonzero(candidates)
+    pts, dist, face, bary = scan.query.closest_points(X[idx], reach)
+    ok = face >= 0
+    N = np.zeros_like(X[idx])
+    N[ok] = np.einsum("nk,nkd->nd", bary[ok], scan.N[scan.F[face[ok]]])
+    N /= np.maximum(np.linalg.norm(N, axis=1, keepdims=True), 1e-12)
+    ok &= np.sum(N * NX[idx], axis=1) >= np.cos(np.radians(MAX_NORMAL_ANGLE))
+    ok[ok] &= ~scan.face_on_boundary[face[ok]]
+    if along_normal:
+        pts = X[idx] + np.sum((pts - X[idx]) * N, axis=1, keepdims=True) * N
+    return idx[ok], pts[ok]
+
+
+def affine_to_scan(X: np.ndarray, scan: Surface, use: np.ndarray, iterations: int = 15, keep: float = 0.8,
+                   points: tuple[np.ndarray, np.ndarray] | None = None, similarity: bool = False) -> np.ndarray:
+    """(4, 4) affine map taking the vertices X[use] onto the scan by trimmed ICP (closest
+    scan vertices; the closest `keep` share of pairs). points: fixed pairs (template
+    points (k, 3), scan points (k, 3)) that start it and count in every step, each as much
+    as all the surface pairs together divided by k. similarity: rotation, translation and
+    one scale only (the neck below a scan's cut then keeps the template's proportions)."""
+    A = np.eye(4)
+    P = X[use]
+
+    def solve(src, dst, weight):
+        if similarity:  # weighted by repeating nothing: the weights only balance fixed and surface pairs
+            from fae.adapt.calibration import similarity_transform
+
+            rep = np.maximum(1, np.round(weight / weight.min()).astype(int))
+            sc, R, t = similarity_transform(np.repeat(src, rep, axis=0), np.repeat(dst, rep, axis=0))
+            out = np.eye(4)
+            out[:3, :3] = sc * R
+            out[:3, 3] = t
+            return out
+        H = np.c_[src, np.ones(len(src))] * weight[:, None]
+        M, *_ = np.linalg.lstsq(H, dst * weight[:, None], rcond=None)
+        out = np.eye(4)
+        out[:3, :3] = M[:3].T
+        out[:3, 3] = M[3]
+        return out
+
+    if points is not None and len(points[0]) >= 4:
+        A = solve(points[0], points[1], np.ones(len(points[0])))
+    for _ in range(iterations):
+        Y = apply_transform(A, P)
+        d, j = scan.tree.query(Y)
+        good = d <= np.quantile(d, keep)
+        src, dst, wt = P[good], scan.V[j[good]], np.ones(int(good.sum()))
+        if points is not None and len(points[0]):
+            src, dst = np.vstack([src, points[0]]), np.vstack([dst, points[1]])
+            wt = np.r_[wt, np.full(len(points[0]), np.sqrt(good.sum() / len(points[0])))]
+        A = solve(src, dst, wt)
+    return A
+
+
+def blend_away_folds(P: np.ndarray, X_safe: np.ndarray, X: np.ndarray, F: np.ndarray,
+                     ring: sp.csr_matrix | None = None, rounds: int | None = None) -> tuple[np.ndarray, int]:
+    """X (n, 3) blended back towards X_safe (n, 3) wherever it folds against the template P
+    (n, 3): weight 0 on the folded triangles and BLEND_RINGS rings around them, rising back
+    to 1 over as many rings (ring: adjacency_matrix(F, n)); repeated with wider zones while
+    anything still folds. X_safe must fold nowhere X_safe's own folds are not to be kept.
+    Returns the result and how many vertices were blended."""
+    n = len(P)
+    ring = adjacency_matrix(F, n) if ring is None else ring
+    weight = np.ones(n)
+    Y = X
+    for r in range(BLEND_ROUNDS if rounds is None else rounds):
+        bad = folded_triangles(P, Y, F)
+        if not bad.any():
+            break
+        zone = np.zeros(n, dtype=bool)
+        zone[F[bad].ravel()] = True
+        grow = BLEND_RINGS + r // 2
+        for _ in range(grow):
+            zone |= (ring @ zone.astype(np.float64)) > 0
+        target = np.where(zone, 0.0, 1.0)
+        edge = zone
+        for k in range(1, grow + 1):
+            band = ((ring @ edge.astype(np.float64)) > 0) & ~edge
+            target[band] = k / (grow + 1)
+            edge = edge | band
+        weight = np.minimum(weight, target)
+        Y = X_safe + weight[:, None] * (X - X_safe)
+    return Y, int(np.sum(weight < 1.0))
+
+
+def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray,
+                landmarks: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+                head: np.ndarray | None = None, stiffness: np.ndarray | None = None,
+                detail: np.ndarray | None = None) -> SurfaceFit:
+    """Fit the template skin P (n, 3) metres, F (m, 3) to `scan` (face frame, head part only).
+
+    movable (n,) bool: skin a scanner can see (the rest follows its neighbours); landmarks:
+    (faces (k,), bary (k, 3), points (k, 3) metres) feature points on the skin and where
+    they are on the scan; head (n,) bool: skin used for the affine start (default movable);
+    stiffness (n,): a multiplier of the smoothness per vertex (thin, creased parts such as
+    eyelids and ears bend less than a cheek; default 1); detail (n,) bool: skin that
+    follows the scan's detail (stages softer than DETAIL_STIFFNESS and the projection);
+    the rest (thin folds such as eyelids and ears, a neck the scan cuts short) keeps the
+    shape the stiff stages gave it (default: all movable skin).
+    """
+    t0 = time.perf_counter()
+    P_in = np.asarray(P, dtype=np.float64)
+    F_in = np.asarray(F, dtype=np.int64)
+    # the template's seams (coincident vertices) are welded: the halves must move as one
+    n, label = coincident_groups(P_in)
+    P = group_means(P_in, label, n)
+    F = label[F_in]
+    F = F[(F[:, 0] != F[:, 1]) & (F[:, 1] != F[:, 2]) & (F[:, 2] != F[:, 0])]
+    movable = np.bincount(label, weights=np.asarray(movable, dtype=float), minlength=n) > 0
+    head = None if head is None else np.bincount(label, weights=np.asarray(head, dtype=float), minlength=n) > 0
+    detail = movable if detail is None else movable & (
+        np.bincount(label, weights=np.asarray(detail, dtype=float), minlength=n) > 0)
+    if landmarks is not None:
+        landmarks = (landmarks[0], landmarks[1], landmarks[2])
+        lm_corners = label[F_in[landmarks[0]]]  # (k, 3) welded corners of each feature point's triangle
+    fixed = None
+    if landmarks is not None and len(landmarks[0]):
+        fixed = (np.einsum("kj,kjd->kd", landmarks[1], P[lm_corners]), landmarks[2])
+    A = affine_to_scan(P, scan, movable if head is None else head, points=fixed, similarity=SIMILARITY_START)
+    X = apply_transform(A, P)
+    X_whole = X
+    edges = mesh_edges(F)
+    query = MeshQuery(X, F)
+    L = graph_laplacian(F, n, P, NEIGHBOUR_RADIUS)
+    if stiffness is not None:
+        per = np.bincount(label, weights=np.asarray(stiffness, dtype=float), minlength=n) / np.bincount(label, minlength=n)
+        L = sp.diags(per) @ L
+    LtL = (L.T @ L).tocsc()
+    if landmarks is not None and len(landmarks[0]):
+        fl, bl, ql = landmarks
+        rows = np.repeat(np.arange(len(fl)), 3)
+        B = sp.csr_matrix((bl.ravel(), (rows, lm_corners.ravel())), shape=(len(fl), n))
+        BtB = LANDMARK_WEIGHT * (B.T @ B)
+    else:
+        B = None
+    stages = []
+    reaches = np.geomspace(REACH[0], REACH[1], len(STIFFNESS))
+    ring = adjacency_matrix(F, n)
+    # every movable vertex has a data row (weight 1) in every round, so a stage factors its
+    # matrix once; a vertex without a compatible scan point this round is asked to stay
+    blended_total = 0
+    for a, reach in zip(STIFFNESS, reaches):
+        matched = movable if a >= DETAIL_STIFFNESS else detail
+        w = matched.astype(np.float64)
+        M = a * a * LtL + sp.diags(w)
+        fade = (a / STIFFNESS[0]) ** LANDMARK_FADE  # feature points place the parts; the scan gives the detail
+        if B is not None:
+            M = M + fade * BtB
+        solve = splu(M.tocsc()).solve
+        for _ in range(ROUNDS):
+            NX = per_vertex_normals(X, F)
+            idx, Q = scan_pairs(X, NX, scan, reach, matched, along_normal=True)
+            rhs = np.zeros((n, 3))
+            rhs[idx] = Q - X[idx]
+            if B is not None:
+                rhs += fade * LANDMARK_WEIGHT * (B.T @ (landmarks[2] - B @ X))
+            X_next = X + solve(rhs)
+            X, blended = blend_away_folds(P, X, X_next, F, ring)  # no step may fold what the last left whole
+            blended_total += blended
+        rms = float(np.sqrt(np.mean(np.sum((X[idx] - Q) ** 2, axis=1)))) if len(idx) else np.inf
+        # nor may a stage cut through itself (an ear pressed into the scalp, the mouth's lining
+        # through a lip): blended back to the last stage wherever it does
+        X, weight = untangle(F, X, X_whole, edges=edges, query=query)
+        untangled = int(np.sum(weight < 1.0))
+        X_whole = X
+        stages.append({"stiffness": a, "reach_m": float(reach), "pairs": int(len(idx)), "pair_rms_m": rms,
+                       "folded": int(folded_triangles(P, X, F).sum()), "blended_vertices": blended_total,
+                       "untangled_vertices": untangled, "seconds": time.perf_counter() - t0})
+    # paper 001's local step: onto the scan where it is close, never folding a triangle
+    NX = per_vertex_normals(X, F)
+    idx, Q = scan_pairs(X, NX, scan, PROJECT_REACH, detail)
+    Y = X.copy()
+    Y[idx] = Q
+    for _ in range(5):
+        bad = folded_triangles(X, Y, F, 60.0)
+        if not bad.any():
+            break
+        back = np.unique(F[bad])
+        Y[back] = X[back]
+    Y, blended = blend_away_folds(P, X, Y, F, ring)
+    # the projection neither: blended back to the last stage where it cuts through itself
+    Y, weight = untangle(F, Y, X_whole, edges=edges, query=query)
+    stages.append({"projected": int(len(idx)), "blended_vertices": blended,
+                   "untangled_vertices": int(np.sum(weight < 1.0)), "seconds": time.perf_counter() - t0})
+    Y = Y[label]
+    folded = int(folded_triangles(P_in, Y, F_in).sum())
+    return SurfaceFit(Y, A, stages, folded)

@@ -1,0 +1,190 @@
+"""Face landmarks on any mesh, by looking at it: MediaPipe Face Mesh on a render.
+
+    face_points_seen(model, camera, size) -> FacePoints | None
+    landmark_pairs(template, scan_V, scan_F, camera) -> LandmarkPairs
+
+A scan has no feature points, but it has a face a landmark model recognizes once drawn.
+The template is drawn and looked at the same way, from the same camera, so the two sets
+of MediaPipe's 468 points correspond one to one: each point is cast back onto its mesh
+along its pixel's ray, and the detector's own habits (where it puts a contour point on a
+given face) cancel out between the two. The pairs drive the fit as feature points do
+(fae.adapt.nonrigid), and the MPEG-4 feature points of the scan are then read off the
+fitted skin.
+
+MediaPipe 0.10.14 ships its Face Mesh model inside the wheel (nothing is downloaded); it is
+an optional dependency (`pip install fae[landmarks]`). Without it, face_points_seen raises
+LandmarkModelMissing.
+
+Pairs are kept only where both rays meet their mesh and the point is not on the face's
+outline (silhouette points slide with the view); pairs that disagree with a similarity
+fitted to all the others (by more than OUTLIER_SHARE of the eye distance and 4 times the
+median) are dropped.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from fae.io.facemodel import FaceModel
+from fae.render.framing import CameraView
+
+DETECTION_SIZE = (640, 640)
+MIN_DETECTION_CONFIDENCE = 0.3
+OUTLIER_SHARE = 0.25  # of the template's eye distance
+# MediaPipe Face Mesh's face oval (its outline): these points sit on the silhouette.
+FACE_OVAL = (10, 338, 297, 332, 284, 251, 389, 356, 454, 323, 361, 288, 397, 365, 379, 378, 400, 377, 152,
+             148, 176, 149, 150, 136, 172, 58, 132, 93, 234, 127, 162, 21, 54, 103, 67, 109)
+# The eyes' own points (iris excluded): on the template they land on the eyeball, on a
+# sculpted scan on its carved eye: usable pairs, but the skin's eyelid does not follow them.
+EYE_POINTS = (33, 7, 163, 144, 145, 153, 154, 155, 133, 173, 157, 158, 159, 160, 161, 246,
+              263, 249, 390, 373, 374, 380, 381, 382, 362, 398, 384, 385, 386, 387, 388, 466)
+# The lips' inner contour: on a closed template mouth its rays slip through the slit into
+# the mouth, and on a scan with the mouth shut it is one line.
+INNER_LIP_POINTS = (78, 191, 80, 81, 82, 13, 312, 311, 310, 415, 308, 95, 88, 178, 87, 14, 317, 402, 318, 324)
+
+
+class LandmarkModelMissing(RuntimeError):
+    """MediaPipe is not installed."""
+
+
+@dataclass
+class FacePoints:
+    """MediaPipe's points seen on a mesh: pixels (468, 2) in an image of `size`, and
+    where each lands on the mesh: hit (468,) bool, face (468,) int, bary (468, 3),
+    points (468, 3) metres (nan where missed)."""
+
+    pixels: np.ndarray
+    size: tuple[int, int]
+    hit: np.ndarray
+    face: np.ndarray
+    bary: np.ndarray
+    points: np.ndarray
+
+
+@dataclass
+class LandmarkPairs:
+    """Corresponding points of the template's skin and a scan.
+
+    face (k,) int, bary (k, 3): the template skin triangles and barycentric coordinates;
+    scan_points (k, 3) metres; index (k,) the MediaPipe index of each pair;
+    report: counts, the pairs' residual after a similarity, the detector's verdicts.
+    """
+
+    face: np.ndarray
+    bary: np.ndarray
+    scan_points: np.ndarray
+    index: np.ndarray
+    report: dict
+
+
+def surface_model(V: np.ndarray, F: np.ndarray, color=(0.80, 0.78, 0.74, 1.0)) -> FaceModel:
+    """A FaceModel holding only a surface V (n, 3) metres, F (m, 3): to draw a scan."""
+    V = np.asarray(V, dtype=np.float64)
+    n = len(V)
+    return FaceModel(skin_vertices=V, skin_faces=np.asarray(F, dtype=np.int32),
+                     skin_uv=np.zeros((n, 2), np.float32), skin_color=np.asarray(color, np.float32),
+                     skin_mirror=np.arange(n, dtype=np.int32), skin_region=np.zeros(n, np.int32),
+                     region_names=["skin"], skin_thickness=np.zeros(n), layer_params={}, parts={},
+                     jaw_pivot=np.zeros(3), jaw_axis=np.array([1.0, 0.0, 0.0]), eye_centers={},
+                     feature_points={}, muscles=[])
+
+
+def pixel_rays(camera: CameraView, pixels: np.ndarray, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Ray origins (k, 3) and unit directions (k, 3), metres, through pixels (k, 2) (x
+    right, y down, in an image of `size`) of `camera`."""
+    width, height = size
+    f = 0.5 * height / np.tan(0.5 * camera.yfov)
+    px = np.asarray(pixels, dtype=np.float64)
+    d = np.stack([(px[:, 0] - 0.5 * width) / f, -(px[:, 1] - 0.5 * height) / f, -np.ones(len(px))], axis=1)
+    d = d @ camera.pose[:3, :3].T
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return np.tile(camera.pose[:3, 3], (len(px), 1)), d
+
+
+def detect_pixels(image: np.ndarray) -> np.ndarray | None:
+    """MediaPipe Face Mesh's 468 points (468, 2) in pixels of an RGB image (H, W, 3)
+    uint8, or None when it finds no face."""
+    try:
+        import mediapipe as mp
+    except ImportError as exc:
+        raise LandmarkModelMissing("finding feature points on a scan needs MediaPipe: "
+                                   "pip install 'fae[landmarks]' (or give --landmarks)") from exc
+    h, w = image.shape[:2]
+    with mp.solutions.face_mesh.FaceMesh(static_image_mode=True, max_num_faces=1, refine_landmarks=False,
+                                         min_detection_confidence=MIN_DETECTION_CONFIDENCE) as mesh:
+        found = mesh.process(np.ascontiguousarray(image[:, :, :3]))
+    if not found.multi_face_landmarks:
+        return None
+    pts = found.multi_face_landmarks[0].landmark
+    return np.array([[p.x * w, p.y * h] for p in pts[:468]])
+
+
+def face_points_seen(model: FaceModel, camera: CameraView, size: tuple[int, int] = DETECTION_SIZE,
+                     hit_parts: tuple[str, ...] = ("eye_l", "eye_r")) -> FacePoints | None:
+    """Draw `model` from `camera`, find the face's points, and cast each back onto the
+    skin (the parts named in `hit_parts` stop a ray too, as the eyes hide the socket);
+    None when no face is found."""
+    from fae.adapt.query import MeshQuery
+    from fae.render.renderer import FaceRenderer
+
+    with FaceRenderer(model, size, camera=camera) as renderer:
+        image = renderer.render()
+    pixels = detect_pixels(image)
+    if pixels is None:
+        return None
+    V, F = np.asarray(model.skin_vertices, np.float64), np.asarray(model.skin_faces, np.int64)
+    allV, allF, base = [V], [F], len(V)
+    for name in hit_parts:
+        if name in model.parts:
+            pv, pf = model.mesh(name)
+            allV.append(np.asarray(pv, np.float64))
+            allF.append(np.asarray(pf, np.int64) + base)
+            base += len(pv)
+    q = MeshQuery(np.vstack(allV), np.vstack(allF))
+    origins, dirs = pixel_rays(camera, pixels, size)
+    hit, t, face, bary = q.ray_hits(origins, dirs, 10.0 * float(np.linalg.norm(camera.pose[:3, 3] - camera.target)))
+    hit &= (face >= 0) & (face < len(F))  # on the skin, not on an eye
+    points = np.full((len(pixels), 3), np.nan)
+    points[hit] = origins[hit] + t[hit, None] * dirs[hit]
+    return FacePoints(pixels, size, hit, np.where(hit, face, -1), bary, points)
+
+
+def landmark_pairs(template: FaceModel, scan_V: np.ndarray, scan_F: np.ndarray, camera: CameraView,
+                   size: tuple[int, int] = DETECTION_SIZE, seen: np.ndarray | None = None) -> LandmarkPairs | None:
+    """Pairs of template skin points and scan points found by MediaPipe on both (see the
+    module docstring); the scan (V (n, 3), F (m, 3)) in the template's face frame, metres;
+    seen (n,) bool: the template skin a scanner can see (fae.adapt.transfer.visible_skin).
+    None when no face is found on the scan (or on the template)."""
+    from fae.adapt.calibration import similarity_transform
+
+    on_template = face_points_seen(template, camera, size)
+    if on_template is None:
+        return None
+    on_scan = face_points_seen(surface_model(scan_V, scan_F), camera, size, hit_parts=())
+    if on_scan is None:
+        return None
+    use = on_template.hit & on_scan.hit
+    use[list(FACE_OVAL)] = False
+    use[list(EYE_POINTS)] = False
+    use[list(INNER_LIP_POINTS)] = False
+    if seen is not None:  # template points on skin no scanner sees (inside the mouth) are no use
+        use &= seen[np.asarray(template.skin_faces, np.int64)[np.maximum(on_template.face, 0)]].all(axis=1)
+    idx = np.flatnonzero(use)
+    report = {"detected_on_template": True, "detected_on_scan": True, "points": 468,
+              "cast_on_both": int(len(idx))}
+    if len(idx) < 20:
+        report["pairs"] = int(len(idx))
+        return LandmarkPairs(np.zeros(0, int), np.zeros((0, 3)), np.zeros((0, 3)), idx, report)
+    A, B = on_template.points[idx], on_scan.points[idx]
+    s, R, t = similarity_transform(A, B)
+    res = np.linalg.norm(s * A @ R.T + t - B, axis=1)
+    fdp = template.feature_point_positions()
+    es = float(np.linalg.norm(fdp["3.5"] - fdp["3.6"])) if "3.5" in fdp and "3.6" in fdp else 0.065
+    good = (res <= OUTLIER_SHARE * es) | (res <= 4.0 * np.median(res))
+    idx = idx[good]
+    report.update({"pairs": int(len(idx)), "similarity_scale": float(s),
+                   "similarity_residual_m": float(np.sqrt(np.mean(res[good] ** 2))),
+                   "dropped_as_outliers": int((~good).sum())})
+    return LandmarkPairs(on_template.face[idx], on_template.bary[idx], on_scan.points[idx], idx, report)
