@@ -76,7 +76,8 @@ def test_fae_adapt_without_landmarks_on_a_shared_face(tmp_path, capsys):
     from fae.cli import main
 
     out, rep = tmp_path / "face.glb", tmp_path / "face.json"
-    assert main(["adapt", str(obj), "-o", str(out), "--report", str(rep), "--no-calibrate"]) == 0
+    assert main(["adapt", str(obj), "--method", "multilevel", "-o", str(out), "--report", str(rep),
+                 "--no-calibrate"]) == 0
     assert "found automatically" in capsys.readouterr().err
     report = json.loads(rep.read_text())
     assert report["automatic_feature_points"]["scan_unit"] == "mm"

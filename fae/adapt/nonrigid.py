@@ -189,6 +189,22 @@ def blend_away_folds(P: np.ndarray, X_safe: np.ndarray, X: np.ndarray, F: np.nda
     return Y, int(np.sum(weight < 1.0))
 
 
+def whole(P: np.ndarray, X_safe: np.ndarray, X: np.ndarray, F: np.ndarray, ring: sp.csr_matrix,
+          edges: np.ndarray, query: MeshQuery, rounds: int = 6) -> tuple[np.ndarray, int, int]:
+    """X (n, 3) blended back towards X_safe (n, 3), which neither folds against P nor cuts
+    through itself, wherever X does either: folds (blend_away_folds) and crossings
+    (fae.adapt.untangle) in turn, since each blend can undo the other's work. Returns X
+    and how many vertices each kind of blend touched."""
+    blended = untangled = 0
+    for _ in range(rounds):
+        X, b = blend_away_folds(P, X_safe, X, F, ring)
+        X, weight = untangle(F, X, X_safe, edges=edges, query=query)
+        blended, untangled = blended + b, untangled + int(np.sum(weight < 1.0))
+        if not folded_triangles(P, X, F).any():
+            break
+    return X, blended, untangled
+
+
 def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray,
                 landmarks: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
                 head: np.ndarray | None = None, stiffness: np.ndarray | None = None,
@@ -266,8 +282,7 @@ def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray
         rms = float(np.sqrt(np.mean(np.sum((X[idx] - Q) ** 2, axis=1)))) if len(idx) else np.inf
         # nor may a stage cut through itself (an ear pressed into the scalp, the mouth's lining
         # through a lip): blended back to the last stage wherever it does
-        X, weight = untangle(F, X, X_whole, edges=edges, query=query)
-        untangled = int(np.sum(weight < 1.0))
+        X, _, untangled = whole(P, X_whole, X, F, ring, edges, query)
         X_whole = X
         stages.append({"stiffness": a, "reach_m": float(reach), "pairs": int(len(idx)), "pair_rms_m": rms,
                        "folded": int(folded_triangles(P, X, F).sum()), "blended_vertices": blended_total,
@@ -283,11 +298,11 @@ def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray
             break
         back = np.unique(F[bad])
         Y[back] = X[back]
-    Y, blended = blend_away_folds(P, X, Y, F, ring)
-    # the projection neither: blended back to the last stage where it cuts through itself
-    Y, weight = untangle(F, Y, X_whole, edges=edges, query=query)
-    stages.append({"projected": int(len(idx)), "blended_vertices": blended,
-                   "untangled_vertices": int(np.sum(weight < 1.0)), "seconds": time.perf_counter() - t0})
+    # the projection neither folds nor cuts through itself: blended back to the last stage
+    # (which does neither) where it would; each blend can undo the other's work, so in turn
+    Y, blended, untangled = whole(P, X_whole, Y, F, ring, edges, query)
+    stages.append({"projected": int(len(idx)), "blended_vertices": blended, "untangled_vertices": untangled,
+                   "seconds": time.perf_counter() - t0})
     Y = Y[label]
     folded = int(folded_triangles(P_in, Y, F_in).sum())
     return SurfaceFit(Y, A, stages, folded)

@@ -280,3 +280,45 @@ def _scan_of_truth(W, F, landmark_points, names, warp, rng, noise, max_angle, un
     scan_v = Vn @ to_scan[:3, :3].T + to_scan[:3, 3]
     lm = {n: landmark_points[i] @ to_scan[:3, :3].T + to_scan[:3, 3] for i, n in enumerate(names)}
     return SyntheticScan(scan_v, Ft, lm, Vt, Ft, warp, to_scan)
+
+
+def bust_scan(V: np.ndarray, F: np.ndarray, landmarks: dict[str, np.ndarray], seed: int = 0,
+              drop_faces: np.ndarray | None = None, unit: float = 1e-3, max_angle: float = 0.5,
+              scale: float = 1.08, amplitude: float = 0.006) -> "SyntheticScan":
+    """A scanned bust made from a template head (V (n, 3) metres, F (m, 3), landmarks FDP
+    name -> (3,) metres): the head warped by template_warp(seed), scaled by `scale` (a
+    person larger than the template), its neck set on shoulders and chest (a flattened
+    ellipsoid) standing on a cylindrical plinth, the whole turned by up to `max_angle`
+    radians and written in `unit` metres. Faces flagged in `drop_faces` (the mouth's
+    lining) are left out. truth_vertices / truth_faces are the head alone, in the face
+    frame; warp maps template points to their truth (scale included)."""
+    rng = np.random.default_rng(seed)
+    V = np.asarray(V, dtype=np.float64)
+    F = np.asarray(F, dtype=np.int64)
+    if drop_faces is not None:
+        F = F[~np.asarray(drop_faces, dtype=bool)]
+    head = trimesh.Trimesh(V, F, process=False)
+    head.remove_unreferenced_vertices()
+    HV, HF = np.asarray(head.vertices), np.asarray(head.faces)
+    base = template_warp(V, seed + 1000, amplitude, 0.0005)
+    centre = 0.5 * (V.min(axis=0) + V.max(axis=0))
+
+    def warp(X):
+        return centre + scale * (base(X) - centre)
+
+    W = warp(HV)
+    low = W[:, 1].min()
+    width = float(np.ptp(W[:, 0]))
+    # shoulders and chest: a flattened ellipsoid whose top reaches a little above the neck's end
+    chest = trimesh.creation.icosphere(subdivisions=4)
+    cv = np.asarray(chest.vertices) * np.array([1.3 * width, 0.45 * width, 0.75 * width])
+    cv = cv + np.array([centre[0], low - 0.3 * width, centre[2] - 0.1 * width])
+    plinth = trimesh.creation.cylinder(radius=0.6 * width, height=0.5 * width, sections=48)
+    pv = np.asarray(plinth.vertices)[:, [0, 2, 1]] + np.array([centre[0], low - 1.0 * width, centre[2]])
+    pf = np.asarray(plinth.faces)[:, [0, 2, 1]]  # the y/z swap mirrors: keep the faces outward
+    allV = np.vstack([W, cv, pv])
+    allF = np.vstack([HF, np.asarray(chest.faces) + len(W), pf + len(W) + len(cv)])
+    names = list(landmarks)
+    WL = warp(np.array([landmarks[n] for n in names]))
+    scan = _scan_of_truth(allV, allF, WL, names, warp, rng, 0.0, max_angle, unit)
+    return SyntheticScan(scan.vertices, scan.faces, scan.landmarks, W, HF.astype(np.int32), warp, scan.to_scan)

@@ -281,7 +281,8 @@ EYE_MIN_SHARE = 0.9  # of the ratio of the outer eye corners' distance: no eyeba
 EYE_SINK_STEP = 0.0005  # m: an eyeball that crosses its lids moves back by this much at a time
 EYE_MAX_SINK_STEPS = 12
 
-MUSCLE_SEARCH_RADIUS = 0.015  # m: how far a linear muscle's attachment may move on its bone
+MUSCLE_SEARCH_RADIUS = 0.035  # m: how far a linear muscle's attachment may move on its bone
+MUSCLE_MARGIN = 2e-4  # m: a muscle's line keeps this far inside the skin
 
 
 def keep_muscles_inside(model: FaceModel, skin: MeshQuery | None = None) -> list[str]:
@@ -300,7 +301,8 @@ def keep_muscles_inside(model: FaceModel, skin: MeshQuery | None = None) -> list
     ends = np.array([[model.surface_point_position(m.attachment), model.surface_point_position(m.insertion)]
                      for m in linear])  # (k, 2, 3)
     samples = ends[:, :1] + ts[None, :, None] * (ends[:, 1:] - ends[:, :1])  # (k, 5, 3)
-    inside = q.inside(samples.reshape(-1, 3)).reshape(len(linear), len(ts)).all(axis=1)
+    # inside by a margin: a line that grazes the skin from within is outside to other tests
+    inside = (q.signed_distances(samples.reshape(-1, 3)) < -MUSCLE_MARGIN).reshape(len(linear), len(ts)).all(axis=1)
     moved = []
     for mus, (a, b), ok_now in zip(linear, ends, inside):
         if ok_now:
@@ -309,7 +311,7 @@ def keep_muscles_inside(model: FaceModel, skin: MeshQuery | None = None) -> list
         near = np.flatnonzero(np.linalg.norm(BV - a, axis=1) <= MUSCLE_SEARCH_RADIUS)
         near = near[np.argsort(np.linalg.norm(BV[near] - a, axis=1))]
         lines = BV[near][:, None, :] + ts[None, :, None] * (b - BV[near])[:, None, :]
-        ok = q.inside(lines.reshape(-1, 3)).reshape(len(near), len(ts)).all(axis=1)
+        ok = (q.signed_distances(lines.reshape(-1, 3)) < -MUSCLE_MARGIN).reshape(len(near), len(ts)).all(axis=1)
         if np.any(ok):
             v = int(near[np.argmax(ok)])
             tri = int(np.flatnonzero((BF == v).any(axis=1))[0])

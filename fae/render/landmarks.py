@@ -106,14 +106,23 @@ def pixel_rays(camera: CameraView, pixels: np.ndarray, size: tuple[int, int]) ->
 def detect_pixels(image: np.ndarray) -> np.ndarray | None:
     """MediaPipe Face Mesh's 468 points (468, 2) in pixels of an RGB image (H, W, 3)
     uint8, or None when it finds no face."""
+    import os
+    import warnings
+
+    os.environ.setdefault("GLOG_minloglevel", "2")  # MediaPipe's C++ log lines are not for users
+    os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
     try:
-        import mediapipe as mp
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            import mediapipe as mp
     except ImportError as exc:
         raise LandmarkModelMissing("finding feature points on a scan needs MediaPipe: "
                                    "pip install 'fae[landmarks]' (or give --landmarks)") from exc
     h, w = image.shape[:2]
     with mp.solutions.face_mesh.FaceMesh(static_image_mode=True, max_num_faces=1, refine_landmarks=False,
-                                         min_detection_confidence=MIN_DETECTION_CONFIDENCE) as mesh:
+                                         min_detection_confidence=MIN_DETECTION_CONFIDENCE) as mesh, \
+            warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # protobuf deprecation notices from inside MediaPipe
         found = mesh.process(np.ascontiguousarray(image[:, :, :3]))
     if not found.multi_face_landmarks:
         return None

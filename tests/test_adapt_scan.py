@@ -1,0 +1,197 @@
+"""`fae adapt` on scans as users bring them: whole busts on a plinth, in any pose and unit,
+with no feature points. The head must be found and cut from the rest, fitted without a
+single fold, measured honestly in the scan's frame, and refused (exit 2) when fae cannot
+trust it.
+
+The suite makes its own bust from the shipped head (fae.adapt.synthetic.bust_scan: the head
+warped by a smooth random field, 8 % larger, on shoulders and a plinth, turned, in mm) and
+also runs the three scanned busts of ../shared/data when they are there.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import trimesh
+
+from fae.adapt.calibration import apply_transform
+from fae.adapt.errors import scan_fit_errors
+from fae.adapt.geometry import per_face_normals
+from fae.adapt.head_pose import find_head, kept_part
+from fae.adapt.nonrigid import blend_away_folds, folded_triangles
+from fae.adapt.synthetic import bust_scan
+from fae.anatomy.checks import facemodel_problems
+from fae.anatomy.template import TEMPLATE_PATH
+from fae.cli import main
+from fae.io.facemodel_gltf import read_facemodel
+
+pytest.importorskip("mediapipe", reason="feature points on a scan need MediaPipe (pip install 'fae[landmarks]')")
+
+BUSTS = ("marble_bust", "man_with_wreath", "demosthenes")
+
+
+@pytest.fixture(scope="module")
+def template():
+    return read_facemodel(TEMPLATE_PATH)
+
+
+def mouth_lining(template):
+    F = np.asarray(template.skin_faces)
+    return np.asarray(template.skin_region)[F[:, 0]] == template.region_names.index("mouth_cavity")
+
+
+@pytest.fixture(scope="module")
+def bust(template):
+    fdp = {n: p for n, p in template.feature_point_positions().items() if template.feature_points[n].part == "skin"}
+    return bust_scan(template.skin_vertices, template.skin_faces, fdp, seed=3, drop_faces=mouth_lining(template))
+
+
+@pytest.fixture(scope="module")
+def adapted_bust(bust, tmp_path_factory):
+    d = tmp_path_factory.mktemp("bust")
+    scan = d / "bust.obj"
+    trimesh.Trimesh(bust.vertices, bust.faces, process=False).export(scan)
+    out, rep, cmp = d / "head.glb", d / "report.json", d / "compare.png"
+    code = main(["adapt", str(scan), "-o", str(out), "--report", str(rep), "--compare", str(cmp), "--no-calibrate"])
+    return code, out, json.loads(rep.read_text()) if rep.exists() else None, cmp
+
+
+def test_the_head_is_found_in_a_turned_bust_and_the_plinth_left_out(template, bust):
+    head = find_head(template, bust.vertices, bust.faces)
+    assert head.trusted
+    assert head.unit == "mm"
+    # the scan's vertices are the head's, then the chest's and plinth's (in that order)
+    n_head = len(bust.truth_vertices)
+    kept = np.flatnonzero(head.keep)
+    assert kept.max() < n_head + 0.1 * (len(bust.vertices) - n_head)  # at most a rim of the chest
+    assert np.mean(kept < n_head) > 0.95
+    # most of the head is kept (the neck below the template's own is not)
+    assert head.keep[:n_head].mean() > 0.8
+    # the pose: the face frame found maps the scan back onto the truth, up to the scale
+    truth_in_scan = apply_transform(bust.to_scan, bust.truth_vertices)
+    X = apply_transform(head.transform, truth_in_scan)
+    assert np.linalg.norm(X.mean(axis=0) - bust.truth_vertices.mean(axis=0)) < 0.02
+
+
+@pytest.mark.slow
+def test_a_bust_becomes_a_whole_head_on_its_scan(adapted_bust, bust, template):
+    code, out, report, cmp = adapted_bust
+    assert code == 0, report and report.get("verdict")
+    model = read_facemodel(out)
+    assert facemodel_problems(model) == []
+    assert report["folded_triangles"]["all"] == 0
+    e = report["errors"]
+    assert e["face_to_scan_rms_rel"] < 0.001 and e["face_coverage"] > 0.95
+    assert e["scan_to_skin_rms_rel"] < 0.002 and e["scan_coverage"] > 0.9
+    # against the truth, not the fitted scan: the face's skin in the truth's frame
+    from fae.adapt.errors import FACE_REGIONS
+    from fae.adapt.from_scan import skin_regions
+    from fae.adapt.transfer import visible_skin
+
+    S = np.linalg.inv(bust.to_scan) @ model.scan_transform
+    face = skin_regions(template, FACE_REGIONS) & visible_skin(template)
+    skin = apply_transform(S, model.skin_vertices[face])
+    d = trimesh.proximity.closest_point(trimesh.Trimesh(bust.truth_vertices, bust.truth_faces, process=False),
+                                        skin)[1]
+    assert np.sqrt(np.mean(d ** 2)) < 0.5e-3
+    # the head keeps the person's size: the bust is 8 % larger than the template
+    size = np.ptp(model.skin_vertices[:, 0]) / np.ptp(template.skin_vertices[:, 0])
+    assert 1.03 < size < 1.13
+    assert report["head_part"]["head_vertices"] < report["head_part"]["scan_vertices"]
+    from PIL import Image
+
+    assert Image.open(cmp).size == (3 * 360, 2 * 360)
+
+
+@pytest.mark.slow
+def test_a_scan_without_a_face_is_refused(tmp_path, capsys):
+    scan = tmp_path / "pot.obj"
+    pot = trimesh.creation.capsule(height=0.2, radius=0.08, count=[32, 32])
+    pot.export(scan)
+    out = tmp_path / "head.glb"
+    assert main(["adapt", str(scan), "-o", str(out), "--no-calibrate"]) == 2
+    err = capsys.readouterr().err
+    assert "--landmarks" in err
+    assert not out.exists()
+
+
+@pytest.mark.slow
+def test_given_feature_points_with_wrong_ones_still_give_a_whole_head(bust, template, tmp_path, capsys):
+    rng = np.random.default_rng(5)
+    names = sorted(bust.landmarks)
+    some = [names[i] for i in rng.choice(len(names), 14, replace=False)]
+    pts = {n: np.asarray(bust.landmarks[n], float) for n in some}
+    for n in some[:3]:  # three placed 4 cm off
+        pts[n] = pts[n] + np.array([40.0, -25.0, 10.0])
+    scan, lm = tmp_path / "bust.obj", tmp_path / "lm.json"
+    trimesh.Trimesh(bust.vertices, bust.faces, process=False).export(scan)
+    lm.write_text(json.dumps({n: p.tolist() for n, p in pts.items()}))
+    out, rep = tmp_path / "head.glb", tmp_path / "r.json"
+    assert main(["adapt", str(scan), "--landmarks", str(lm), "-o", str(out), "--report", str(rep),
+                 "--no-calibrate"]) == 0
+    assert "ignored feature point" in capsys.readouterr().err
+    report = json.loads(rep.read_text())
+    assert report["folded_triangles"]["all"] == 0
+    assert report["errors"]["face_to_scan_rms_rel"] < 0.001
+
+
+def test_output_over_the_scan_is_refused(tmp_path, capsys):
+    scan = tmp_path / "s.obj"
+    trimesh.creation.icosphere().export(scan)
+    before = scan.read_bytes()
+    assert main(["adapt", str(scan), "-o", str(scan)]) == 2
+    assert "overwrite" in capsys.readouterr().err
+    assert scan.read_bytes() == before
+
+
+def test_folds_are_counted_on_real_triangles_only(template):
+    P, F = template.skin_vertices, np.asarray(template.skin_faces, np.int64)
+    assert not folded_triangles(P, P, F).any()  # the template's collapsed seam triangles do not count
+    X = P.copy()
+    nose = int(np.argmax(P[:, 2]))
+    ring = np.unique(F[(F == nose).any(axis=1)])
+    X[nose] -= 3 * (P[ring].mean(axis=0) - P[nose]) + np.array([0.0, 0.0, 0.02])  # push the tip through
+    bad = folded_triangles(P, X, F)
+    assert bad.any() and np.all(np.isin(F[bad], ring).all(axis=1))
+    Y, moved = blend_away_folds(P, P, X, F)
+    assert not folded_triangles(P, Y, F).any() and moved > 0
+    far = np.linalg.norm(P - P[nose], axis=1) > 0.03
+    assert moved < 300 and np.allclose(Y[far], X[far])  # the blend stays around the fold
+
+
+def test_errors_are_measured_in_the_scan_frame_with_coverage():
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=100.0)  # a scan in mm
+    V, F = np.asarray(sphere.vertices), np.asarray(sphere.faces)
+    skin = V * 1.01  # 1 mm outside
+    face = V[:, 2] > 50
+    e = scan_fit_errors(skin, F, face, V, F)
+    assert abs(e["face_to_scan_rms"] - 1.0) < 0.05 and e["face_coverage"] == 1.0
+    # half the scan missing: its coverage says so, the RMS does not grow
+    half = V[:, 0] > 0
+    Vh, Fh = kept_part(V, F, half)
+    e2 = scan_fit_errors(skin, F, face, Vh, Fh)
+    assert e2["face_coverage"] < 0.7 and abs(e2["face_to_scan_rms"] - 1.0) < 0.1
+
+
+def test_per_face_normals_of_the_template_are_unit(template):
+    N = per_face_normals(template.skin_vertices, np.asarray(template.skin_faces, np.int64))
+    ok = np.linalg.norm(N, axis=1) > 0.5
+    assert np.allclose(np.linalg.norm(N[ok], axis=1), 1.0)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", BUSTS)
+def test_a_scanned_bust_becomes_a_head(shared_data, name, tmp_path):
+    scan = shared_data / "heads" / "busts" / name / f"{name}.obj"
+    out, rep = tmp_path / "head.glb", tmp_path / "r.json"
+    assert main(["adapt", str(scan), "-o", str(out), "--report", str(rep), "--no-calibrate"]) == 0
+    report = json.loads(rep.read_text())
+    assert report["folded_triangles"]["all"] == 0
+    e = report["errors"]
+    assert e["face_to_scan_rms_rel"] < 0.002 and e["face_coverage"] > 0.95
+    assert e["scan_to_skin_rms_rel"] < 0.006
+    part = report["head_part"]
+    assert part["head_vertices"] < 0.9 * part["scan_vertices"]  # the plinth and shoulders are left out
+    assert facemodel_problems(read_facemodel(out)) == []
