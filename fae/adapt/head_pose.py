@@ -310,10 +310,16 @@ def head_part(head: TemplateHead, X: np.ndarray, F: np.ndarray) -> np.ndarray:
 
 def kept_part(V: np.ndarray, F: np.ndarray, keep: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The mesh V (n, 3), F (m, 3) cut to the vertices `keep` (n,) bool: (V' (k, 3), F' (m', 3)),
-    the faces whose corners are all kept, renumbered."""
+    the faces whose corners are all kept, renumbered, with vertices at the same position
+    welded into one (texture seams split a scan's vertices: unwelded, every seam would be
+    an edge of the surface, and the normals along it half-fans)."""
     keep = np.asarray(keep, dtype=bool)
+    V = np.asarray(V, dtype=np.float64)
     F = np.asarray(F, dtype=np.int64)
     faces = F[keep[F].all(axis=1)]
+    _, first, weld = np.unique(V, axis=0, return_index=True, return_inverse=True)
+    faces = first[weld.reshape(-1)][faces]  # each corner to the first vertex at its position
+    faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 2] != faces[:, 0])]
     used = np.zeros(len(V), dtype=bool)
     used[faces.ravel()] = True
     new = np.full(len(V), -1, dtype=np.int64)

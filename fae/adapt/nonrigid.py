@@ -47,6 +47,8 @@ SIMILARITY_START = True  # the start: one scale (True) or a full affine map
 BLEND_RINGS = 1  # rings around a fold blended back to the last fold-free surface
 BLEND_ROUNDS = 12  # rounds at most (the zone widens every second)
 DETAIL_STIFFNESS = 5.0  # stages below this stiffness match only the `detail` skin
+EXTEND_START = 0.01  # m: skin this far from any skin on the scan takes its neighbours' mean displacement
+EDGE_REACH = 0.008  # m: scan faces this close to the scan's edge pair with nothing
 ROUNDS = 3  # correspondence rounds per stiffness
 REACH = (0.04, 0.004)  # m: pairs farther than this are dropped, from the first stage to the last
 MAX_NORMAL_ANGLE = 60.0  # degrees between a vertex's and its scan point's normals
@@ -96,6 +98,24 @@ def graph_laplacian(F: np.ndarray, n: int, P: np.ndarray | None = None, radius: 
     return (sp.identity(n, format="csr") - sp.diags(1.0 / np.maximum(deg, 1.0)) @ A).tocsr()
 
 
+def near_edge(scan: Surface, reach: float = EDGE_REACH) -> np.ndarray:
+    """(m,) bool: faces of the scan within `reach` metres of its boundary (a hole, or where
+    the scan or the head part ends). A template vertex whose closest point lies there has
+    no counterpart on the scan: the surface it belongs to goes on where the scan stops.
+    Cached on the Surface."""
+    cached = getattr(scan, "_near_edge", None)
+    if cached is not None and cached[0] == reach:
+        return cached[1]
+    near = scan.face_on_boundary.copy()
+    if scan.boundary.any():
+        from scipy.spatial import cKDTree
+
+        d, _ = cKDTree(scan.V[scan.boundary]).query(scan.V[scan.F].mean(axis=1))
+        near |= d < reach
+    scan._near_edge = (reach, near)
+    return near
+
+
 def scan_pairs(X: np.ndarray, NX: np.ndarray, scan: Surface, reach: float, candidates: np.ndarray,
                along_normal: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Vertices (k,) of X (n, 3) among `candidates` (n,) bool paired with their closest
@@ -111,7 +131,7 @@ def scan_pairs(X: np.ndarray, NX: np.ndarray, scan: Surface, reach: float, candi
     N[ok] = np.einsum("nk,nkd->nd", bary[ok], scan.N[scan.F[face[ok]]])
     N /= np.maximum(np.linalg.norm(N, axis=1, keepdims=True), 1e-12)
     ok &= np.sum(N * NX[idx], axis=1) >= np.cos(np.radians(MAX_NORMAL_ANGLE))
-    ok[ok] &= ~scan.face_on_boundary[face[ok]]
+    ok[ok] &= ~near_edge(scan)[face[ok]]
     if along_normal:
         pts = X[idx] + np.sum((pts - X[idx]) * N, axis=1, keepdims=True) * N
     return idx[ok], pts[ok]
@@ -187,6 +207,32 @@ def blend_away_folds(P: np.ndarray, X_safe: np.ndarray, X: np.ndarray, F: np.nda
         weight = np.minimum(weight, target)
         Y = X_safe + weight[:, None] * (X - X_safe)
     return Y, int(np.sum(weight < 1.0))
+
+
+def extended_displacement(P: np.ndarray, D: np.ndarray, known: np.ndarray, start: float) -> np.ndarray:
+    """(n, 3) metres: the displacement D (n, 3) of points P (n, 3) where `known` (n,) bool,
+    and elsewhere a Gaussian-weighted mean of the known displacements, its width the
+    point's distance d to the nearest known point (farther points average more widely),
+    blended in from d = start to d = 2 start metres (nearer unknown points keep D)."""
+    from scipy.spatial import cKDTree
+
+    P = np.asarray(P, dtype=np.float64)
+    out = np.asarray(D, dtype=np.float64).copy()
+    known_idx = np.flatnonzero(known)
+    unknown = np.flatnonzero(~np.asarray(known, dtype=bool))
+    if len(known_idx) == 0 or len(unknown) == 0:
+        return out
+    tree = cKDTree(P[known_idx])
+    d, _ = tree.query(P[unknown])
+    far = d > start
+    idx, dist = unknown[far], d[far]
+    for i, r in zip(idx, dist):
+        near = tree.query_ball_point(P[i], 3.0 * r)
+        w = np.exp(-0.5 * (np.linalg.norm(P[known_idx[near]] - P[i], axis=1) / r) ** 2)
+        mean = w @ D[known_idx[near]] / max(w.sum(), 1e-300)
+        alpha = min(1.0, (r - start) / start)
+        out[i] = (1.0 - alpha) * D[i] + alpha * mean
+    return out
 
 
 def whole(P: np.ndarray, X_safe: np.ndarray, X: np.ndarray, F: np.ndarray, ring: sp.csr_matrix,
@@ -287,6 +333,16 @@ def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray
         stages.append({"stiffness": a, "reach_m": float(reach), "pairs": int(len(idx)), "pair_rms_m": rms,
                        "folded": int(folded_triangles(P, X, F).sum()), "blended_vertices": blended_total,
                        "untangled_vertices": untangled, "seconds": time.perf_counter() - t0})
+    # skin the scan does not reach (a neck below its cut, a crown above a face scan) takes
+    # the displacement of the skin that does, averaged in space: the mesh's own rings are
+    # centimetres long on the neck and would bend it in a step
+    on_scan = np.zeros(n, dtype=bool)
+    on_scan[idx] = True
+    X_ext = P + extended_displacement(P, X - P, on_scan, EXTEND_START)
+    X_ext, _, _ = whole(P, X_whole, X_ext, F, ring, edges, query)
+    extended = not folded_triangles(P, X_ext, F).any()
+    if extended:
+        X = X_whole = X_ext
     # paper 001's local step: onto the scan where it is close, never folding a triangle
     NX = per_vertex_normals(X, F)
     idx, Q = scan_pairs(X, NX, scan, PROJECT_REACH, detail)
@@ -301,7 +357,8 @@ def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray
     # the projection neither folds nor cuts through itself: blended back to the last stage
     # (which does neither) where it would; each blend can undo the other's work, so in turn
     Y, blended, untangled = whole(P, X_whole, Y, F, ring, edges, query)
-    stages.append({"projected": int(len(idx)), "blended_vertices": blended, "untangled_vertices": untangled,
+    stages.append({"extended_to": int((~on_scan).sum()) if extended else 0, "projected": int(len(idx)),
+                   "blended_vertices": blended, "untangled_vertices": untangled,
                    "seconds": time.perf_counter() - t0})
     Y = Y[label]
     folded = int(folded_triangles(P_in, Y, F_in).sum())
