@@ -6,6 +6,10 @@ Writes (PNG, each well under 300 KB):
   docs/images/template_front.png          the generic head at rest, front view
   docs/images/template_three_quarter.png  the same, three-quarter view
   docs/images/demo_strip.png              a few frames of fap_streams/expressions.fap side by side
+  docs/images/adapt_bust.png              `fae adapt --compare` on a bust the project makes
+                                          (fae.adapt.synthetic.bust_scan): scan, head, both
+
+--only NAME renders one of them (template, strip, adapt).
 """
 
 from __future__ import annotations
@@ -39,12 +43,35 @@ def demo_frames(model, stream_path: Path, count: int):
     return [f for f in player.play(stream) if f.index in wanted or len(wanted) == 0][:count]
 
 
+def adapt_picture(model) -> np.ndarray:
+    """The comparison picture of `fae adapt` on the synthetic bust (seed 3)."""
+    from fae.adapt.calibration import apply_transform
+    from fae.adapt.from_scan import adapt_to_scan
+    from fae.adapt.head_pose import find_head, kept_part
+    from fae.adapt.synthetic import bust_scan
+    from fae.adapt.transfer import visible_skin
+    from fae.render.compare import comparison_image
+    from fae.render.framing import camera_view
+    from fae.render.landmarks import landmark_pairs
+
+    F = np.asarray(model.skin_faces)
+    lining = np.asarray(model.skin_region)[F[:, 0]] == model.region_names.index("mouth_cavity")
+    fdp = {n: p for n, p in model.feature_point_positions().items() if model.feature_points[n].part == "skin"}
+    bust = bust_scan(model.skin_vertices, F, fdp, seed=3, drop_faces=lining)
+    head = find_head(model, bust.vertices, bust.faces)
+    part = kept_part(apply_transform(head.transform, bust.vertices), bust.faces, head.keep)
+    found = landmark_pairs(model, *part, camera_view(model, "front", aspect=1.0), seen=visible_skin(model))
+    adapted, _ = adapt_to_scan(model, bust.vertices, bust.faces, head, (found.face, found.bary, found.scan_points))
+    return comparison_image(adapted, bust.vertices, bust.faces, head.keep, size=(300, 300))
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--head", type=Path, default=REPO / "templates" / "generic_head.glb")
     parser.add_argument("--stream", type=Path, default=REPO / "fap_streams" / "expressions.fap")
     parser.add_argument("--out", type=Path, default=REPO / "docs" / "images")
     parser.add_argument("--strip-frames", type=int, default=6)
+    parser.add_argument("--only", choices=("template", "strip", "adapt"))
     args = parser.parse_args()
     if not args.head.is_file():
         print(f"{args.head}: head not found (build the template first)", file=sys.stderr)
@@ -52,15 +79,20 @@ def main() -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     model = read_facemodel(args.head)
     written = []
-    for view, name in (("front", "template_front.png"), ("three-quarter", "template_three_quarter.png")):
-        with FaceRenderer(model, size=(480, 480), view=view, supersample=2) as r:
-            write_png(args.out / name, r.render(), compress_level=9)
-        written.append(args.out / name)
-    frames = demo_frames(model, args.stream, args.strip_frames)
-    with FaceRenderer(model, size=(240, 240), view="front", supersample=2) as r:
-        tiles = [r.render(f.skin_vertices, f.bone_transforms, f.pupil_scale) for f in frames]
-    write_png(args.out / "demo_strip.png", np.concatenate(tiles, axis=1), compress_level=9)
-    written.append(args.out / "demo_strip.png")
+    if args.only in (None, "template"):
+        for view, name in (("front", "template_front.png"), ("three-quarter", "template_three_quarter.png")):
+            with FaceRenderer(model, size=(480, 480), view=view, supersample=2) as r:
+                write_png(args.out / name, r.render(), compress_level=9)
+            written.append(args.out / name)
+    if args.only in (None, "strip"):
+        frames = demo_frames(model, args.stream, args.strip_frames)
+        with FaceRenderer(model, size=(240, 240), view="front", supersample=2) as r:
+            tiles = [r.render(f.skin_vertices, f.bone_transforms, f.pupil_scale) for f in frames]
+        write_png(args.out / "demo_strip.png", np.concatenate(tiles, axis=1), compress_level=9)
+        written.append(args.out / "demo_strip.png")
+    if args.only in (None, "adapt"):
+        write_png(args.out / "adapt_bust.png", adapt_picture(model), compress_level=9)
+        written.append(args.out / "adapt_bust.png")
     for path in written:
         size = path.stat().st_size
         print(f"{path.relative_to(REPO) if path.is_relative_to(REPO) else path}: {size / 1000:.0f} KB")

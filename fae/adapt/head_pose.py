@@ -40,7 +40,9 @@ from fae.adapt.calibration import scan_unit, similarity_transform
 from fae.io.facemodel import FaceModel
 
 SAMPLE_COUNT = 1500  # template head points used by the pose search
-SCAN_SAMPLES = 20000  # scan vertices (at most) used by the pose search
+SCAN_SAMPLES = 10000  # scan vertices (at most) used by the pose search
+REFINED_STARTS = 4  # the best starts refined with every point
+COARSE_SCAN, COARSE_HEAD = 3000, 400  # points (about) of scan and template that score the starts
 YAW_STEPS = 8  # starts turned about each up direction (45 degrees apart)
 HEAD_SHARES = (0.35, 0.6, 0.95)  # starting head height (chin to crown) / scan extent along up
 KEEP = 0.85  # trimmed ICP: share of pairs kept
@@ -251,14 +253,16 @@ def head_pose(head: TemplateHead, scan_V: np.ndarray) -> tuple[float, np.ndarray
                 t = t + delta - up * np.dot(delta, up)  # across up only: the crown stays at the top
                 starts.append((s, R, t))
     scored = []
-    coarse, coarse_tree = S[::4], cKDTree(S[::4])
+    coarse = S[:: max(1, len(S) // COARSE_SCAN)]  # the many starts are told apart coarsely
+    coarse_tree = cKDTree(coarse)
+    coarse_A = A[:: max(1, len(A) // COARSE_HEAD)]
     for s, R, t in starts:
-        s, R, t = _icp(head, A[::4], coarse, coarse_tree, s, R, t, iterations=5)
+        s, R, t = _icp(head, coarse_A, coarse, coarse_tree, s, R, t, iterations=5)
         scored.append((score(s, R, t), s, R, t))
     scored.sort(key=lambda x: x[0])
     best = (np.inf, 1.0, np.eye(3), np.zeros(3))
-    for _, s, R, t in scored[:8]:
-        s, R, t = _icp(head, A, S, tree, s, R, t, iterations=30)
+    for _, s, R, t in scored[:REFINED_STARTS]:
+        s, R, t = _icp(head, A, S, tree, s, R, t, iterations=20)
         e = score(s, R, t)
         if e < best[0]:
             best = (e, s, R, t)

@@ -1,29 +1,43 @@
-"""The template's skin carried onto a real scan without folding it.
+"""The template's skin carried onto a real scan without folding or tearing it.
 
-    fit_to_scan(P, F, scan, movable, landmarks=None) -> SurfaceFit
+    fit_to_scan(P, F, scan, movable, landmarks=None, stiffness=None) -> SurfaceFit
 
-The scan is already in the face frame and cut to the head (fae.adapt.head_pose). Three
-stages, each on the output of the last:
+The scan is already in the face frame and cut to the head (fae.adapt.head_pose); the
+template's seams (coincident vertices) are welded for the fit. Stages, each on the
+output of the last:
 
-1. Affine (affine_to_scan): trimmed affine ICP of the template's visible head onto the
-   scan; the template takes the person's size and proportions at once.
+1. Start (affine_to_scan): trimmed ICP of the template's visible skin onto the scan, one
+   scale, rotation and translation (a full affine map would also stretch the neck that
+   the scan cuts short); feature points, where given, start it and count in every step.
 2. Regularized non-rigid ICP (Amberg et al. 2007's idea, with a Laplacian instead of
-   their per-vertex affine stiffness): per stiffness `a` of STIFFNESS, a few rounds of
-       min_D  sum_i w_i |x_i + d_i - q_i|^2 + a^2 |L D|^2 + w_L sum_k |b_k . (X + D) - l_k|^2
-   over the displacement D (n, 3) of the skin X, with q_i the closest compatible scan
-   point of vertex i (normals within MAX_NORMAL_ANGLE, closer than a reach that shrinks
-   with the stiffness, not on the scan's cut edge), L the graph Laplacian of the template
-   mesh (smooth displacement: a stiff start moves whole regions, a soft end follows
-   detail) and l_k given feature points bound to the skin by barycentric rows b_k.
-   One sparse factorization per round solves x, y and z together. Skin no scanner sees
-   (mouth, nostrils, behind the eyelids) and skin with no scan nearby (the neck below
-   the scan's cut) has no data term and follows its neighbours.
-3. Projection (paper 001's local step): each movable vertex moves to its closest
-   compatible scan point when that is within PROJECT_REACH; any triangle this turns by
-   more than 90 degrees against the regularized fit is put back.
+   their per-vertex affine stiffness): per stiffness `a` of STIFFNESS, ROUNDS rounds of
+       min_D  sum_i w_i |x_i + d_i - q_i|^2 + a^2 |S L D|^2 + f(a) w_L sum_k |b_k . (X + D) - l_k|^2
+   over the displacement D (n, 3) of the skin X: q_i is vertex i projected onto the
+   scan's tangent plane at its closest compatible scan point (normals within
+   MAX_NORMAL_ANGLE, within a reach that shrinks stage by stage, not within EDGE_REACH of
+   the scan's edge, where the template's surface goes on and the scan's does not); L is
+   the graph Laplacian of the template mesh plus every pair of vertices closer than
+   NEIGHBOUR_RADIUS (the mesh is irregular: slivers beside centimetre-long triangles), S a
+   per-vertex stiffness (thin, creased parts bend as a piece); l_k are feature points
+   bound to the skin by barycentric rows b_k, their weight f(a) fading with the stiffness
+   (they place the parts, the scan gives the detail). Every matched vertex has a data row
+   in every round (one that finds no pair is asked to stay), so a stage factors its
+   sparse matrix once and solves x, y and z together.
+3. No fold, no tear: a round's step may not fold a triangle (turn it more than FOLD_ANGLE
+   from the template's) that the last round left whole: around any it does, the step is
+   blended back (blend_away_folds); a stage may not make the skin cut through itself
+   (an ear pressed into the scalp): it is blended back to the last stage there
+   (fae.adapt.untangle, alternating with the fold blend: `whole`). So the last stage is
+   always whole, and so is the result.
+4. Skin the scan does not reach (a neck below its cut, the back of the head on a face
+   scan) takes the displacement of the skin that does, averaged in space
+   (extended_displacement): the mesh's own rings are centimetres long on the neck and
+   would bend it in a step.
+5. Projection (paper 001's local step): each matched vertex moves onto its closest
+   compatible scan point within PROJECT_REACH, kept whole as in 3.
 
-Folds are counted (folded_triangles) as triangles whose normal turned by more than 90
-degrees from the template's; fit_to_scan reports them.
+Skin no scanner sees (mouth, nostrils, behind the eyelids) has no data term anywhere and
+follows its neighbours; `detail` limits which skin follows the scan in the soft stages.
 """
 
 from __future__ import annotations
