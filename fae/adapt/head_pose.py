@@ -47,7 +47,7 @@ YAW_STEPS = 8  # starts turned about each up direction (45 degrees apart)
 HEAD_SHARES = (0.35, 0.6, 0.95)  # starting head height (chin to crown) / scan extent along up
 KEEP = 0.85  # trimmed ICP: share of pairs kept
 FACE_WEIGHT = 2.0  # of the face's distance in a start's score
-CHIN_MARGIN = 0.01  # m: the neck rule starts this far below the chin
+CHIN_MARGIN = 0.03  # m: the neck rule starts this far below the chin
 NECK_RADIUS_SHARE = 1.3  # below the chin, scan within this many template neck radii of its axis
 NECK_MAX_UPWARD = 0.5  # ... whose normal is within 60 degrees of horizontal
 FACE_NEAR = 0.008  # m: a face sample is covered when the scan is this close after the rigid fit
@@ -290,11 +290,16 @@ def head_part(head: TemplateHead, X: np.ndarray, F: np.ndarray) -> np.ndarray:
     if len(F):  # a neck's surface faces sideways; the top of a chest or shoulder faces up
         from fae.adapt.geometry import per_vertex_normals
 
-        neck_like &= np.abs(per_vertex_normals(X, F)[:, 1]) <= NECK_MAX_UPWARD
+        # (within the template neck's own radius it is neck, whichever way it faces: a throat)
+        neck_like &= (radial <= head.neck_radius) | (np.abs(per_vertex_normals(X, F)[:, 1]) <= NECK_MAX_UPWARD)
     keep &= (X[:, 1] >= head.chin_y - CHIN_MARGIN) | neck_like
     keep &= np.all(X[:, [0, 2]] >= head.box_min[[0, 2]] - 0.05, axis=1)
     keep &= np.all(X[:, [0, 2]] <= head.box_max[[0, 2]] + 0.05, axis=1)
     keep &= X[:, 1] <= head.box_max[1] + 0.05
+    # below the chin, nothing wider than the head itself (a cloak or shoulders rising to the jaw)
+    below = X[:, 1] < head.chin_y
+    keep[below] &= np.all((X[below][:, [0, 2]] >= head.box_min[[0, 2]]) & (X[below][:, [0, 2]] <= head.box_max[[0, 2]]),
+                          axis=1)
     if len(F) == 0:
         return keep
     # texture seams split a scan's vertices: pieces are found on welded positions
