@@ -195,3 +195,34 @@ def test_a_scanned_bust_becomes_a_head(shared_data, name, tmp_path):
     part = report["head_part"]
     assert part["head_vertices"] < 0.9 * part["scan_vertices"]  # the plinth and shoulders are left out
     assert facemodel_problems(read_facemodel(out)) == []
+
+
+@pytest.mark.slow
+def test_a_noisy_bust_with_a_hole_in_the_cheek_gives_a_whole_head_or_an_error(bust, template, tmp_path, capsys):
+    V = np.asarray(bust.vertices, float).copy()
+    F = np.asarray(bust.faces)
+    mesh = trimesh.Trimesh(V, F, process=False)
+    rng = np.random.default_rng(11)
+    V += mesh.vertex_normals * rng.normal(scale=0.4, size=(len(V), 1))  # 0.4 mm of scanner noise
+    cheek = bust.landmarks["5.3"] if "5.3" in bust.landmarks else bust.landmarks["8.3"]
+    holed = np.linalg.norm(V[F].mean(axis=1) - cheek, axis=1) > 12.0  # a 12 mm hole in the cheek
+    scan = tmp_path / "holed.obj"
+    trimesh.Trimesh(V, F[holed], process=False).export(scan)
+    out, rep = tmp_path / "head.glb", tmp_path / "r.json"
+    code = main(["adapt", str(scan), "-o", str(out), "--report", str(rep), "--no-calibrate"])
+    if code == 2:  # refused: it must say why, and write nothing
+        assert "fae adapt" in capsys.readouterr().err and not out.exists()
+        return
+    assert code == 0
+    report = json.loads(rep.read_text())
+    assert report["folded_triangles"]["all"] == 0
+    assert facemodel_problems(read_facemodel(out)) == []
+    # the hole is filled from its surroundings: the skin there stays near the true cheek
+    model = read_facemodel(out)
+    S = np.linalg.inv(bust.to_scan) @ model.scan_transform
+    skin = apply_transform(S, model.skin_vertices)
+    truth_cheek = apply_transform(np.linalg.inv(bust.to_scan), np.asarray(cheek)[None])[0]
+    near = np.linalg.norm(skin - truth_cheek, axis=1) < 0.012
+    d = trimesh.proximity.closest_point(trimesh.Trimesh(bust.truth_vertices, bust.truth_faces, process=False),
+                                        skin[near])[1]
+    assert near.sum() > 10 and np.sqrt(np.mean(d ** 2)) < 2e-3

@@ -27,8 +27,10 @@ fitting the template skin to the same head part with the surface pipeline's Medi
 pairs as landmarks. Every row is measured alike, in the scan's own frame against the head
 part the surface pipeline cut out (fae.adapt.errors.scan_fit_errors over the face skin
 adapt_to_scan scores; folds by fae.adapt.nonrigid.folded_triangles), so the old default
-is not judged on the plinth it was fitted to. One run each; seconds exclude the imports
-and first Warp / GL / MediaPipe start-up, made once before the first scan.
+is not judged on the plinth it was fitted to. One run each (MediaPipe's pairs vary a
+little from run to run, and so do the errors); seconds exclude the imports and first
+Warp / GL / MediaPipe start-up, made once before the first scan. --real takes a few
+minutes; --nricp adds about a minute per scan.
 """
 
 from __future__ import annotations
@@ -270,8 +272,9 @@ def timed(run, repeat: int):
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--subdivisions", type=int, default=2, help="Loop steps of the scan (2: about 72k vertices)")
-    ap.add_argument("--nricp", action="store_true", help="also run trimesh nricp_amberg (about 15 minutes)")
-    ap.add_argument("--real", action="store_true", help="fae adapt's surface pipeline on whole busts (see above)")
+    ap.add_argument("--nricp", action="store_true", help="also run trimesh nricp_amberg (about 15 minutes; "
+                    "with --real about a minute per scan)")
+    ap.add_argument("--real", action="store_true", help="fae adapt's surface pipeline on whole busts (module docstring)")
     ap.add_argument("--repeat", type=int, default=3, help="runs per method; the median counts")
     ap.add_argument("--auto", action="store_true", help="only compare the automatic feature point searches")
     args = ap.parse_args()

@@ -62,6 +62,7 @@ BLEND_RINGS = 1  # rings around a fold blended back to the last fold-free surfac
 BLEND_ROUNDS = 12  # rounds at most (the zone widens every second)
 DETAIL_STIFFNESS = 5.0  # stages below this stiffness match only the `detail` skin
 EXTEND_START = 0.01  # m: skin this far from any skin on the scan takes its neighbours' mean displacement
+EXTEND_SAMPLE = 0.004  # m: spacing of the known displacements that average
 EDGE_REACH = 0.008  # m: scan faces this close to the scan's edge pair with nothing
 ROUNDS = 3  # correspondence rounds per stiffness
 REACH = (0.04, 0.004)  # m: pairs farther than this are dropped, from the first stage to the last
@@ -236,16 +237,23 @@ def extended_displacement(P: np.ndarray, D: np.ndarray, known: np.ndarray, start
     unknown = np.flatnonzero(~np.asarray(known, dtype=bool))
     if len(known_idx) == 0 or len(unknown) == 0:
         return out
-    tree = cKDTree(P[known_idx])
-    d, _ = tree.query(P[unknown])
+    d, _ = cKDTree(P[known_idx]).query(P[unknown])
     far = d > start
-    idx, dist = unknown[far], d[far]
-    for i, r in zip(idx, dist):
-        near = tree.query_ball_point(P[i], 3.0 * r)
-        w = np.exp(-0.5 * (np.linalg.norm(P[known_idx[near]] - P[i], axis=1) / r) ** 2)
-        mean = w @ D[known_idx[near]] / max(w.sum(), 1e-300)
-        alpha = min(1.0, (r - start) / start)
-        out[i] = (1.0 - alpha) * D[i] + alpha * mean
+    idx, r = unknown[far], d[far]
+    if len(idx) == 0:
+        return out
+    # the known displacements, averaged over a grid of EXTEND_SAMPLE metres (a few thousand
+    # samples), weighed for all far points at once
+    from fae.adapt.correspondence import grid_sample
+
+    src = grid_sample(P, EXTEND_SAMPLE, np.asarray(known, dtype=bool))
+    for lo in range(0, len(idx), 512):
+        rows = slice(lo, lo + 512)
+        dist = np.linalg.norm(P[idx[rows], None, :] - P[None, src, :], axis=2)
+        w = np.exp(-0.5 * (dist / r[rows, None]) ** 2)
+        mean = w @ D[src] / np.maximum(w.sum(axis=1), 1e-300)[:, None]
+        alpha = np.minimum(1.0, (r[rows] - start) / start)[:, None]
+        out[idx[rows]] = (1.0 - alpha) * D[idx[rows]] + alpha * mean
     return out
 
 
