@@ -226,6 +226,7 @@ def head_pose(head: TemplateHead, scan_V: np.ndarray) -> tuple[float, np.ndarray
     probe = A[:: max(1, len(A) // 400)]
     face_probe = head.face[:: max(1, len(head.face) // 400)]
     A = np.vstack([A, head.face])  # the face counts twice: it tells front from back
+    head_tree = cKDTree(head.head)
 
     def score(s, R, t) -> float:
         # in the template's frame: template head -> scan, and scan in the head's box -> head
@@ -233,7 +234,7 @@ def head_pose(head: TemplateHead, scan_V: np.ndarray) -> tuple[float, np.ndarray
         d3 = tree.query(s * face_probe @ R.T + t)[0] / s
         X = (S - t) @ R / s
         inbox = np.all((X >= head.box_min) & (X <= head.box_max), axis=1)
-        d2 = cKDTree(A).query(X[inbox])[0] if inbox.sum() > 10 else np.full(1, np.inf)
+        d2 = head_tree.query(X[inbox])[0] if inbox.sum() > 10 else np.full(1, np.inf)
         return _trimmed_mean(d1) + _trimmed_mean(d2) + FACE_WEIGHT * _trimmed_mean(d3, 0.95)
 
     starts = []

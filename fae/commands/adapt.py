@@ -25,6 +25,11 @@ import time
 from fae.adapt.multilevel import METHODS
 
 ADAPT_METHODS = ("surface",) + METHODS
+# A face found on the scan is trusted with at least this many point pairs, whose RMS
+# distance from their best similarity is at most this share of the eye distance (the
+# busts: 0.08-0.10; a face mistaken elsewhere on a scan: far above).
+MIN_PAIRS = 20
+MAX_PAIR_RESIDUAL_SHARE = 0.2
 
 DEFAULT_TEMPLATE = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))),
                                 "templates", "generic_head.glb")
@@ -156,11 +161,19 @@ def _run_surface(args, template, V, F, landmarks) -> int:
                 _say(f"{exc}")
                 return 2
             found = None
-        if found is None or len(found.face) < 20:
+        if found is None or len(found.face) < MIN_PAIRS:
             if not landmarks:
                 _say(f"{args.scan}: no face found on the head part of the scan (eyes, nose and mouth); "
                      "give feature points with --landmarks")
                 return 2
+        elif found.report["similarity_residual_m"] > MAX_PAIR_RESIDUAL_SHARE * _eye_distance(template):
+            if not landmarks:
+                _say(f"{args.scan}: the face found on the scan does not match the template's (its points lie "
+                     f"{found.report['similarity_residual_m'] * 1000:.1f} mm RMS from a similar placement; at most "
+                     f"{MAX_PAIR_RESIDUAL_SHARE * _eye_distance(template) * 1000:.1f} mm expected); give feature "
+                     "points with --landmarks")
+                return 2
+            found = None
         else:
             pairs = (found.face, found.bary, found.scan_points)
         model, report = adapt_to_scan(template, V, F, head, pairs, landmarks)
@@ -169,7 +182,25 @@ def _run_surface(args, template, V, F, landmarks) -> int:
         return 2
     if found is not None:
         report["feature_pair_search"] = found.report
+    report["confidence"] = {
+        "head_found": head.trusted, "face_coverage_after_pose": head.face_coverage,
+        "pose_residual_m": head.residual, "feature_pairs": 0 if found is None else int(len(found.face)),
+        "pair_residual_share_of_eye_distance": None if found is None else
+        found.report["similarity_residual_m"] / _eye_distance(template),
+        "landmarks_given": len(landmarks or {})}
+    S = model.scan_transform
+    report["feature_points_on_scan"] = {n: (S[:3, :3] @ p + S[:3, 3]).tolist()
+                                        for n, p in model.feature_point_positions().items()
+                                        if model.feature_points[n].part == "skin"}
     return _finish(args, model, report, V, F, head.keep, started)
+
+
+def _eye_distance(template) -> float:
+    """The template's pupil distance (ES0), metres."""
+    import numpy as np
+
+    fdp = template.feature_point_positions()
+    return float(np.linalg.norm(fdp["3.5"] - fdp["3.6"])) if "3.5" in fdp and "3.6" in fdp else 0.065
 
 
 def _finish(args, model, report, V, F, keep, started) -> int:
