@@ -8,7 +8,9 @@ is head; `pairs` are corresponding points found by looking at both faces
 (fae.render.landmarks.landmark_pairs, in the face frame); `landmarks` are MPEG-4 feature
 points the user gave (scan frame). The skin is fitted by fae.adapt.nonrigid.fit_to_scan,
 the anatomy carried by fae.adapt.transfer.personalize, and the errors measured in the
-scan's own frame through the head's scan_transform (fae.adapt.errors.scan_fit_errors).
+scan's own frame through the head's scan_transform (fae.adapt.errors.scan_fit_errors),
+over the face regions' skin that a scanner sees, less the eyelids' rims within EYE_RIM of
+an eyeball (a scan shows the eye itself there, and that skin is not fitted to it).
 
 The report's "verdict" lists what makes the head untrustworthy (empty when none): a
 folded skin, a face that does not reach its scan. `fae adapt` refuses to write a head with
@@ -96,6 +98,7 @@ def adapt_to_scan(template: FaceModel, scan_V: np.ndarray, scan_F: np.ndarray, h
     face = skin_regions(template, FACE_REGIONS) & seen
     errors = scan_fit_errors(apply_transform(S, model.skin_vertices), F, face,
                              apply_transform(np.linalg.inv(T), part_V), part_F)
+    errors["face_vertices_scored"] = int(face.sum())  # the lids' rims over the eyeballs are not
     visible_faces = seen[F].all(axis=1)
     folded = folded_triangles(P, model.skin_vertices, F)
     verdict = []

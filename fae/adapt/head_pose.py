@@ -10,16 +10,23 @@ may pull its skin.
    cranium, face and ears) is placed onto the scan by trimmed similarity ICP from many
    starts: the template's up along each of the scan's axes and principal axes (both
    signs), turned about it in 45-degree steps, sized to three shares of the scan's extent
-   along that up and set at its top. Each start is scored in the template's frame by
-   two trimmed mean distances: template head -> scan (the head must lie on the scan) and
-   scan -> template head for the scan inside the template head's box (the scan there must
-   be head: a template shrunk into a corner of a plinth or a shoulder leaves scan
-   unexplained). The template moves, not the scan, so the shoulders below the box count
-   for nothing.
-2. The head part (head_part): in the face frame, scan vertices above the template's neck
-   end, and below the jaw only those within NECK_RADIUS_SHARE of the template neck's own
-   radius from the neck's axis (shoulders and chest fall outside); then only the
-   connected piece that holds the face. The report names its vertex count and bounds.
+   along that up and set at its top, refined by a few steps of symmetric trimmed ICP
+   (_icp). Each start is scored in the template's frame by trimmed mean distances:
+   template head -> scan (the head must lie on the scan), scan -> template head for the
+   scan inside the template head's box (the scan there must be head: a template shrunk
+   into a corner of a plinth or a shoulder leaves scan unexplained), and FACE_WEIGHT x
+   template face -> scan (the face tells front from back). The template moves, not the
+   scan, so the shoulders below the box count for nothing. The best starts are refined
+   with every point, and the winner's last turn is decided by the face alone (a head
+   turned on its neck, hair or a wreath must not).
+2. The head part (head_part): in the face frame at the template's size, scan vertices
+   within the template head's box (5 cm around it; below the chin no wider than the box)
+   and above the template's neck end; from CHIN_MARGIN below the chin down, only neck:
+   within NECK_RADIUS_SHARE of the template neck's radius from its axis, and facing
+   sideways unless within the neck's own radius (the top of a chest or shoulder faces
+   up; a throat may face any way); then only the connected piece (welded where texture
+   seams split the scan) that holds the face. The report names its vertex count and
+   bounds.
    A scan whose pose this does not trust (a face without the rest of the head) is
    searched again with the template's face alone.
 3. Confidence: the share of the template's face that the scan covers within
@@ -39,7 +46,6 @@ from scipy.spatial import cKDTree
 from fae.adapt.calibration import scan_unit, similarity_transform
 from fae.io.facemodel import FaceModel
 
-SAMPLE_COUNT = 1500  # template head points used by the pose search
 SCAN_SAMPLES = 10000  # scan vertices (at most) used by the pose search
 REFINED_STARTS = 4  # the best starts refined with every point
 COARSE_SCAN, COARSE_HEAD = 3000, 400  # points (about) of scan and template that score the starts
@@ -99,7 +105,6 @@ class TemplateHead:
     face        (f, 3) samples of the front of the face (brow to chin, in front of the ears)
     box_min, box_max  (3,) the head samples' bounds, a little enlarged
     chin_y      height of the chin (2.1)
-    jaw_y       height below which the skin is neck (the jaw's angle)
     neck_bottom height where the template's neck ends
     neck_axis   (2,) x, z of the neck's axis; neck_radius its mean radius
     """
@@ -109,7 +114,6 @@ class TemplateHead:
     box_min: np.ndarray
     box_max: np.ndarray
     chin_y: float
-    jaw_y: float
     neck_bottom: float
     neck_axis: np.ndarray
     neck_radius: float
@@ -124,7 +128,6 @@ def template_head(template: FaceModel) -> TemplateHead:
     seen = visible_skin(template)
     fdp = template.feature_point_positions()
     chin_y = float(fdp["2.1"][1]) if "2.1" in fdp else float(V[:, 1].min() + 0.3 * np.ptp(V[:, 1]))
-    jaw_y = float(max(fdp[n][1] for n in ("2.13", "2.14") if n in fdp)) if "2.13" in fdp else chin_y
     head_mask = seen & (V[:, 1] >= chin_y - 0.005)
     spacing = max(float(np.ptp(V[head_mask], axis=0).max()) / 40.0, 1e-4)
     head = V[grid_sample(V, spacing, head_mask)]
@@ -143,7 +146,7 @@ def template_head(template: FaceModel) -> TemplateHead:
     radius = float(np.mean(np.linalg.norm(low[:, [0, 2]] - axis, axis=1)))
     pad = 0.1 * np.ptp(head, axis=0)
     return TemplateHead(head=head, face=face, box_min=head.min(axis=0) - pad, box_max=head.max(axis=0) + pad,
-                        chin_y=chin_y, jaw_y=jaw_y, neck_bottom=neck_bottom, neck_axis=axis, neck_radius=radius)
+                        chin_y=chin_y, neck_bottom=neck_bottom, neck_axis=axis, neck_radius=radius)
 
 
 def _rotation_to(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -241,6 +244,8 @@ def head_pose(head: TemplateHead, scan_V: np.ndarray) -> tuple[float, np.ndarray
     for up in _up_candidates(S):
         along = S @ up
         extent = float(np.ptp(along))
+        if extent <= 1e-9 * max(float(np.ptp(S, axis=0).max()), 1e-300):
+            continue  # a flat scan has no extent along its normal
         R_up = _rotation_to(np.array([0.0, 1.0, 0.0]), up)
         top_point = S[np.argmax(along)]
         high = S[along >= along.max() - 0.3 * extent]
@@ -301,7 +306,7 @@ def head_part(head: TemplateHead, X: np.ndarray, F: np.ndarray) -> np.ndarray:
     below = X[:, 1] < head.chin_y
     keep[below] &= np.all((X[below][:, [0, 2]] >= head.box_min[[0, 2]]) & (X[below][:, [0, 2]] <= head.box_max[[0, 2]]),
                           axis=1)
-    if len(F) == 0:
+    if len(F) == 0 or not keep.any():
         return keep
     # texture seams split a scan's vertices: pieces are found on welded positions
     _, weld = np.unique(np.round(X / 1e-6).astype(np.int64), axis=0, return_inverse=True)

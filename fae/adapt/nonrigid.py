@@ -64,6 +64,7 @@ DETAIL_STIFFNESS = 5.0  # stages below this stiffness match only the `detail` sk
 EXTEND_START = 0.01  # m: skin this far from any skin on the scan takes its neighbours' mean displacement
 EXTEND_SAMPLE = 0.004  # m: spacing of the known displacements that average
 EDGE_REACH = 0.008  # m: scan faces this close to the scan's edge pair with nothing
+QUIET_RINGS = 1  # rings around a fold whose scan pull is let go
 ROUNDS = 3  # correspondence rounds per stiffness
 REACH = (0.04, 0.004)  # m: pairs farther than this are dropped, from the first stage to the last
 MAX_NORMAL_ANGLE = 60.0  # degrees between a vertex's and its scan point's normals
@@ -163,10 +164,10 @@ def affine_to_scan(X: np.ndarray, scan: Surface, use: np.ndarray, iterations: in
     P = X[use]
 
     def solve(src, dst, weight):
-        if similarity:  # weighted by repeating nothing: the weights only balance fixed and surface pairs
+        if similarity:  # Umeyama has no weights: a pair of weight w is repeated about w^2 times
             from fae.adapt.calibration import similarity_transform
 
-            rep = np.maximum(1, np.round(weight / weight.min()).astype(int))
+            rep = np.maximum(1, np.round((weight / weight.min()) ** 2).astype(int))
             sc, R, t = similarity_transform(np.repeat(src, rep, axis=0), np.repeat(dst, rep, axis=0))
             out = np.eye(4)
             out[:3, :3] = sc * R
@@ -198,8 +199,9 @@ def blend_away_folds(P: np.ndarray, X_safe: np.ndarray, X: np.ndarray, F: np.nda
     """X (n, 3) blended back towards X_safe (n, 3) wherever it folds against the template P
     (n, 3): weight 0 on the folded triangles and BLEND_RINGS rings around them, rising back
     to 1 over as many rings (ring: adjacency_matrix(F, n)); repeated with wider zones while
-    anything still folds. X_safe must fold nowhere X_safe's own folds are not to be kept.
-    Returns the result and how many vertices were blended."""
+    anything still folds. Where X_safe folds itself, the blend keeps that fold (it is the
+    caller's job to pass a fold-free X_safe). Returns the result and how many vertices
+    were blended."""
     n = len(P)
     ring = adjacency_matrix(F, n) if ring is None else ring
     weight = np.ones(n)
@@ -329,23 +331,38 @@ def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray
     # every movable vertex has a data row (weight 1) in every round, so a stage factors its
     # matrix once; a vertex without a compatible scan point this round is asked to stay
     blended_total = 0
+    quiet = np.zeros(n, dtype=bool)  # skin whose scan pull folded it: it follows its neighbours
     for a, reach in zip(STIFFNESS, reaches):
         matched = movable if a >= DETAIL_STIFFNESS else detail
-        w = matched.astype(np.float64)
-        M = a * a * LtL + sp.diags(w)
         fade = (a / STIFFNESS[0]) ** LANDMARK_FADE  # feature points place the parts; the scan gives the detail
-        if B is not None:
-            M = M + fade * BtB
-        solve = splu(M.tocsc()).solve
+        factored = None
         for _ in range(ROUNDS):
             NX = per_vertex_normals(X, F)
-            idx, Q = scan_pairs(X, NX, scan, reach, matched, along_normal=True)
-            rhs = np.zeros((n, 3))
-            rhs[idx] = Q - X[idx]
-            if B is not None:
-                rhs += fade * LANDMARK_WEIGHT * (B.T @ (landmarks[2] - B @ X))
-            X_next = X + solve(rhs)
-            X, blended = blend_away_folds(P, X, X_next, F, ring)  # no step may fold what the last left whole
+            idx_all, Q_all = scan_pairs(X, NX, scan, reach, matched, along_normal=True)
+            for attempt in range(2):
+                if factored is None or not np.array_equal(quiet, factored[1]):
+                    M = a * a * LtL + sp.diags((matched & ~quiet).astype(np.float64))
+                    if B is not None:
+                        M = M + fade * BtB
+                    factored = (splu(M.tocsc()).solve, quiet.copy())
+                keep = ~quiet[idx_all]
+                idx, Q = idx_all[keep], Q_all[keep]
+                rhs = np.zeros((n, 3))
+                rhs[idx] = Q - X[idx]
+                if B is not None:
+                    rhs += fade * LANDMARK_WEIGHT * (B.T @ (landmarks[2] - B @ X))
+                X_next = X + factored[0](rhs)
+                bad = folded_triangles(P, X_next, F)
+                if attempt == 1 or not bad.any():
+                    break
+                # the pull that folds a place is let go there, and the round solved again: the
+                # place then moves smoothly with its neighbours
+                zone = np.zeros(n, dtype=bool)
+                zone[F[bad].ravel()] = True
+                for _ring in range(QUIET_RINGS):
+                    zone |= (ring @ zone.astype(np.float64)) > 0
+                quiet |= zone
+            X, blended = blend_away_folds(P, X, X_next, F, ring)  # what still folds is blended back
             blended_total += blended
         rms = float(np.sqrt(np.mean(np.sum((X[idx] - Q) ** 2, axis=1)))) if len(idx) else np.inf
         # nor may a stage cut through itself (an ear pressed into the scalp, the mouth's lining
@@ -353,7 +370,8 @@ def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray
         X, _, untangled = whole(P, X_whole, X, F, ring, edges, query)
         X_whole = X
         stages.append({"stiffness": a, "reach_m": float(reach), "pairs": int(len(idx)), "pair_rms_m": rms,
-                       "folded": int(folded_triangles(P, X, F).sum()), "blended_vertices": blended_total,
+                       "folded": int(folded_triangles(P, X, F).sum()), "quiet_vertices": int(quiet.sum()),
+                       "blended_vertices": blended_total,
                        "untangled_vertices": untangled, "seconds": time.perf_counter() - t0})
     # skin the scan does not reach (a neck below its cut, a crown above a face scan) takes
     # the displacement of the skin that does, averaged in space: the mesh's own rings are

@@ -12,7 +12,9 @@ over (fae.adapt.transfer). The paper methods ("multilevel", "rbf", "wendland",
 
 Exit 0 on success; 2 on bad input, or when fae cannot find the head or its face, or the
 result is not to be trusted (folded skin, a face far from the scan): the reason goes to
-stderr and nothing is written. --force writes such a head anyway.
+stderr and no head is written (the --report, when asked for, says what was measured).
+--force writes such a head anyway. --plot, --levels and --feature-search belong to the
+paper methods.
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ ADAPT_METHODS = ("surface",) + METHODS
 # distance from their best similarity is at most this share of the eye distance (the
 # busts: 0.08-0.10; a face mistaken elsewhere on a scan: far above).
 MIN_PAIRS = 20
+MIN_HEAD_TRIANGLES = 100
 MAX_PAIR_RESIDUAL_SHARE = 0.2
 
 DEFAULT_TEMPLATE = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))),
@@ -38,8 +41,9 @@ DEFAULT_TEMPLATE = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(
 def register(subparsers) -> None:
     p = subparsers.add_parser("adapt", help="fit the template head to a scan (personalization)",
                               description="Fit the anatomical template to a head scan (any mesh trimesh "
-                              "reads, any unit and orientation) from MPEG-4 feature points, carry skull, "
-                              "jaw, muscles, eyes, teeth and tongue over, and write the personalized head.")
+                              "reads, any unit and orientation, a bust on its plinth; feature points are "
+                              "found when none are given), carry skull, jaw, muscles, eyes, teeth and tongue "
+                              "over, and write the personalized head.")
     p.add_argument("scan", metavar="SCAN", help="head mesh (OBJ, PLY, STL, OFF, GLB/glTF)")
     p.add_argument("--landmarks", metavar="FILE", help="feature points: JSON {\"9.3\": [x, y, z] or vertex "
                    "index}, menpo .ljson or CSV (68 iBUG points or name,x,y,z rows)")
@@ -51,7 +55,8 @@ def register(subparsers) -> None:
                    help="fitting method (default: surface; the others are the papers' feature-point fits)")
     p.add_argument("--levels", type=int, default=1, help="refinement levels after the first (multilevel)")
     p.add_argument("-o", "--output", required=True, metavar="HEAD.glb", help="personalized FaceModel to write")
-    p.add_argument("--report", metavar="R.json", help="write the per-level error report as JSON")
+    p.add_argument("--report", metavar="R.json", help="write the report (errors, coverage, folds, the head "
+                   "part used, confidence, per stage or level) as JSON")
     p.add_argument("--plot", metavar="R.png", help="plot the errors per level (PNG; paper methods)")
     p.add_argument("--compare", metavar="C.png", help="picture of the scan beside the adapted head and both "
                    "overlaid, front and profile (PNG)")
@@ -152,6 +157,12 @@ def _run_surface(args, template, V, F, landmarks) -> int:
                      "give feature points with --landmarks")
                 return 2
         part_V, part_F = kept_part(apply_transform(head.transform, V), F, head.keep)
+        if len(part_F) < MIN_HEAD_TRIANGLES:
+            _say(f"{args.scan}: the part of the scan where the head should be holds {len(part_F)} triangles "
+                 f"(at least {MIN_HEAD_TRIANGLES} expected): "
+                 + ("do the feature points belong to this scan, in its unit?" if landmarks
+                    else "give feature points with --landmarks"))
+            return 2
         pairs = None
         try:
             found = landmark_pairs(template, part_V, part_F, camera_view(template, "front", aspect=1.0),
@@ -161,11 +172,15 @@ def _run_surface(args, template, V, F, landmarks) -> int:
                 _say(f"{exc}")
                 return 2
             found = None
+        except (RuntimeError, ImportError, OSError) as exc:  # no OpenGL to draw the faces with
+            _say(f"cannot render the scan to find its face ({exc}); is OSMesa installed (make install)?")
+            return 2
         if found is None or len(found.face) < MIN_PAIRS:
             if not landmarks:
                 _say(f"{args.scan}: no face found on the head part of the scan (eyes, nose and mouth); "
                      "give feature points with --landmarks")
                 return 2
+            found = None
         elif found.report["similarity_residual_m"] > MAX_PAIR_RESIDUAL_SHARE * _eye_distance(template):
             if not landmarks:
                 _say(f"{args.scan}: the face found on the scan does not match the template's (its points lie "
@@ -208,9 +223,9 @@ def _finish(args, model, report, V, F, keep, started) -> int:
     from fae.io.facemodel_gltf import write_facemodel
 
     verdict = report.get("verdict", [])
+    for why in verdict:
+        _say(f"{args.scan}: {why}")
     if verdict and not args.force:
-        for why in verdict:
-            _say(f"{args.scan}: {why}")
         _say(f"not writing {args.output}: the head is not to be trusted (--force writes it anyway; "
              "--landmarks may help)")
         if args.report:
@@ -225,17 +240,25 @@ def _finish(args, model, report, V, F, keep, started) -> int:
         t = time.perf_counter()
         model = calibrate(model)
         report["calibration_seconds"] = time.perf_counter() - t
+    picture = None
+    if args.compare:  # drawn before anything is written: a failure here leaves nothing behind
+        from fae.render.compare import comparison_image
+
+        try:
+            picture = comparison_image(model, V, F, keep)
+        except (RuntimeError, ImportError, OSError) as exc:
+            _say(f"cannot draw {args.compare} ({exc}); is OSMesa installed (make install)?")
+            return 2
     report["total_seconds"] = time.perf_counter() - started
     write_facemodel(model, args.output)
     if args.report:
         with atomic_open(args.report, "w") as fh:
             json.dump(_json_safe(report), fh, indent=1)
-    if args.compare:
-        from fae.render.compare import comparison_image
+    if picture is not None:
         from fae.render.png import write_png
 
         with atomic_path(args.compare) as tmp:
-            write_png(tmp, comparison_image(model, V, F, keep))
+            write_png(tmp, picture)
     e = report["errors"]
     part = report["head_part"]
     print(f"{args.output}: head part {part['head_vertices']} of {part['scan_vertices']} scan vertices; face skin->scan "
