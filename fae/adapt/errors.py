@@ -135,9 +135,10 @@ def scan_fit_errors(skin_V: np.ndarray, skin_F: np.ndarray, face: np.ndarray, sc
     skin_V (n, 3), skin_F: the skin mapped into the scan's frame and unit (through its
     scan_transform, no refit); face (n,) bool: the skin of the face regions (FACE_REGIONS)
     that a scanner sees; scan_V (k, 3), scan_F: the head part of the scan, same frame.
-    The diagonal is the head part's bounding-box diagonal. Distances beyond COVER_SHARE
-    of it fall on holes of the other surface: they are left out of the RMS and counted
-    against coverage, which is reported beside each RMS.
+    The diagonal is the head part's bounding-box diagonal. Points whose closest point on
+    the other surface lies on a triangle at its boundary (a hole, where the scan or the
+    skin ends) or beyond COVER_SHARE of the diagonal have no counterpart there: they are
+    left out of the RMS and counted against coverage, which is reported beside each RMS.
     Returns face_to_scan_rms, scan_to_skin_rms (scan units), both also / diagonal
     (*_rel), face_coverage, scan_coverage, diagonal.
     """
@@ -145,8 +146,14 @@ def scan_fit_errors(skin_V: np.ndarray, skin_F: np.ndarray, face: np.ndarray, sc
     scan_V = np.asarray(scan_V, dtype=np.float64)
     diagonal = float(np.linalg.norm(np.ptp(scan_V, axis=0)))
     reach = COVER_SHARE * diagonal
-    on_scan = MeshQuery(scan_V, scan_F).closest_points(skin_V[face], reach)[1]
-    on_skin = MeshQuery(skin_V, skin_F).closest_points(scan_V, reach)[1]
+    def distances(X, V, F):
+        F = np.asarray(F, dtype=np.int64)
+        _, d, tri, _ = MeshQuery(V, F).closest_points(X, reach)
+        rim = boundary_vertices(F, len(V))[F].any(axis=1)
+        return np.where((tri >= 0) & ~rim[np.maximum(tri, 0)], d, np.inf)
+
+    on_scan = distances(skin_V[face], scan_V, scan_F)
+    on_skin = distances(scan_V, skin_V, skin_F)
     out = {"diagonal": diagonal}
     for key, d in (("face_to_scan", on_scan), ("scan_to_skin", on_skin)):
         hit = np.isfinite(d)
