@@ -339,24 +339,22 @@ def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray
         for _ in range(ROUNDS):
             NX = per_vertex_normals(X, F)
             idx_all, Q_all = scan_pairs(X, NX, scan, reach, matched, along_normal=True)
-            for attempt in range(2):
-                if factored is None or not np.array_equal(quiet, factored[1]):
-                    M = a * a * LtL + sp.diags((matched & ~quiet).astype(np.float64))
-                    if B is not None:
-                        M = M + fade * BtB
-                    factored = (splu(M.tocsc()).solve, quiet.copy())
-                keep = ~quiet[idx_all]
-                idx, Q = idx_all[keep], Q_all[keep]
-                rhs = np.zeros((n, 3))
-                rhs[idx] = Q - X[idx]
+            if factored is None:  # once a stage: skin let go in a round stays put until the next stage
+                M = a * a * LtL + sp.diags((matched & ~quiet).astype(np.float64))
                 if B is not None:
-                    rhs += fade * LANDMARK_WEIGHT * (B.T @ (landmarks[2] - B @ X))
-                X_next = X + factored[0](rhs)
-                bad = folded_triangles(P, X_next, F)
-                if attempt == 1 or not bad.any():
-                    break
-                # the pull that folds a place is let go there, and the round solved again: the
-                # place then moves smoothly with its neighbours
+                    M = M + fade * BtB
+                factored = (splu(M.tocsc()).solve, quiet.copy())
+            keep = ~quiet[idx_all]
+            idx, Q = idx_all[keep], Q_all[keep]
+            rhs = np.zeros((n, 3))
+            rhs[idx] = Q - X[idx]
+            if B is not None:
+                rhs += fade * LANDMARK_WEIGHT * (B.T @ (landmarks[2] - B @ X))
+            X_next = X + factored[0](rhs)
+            bad = folded_triangles(P, X_next, F)
+            if bad.any():
+                # the scan's pull that folds a place is let go there (from the next stage on, the
+                # place moves smoothly with its neighbours instead of being blended back again)
                 zone = np.zeros(n, dtype=bool)
                 zone[F[bad].ravel()] = True
                 for _ring in range(QUIET_RINGS):
