@@ -25,7 +25,9 @@ output of the last:
    sparse matrix once and solves x, y and z together.
 3. No fold, no tear: a round's step may not fold a triangle (turn it more than FOLD_ANGLE
    from the template's) that the last round left whole: around any it does, the step is
-   blended back (blend_away_folds); a stage may not make the skin cut through itself
+   blended back (blend_away_folds), and the scan's pull is let go there (QUIET_RINGS
+   rings) from the next stage on, so that the place then moves smoothly with its
+   neighbours instead of being blended again; a stage may not make the skin cut through itself
    (an ear pressed into the scalp): it is blended back to the last stage there
    (fae.adapt.untangle, alternating with the fold blend: `whole`). So the last stage is
    always whole, and so is the result.
