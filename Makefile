@@ -11,11 +11,16 @@ export PYOPENGL_PLATFORM ?= osmesa
 
 all: install
 
-# Debian packages: OSMesa for headless OpenGL. Installed only when missing.
+# Debian packages: OSMesa for headless OpenGL; libGL and GLib, which OpenCV (under
+# MediaPipe, the face-landmark model of `fae adapt`) loads at import. Installed only when missing.
 system-deps:
-	@if ! ldconfig -p 2>/dev/null | grep -q 'libOSMesa\.so'; then \
-	  echo "installing libosmesa6 from Debian"; \
-	  $(SUDO) apt-get update -qq && $(SUDO) DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libosmesa6 >/dev/null; \
+	@missing=""; \
+	ldconfig -p 2>/dev/null | grep -q 'libOSMesa\.so' || missing="$$missing libosmesa6"; \
+	ldconfig -p 2>/dev/null | grep -q 'libGL\.so\.1' || missing="$$missing libgl1"; \
+	ldconfig -p 2>/dev/null | grep -q 'libgthread-2\.0\.so\.0' || missing="$$missing libglib2.0-0"; \
+	if [ -n "$$missing" ]; then \
+	  echo "installing$$missing from Debian"; \
+	  $(SUDO) apt-get update -qq && $(SUDO) DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $$missing >/dev/null; \
 	fi
 
 # The virtual environment. pyrender is installed last with --no-deps: its pin on
