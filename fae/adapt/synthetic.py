@@ -216,6 +216,17 @@ class _CentredWarp(Warp):
         return super().__call__(X - self.centre) + self.centre
 
 
+def surface_without(V: np.ndarray, F: np.ndarray, drop_faces: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """The surface V (n, 3), F (m, 3) less the faces flagged in drop_faces (m,) bool, its
+    unreferenced vertices removed: (V' (k, 3), F' (m', 3))."""
+    F = np.asarray(F, dtype=np.int64)
+    if drop_faces is not None:
+        F = F[~np.asarray(drop_faces, dtype=bool)]
+    mesh = trimesh.Trimesh(np.asarray(V, dtype=np.float64), F, process=False)
+    mesh.remove_unreferenced_vertices()
+    return np.asarray(mesh.vertices), np.asarray(mesh.faces)
+
+
 def template_scan(V: np.ndarray, F: np.ndarray, landmarks: dict[str, np.ndarray], seed: int = 0,
                   subdivisions: int = 1, drop_faces: np.ndarray | None = None, noise: float = 0.0,
                   holes: int = 0, face_only: bool = False, unit: float = 1e-3, max_angle: float = 0.6,
@@ -234,12 +245,7 @@ def template_scan(V: np.ndarray, F: np.ndarray, landmarks: dict[str, np.ndarray]
     """
     rng = np.random.default_rng(seed)
     V = np.asarray(V, dtype=np.float64)
-    F = np.asarray(F, dtype=np.int64)
-    if drop_faces is not None:
-        F = F[~np.asarray(drop_faces, dtype=bool)]
-    mesh = trimesh.Trimesh(V, F, process=False)
-    mesh.remove_unreferenced_vertices()
-    SV, SF = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    SV, SF = surface_without(V, F, drop_faces)
     if subdivisions > 0:
         SV, SF = trimesh.remesh.subdivide_loop(SV, SF, iterations=subdivisions)
     warp = template_warp(V, seed + 1000, amplitude, detail)
@@ -294,12 +300,7 @@ def bust_scan(V: np.ndarray, F: np.ndarray, landmarks: dict[str, np.ndarray], se
     frame; warp maps template points to their truth (scale included)."""
     rng = np.random.default_rng(seed)
     V = np.asarray(V, dtype=np.float64)
-    F = np.asarray(F, dtype=np.int64)
-    if drop_faces is not None:
-        F = F[~np.asarray(drop_faces, dtype=bool)]
-    head = trimesh.Trimesh(V, F, process=False)
-    head.remove_unreferenced_vertices()
-    HV, HF = np.asarray(head.vertices), np.asarray(head.faces)
+    HV, HF = surface_without(V, F, drop_faces)
     base = template_warp(V, seed + 1000, amplitude, 0.0005)
     centre = 0.5 * (V.min(axis=0) + V.max(axis=0))
 
