@@ -79,8 +79,11 @@ DEGENERATE_SHARE = 1e-4  # of the median triangle area: smaller triangles have n
 
 @dataclass
 class SurfaceFit:
-    """Result of fit_to_scan: vertices (n, 3) metres, the affine start (4, 4) and a
-    report per stage (pairs, RMS of the pairs, seconds)."""
+    """Result of fit_to_scan: vertices (n, 3) metres (the template's vertex order, seams
+    unwelded again); affine (4, 4) the start (a similarity unless SIMILARITY_START is
+    off); stages: a report per stage (stiffness, reach, pairs, their RMS, folds left, skin
+    let go, vertices blended and untangled, seconds since the start); folded: triangles
+    folded against the template in the result (0 unless a blend ran out of rounds)."""
 
     vertices: np.ndarray
     affine: np.ndarray

@@ -48,8 +48,8 @@ def register(subparsers) -> None:
     p.add_argument("--landmarks", metavar="FILE", help="feature points: JSON {\"9.3\": [x, y, z] or vertex "
                    "index}, menpo .ljson or CSV (68 iBUG points or name,x,y,z rows)")
     p.add_argument("--feature-search", choices=("fit", "ga"), default="fit",
-                   help="without --landmarks: refine the found feature points by the template fit (default) or "
-                   "by paper 003's genetic algorithm")
+                   help="paper methods without --landmarks: refine the feature points found by ICP with the "
+                   "template fit (default) or by paper 003's genetic algorithm")
     p.add_argument("--template", metavar="FILE", default=DEFAULT_TEMPLATE, help="template FaceModel .glb")
     p.add_argument("--method", choices=ADAPT_METHODS, default="surface",
                    help="fitting method (default: surface; the others are the papers' feature-point fits)")
