@@ -286,3 +286,17 @@ def test_a_face_only_scan_with_holes_and_some_feature_points(template, tmp_path)
     # the generator's face scan keeps slivers of the lips' slit; the skin does not follow them
     assert report["errors"]["face_to_scan_rms_rel"] < 0.002 and report["errors"]["face_coverage"] > 0.8
     assert facemodel_problems(read_facemodel(out)) == []
+
+
+@pytest.mark.slow
+def test_the_head_is_found_in_a_bust_lying_upside_down(template, bust):
+    from scipy.spatial.transform import Rotation
+
+    turn = Rotation.from_euler("xyz", [20.0, 150.0, 70.0], degrees=True).as_matrix()
+    V = np.asarray(bust.vertices) @ turn.T
+    head = find_head(template, V, bust.faces)
+    assert head.trusted
+    R_true = turn @ bust.to_scan[:3, :3] / np.cbrt(np.linalg.det(bust.to_scan[:3, :3]))
+    R_found = head.template_to_scan[:3, :3] / np.cbrt(np.linalg.det(head.template_to_scan[:3, :3]))
+    angle = np.degrees(np.arccos(np.clip((np.trace(R_true.T @ R_found) - 1) / 2, -1, 1)))
+    assert angle < 5.0
