@@ -5,10 +5,11 @@ from it (fae.adapt.synthetic.template_scan): warped by a smooth random field plu
 detail, remeshed by two Loop steps (about 72k vertices on the face), without the parts no
 scanner sees (inside of the mouth, lip slit, eye sockets), with noise and holes, in
 millimetres and turned. All methods get the same feature points; nricp gets the
-calibrated scan and the landmark pairs. Rows: "fae adapt" is everything `fae adapt` does
-before writing the head (calibration of pose and unit, the default multilevel fit,
-transfer of skull, jaw, muscles, eyes, teeth and tongue; not the FAP mapping), the method
-rows are the skin fit alone on the calibrated scan. Prints the median seconds of
+calibrated scan and the landmark pairs. Rows: "fae adapt" is everything
+`fae adapt --method multilevel --landmarks` does before writing the head (calibration of
+pose and unit, the multilevel fit, transfer of skull, jaw, muscles, eyes, teeth and
+tongue; not the FAP mapping), the method rows are the skin fit alone on the calibrated
+scan. Prints the median seconds of
 --repeat runs, RMS distance of the visible template vertices to the true surface, marker
 error, and ratios against nricp measured in the same run. Single-threaded BLAS is
 advised for comparable numbers:
@@ -27,8 +28,7 @@ fitting the template skin to the same head part with the surface pipeline's Medi
 pairs as landmarks. Every row is measured alike, in the scan's own frame against the head
 part the surface pipeline cut out (fae.adapt.errors.scan_fit_errors over the face skin
 adapt_to_scan scores; folds by fae.adapt.nonrigid.folded_triangles), so the old default
-is not judged on the plinth it was fitted to. One run each (MediaPipe's pairs vary a
-little from run to run, and so do the errors); seconds exclude the imports and first
+is not judged on the plinth it was fitted to. One run each; seconds exclude the imports and first
 Warp / GL / MediaPipe start-up, made once before the first scan. --real takes a few
 minutes; --nricp adds about a minute per scan.
 """
