@@ -31,10 +31,10 @@ output of the last:
    (an ear pressed into the scalp): it is blended back to the last stage there
    (fae.adapt.untangle, alternating with the fold blend: `whole`). So the last stage is
    always whole, and so is the result.
-4. Skin the scan does not reach (a neck below its cut, the back of the head on a face
-   scan) takes the displacement of the skin that does, averaged in space
-   (extended_displacement): the mesh's own rings are centimetres long on the neck and
-   would bend it in a step.
+4. Skin farther than EXTEND_START from any skin the scan reaches (a neck below its cut,
+   the back of the head on a face scan) takes the harmonic extension of the displacement
+   around it (harmonic_displacement over the same graph): smooth, where the stages left
+   the blends' patchwork.
 5. Projection (paper 001's local step): each matched vertex moves onto its closest
    compatible scan point within PROJECT_REACH, kept whole as in 3.
 
@@ -63,8 +63,7 @@ SIMILARITY_START = True  # the start: one scale (True) or a full affine map
 BLEND_RINGS = 1  # rings around a fold blended back to the last fold-free surface
 BLEND_ROUNDS = 12  # rounds at most (the zone widens every second)
 DETAIL_STIFFNESS = 5.0  # stages below this stiffness match only the `detail` skin
-EXTEND_START = 0.01  # m: skin this far from any skin on the scan takes its neighbours' mean displacement
-EXTEND_SAMPLE = 0.004  # m: spacing of the known displacements that average
+EXTEND_START = 0.01  # m: skin this far from any skin on the scan takes the harmonic extension
 EDGE_REACH = 0.008  # m: scan faces this close to the scan's edge pair with nothing
 QUIET_RINGS = 1  # rings around a fold whose scan pull is let go
 ROUNDS = 3  # correspondence rounds per stiffness
@@ -231,36 +230,20 @@ def blend_away_folds(P: np.ndarray, X_safe: np.ndarray, X: np.ndarray, F: np.nda
     return Y, int(np.sum(weight < 1.0))
 
 
-def extended_displacement(P: np.ndarray, D: np.ndarray, known: np.ndarray, start: float) -> np.ndarray:
-    """(n, 3) metres: the displacement D (n, 3) of points P (n, 3) where `known` (n,) bool,
-    and elsewhere a Gaussian-weighted mean of the known displacements, its width the
-    point's distance d to the nearest known point (farther points average more widely),
-    blended in from d = start to d = 2 start metres (nearer unknown points keep D)."""
-    from scipy.spatial import cKDTree
-
-    P = np.asarray(P, dtype=np.float64)
+def harmonic_displacement(L: sp.csr_matrix, D: np.ndarray, known: np.ndarray) -> np.ndarray:
+    """(n, 3): D (n, 3) where `known` (n,) bool, and elsewhere the harmonic extension of it
+    over the graph Laplacian L (n, n): L D = 0 on the unknown rows (each unknown point the
+    mean of its neighbours), so a region without data follows its rim smoothly."""
+    known = np.asarray(known, dtype=bool)
+    u = np.flatnonzero(~known)
+    k = np.flatnonzero(known)
     out = np.asarray(D, dtype=np.float64).copy()
-    known_idx = np.flatnonzero(known)
-    unknown = np.flatnonzero(~np.asarray(known, dtype=bool))
-    if len(known_idx) == 0 or len(unknown) == 0:
+    if len(u) == 0 or len(k) == 0:
         return out
-    d, _ = cKDTree(P[known_idx]).query(P[unknown])
-    far = d > start
-    idx, r = unknown[far], d[far]
-    if len(idx) == 0:
-        return out
-    # the known displacements, averaged over a grid of EXTEND_SAMPLE metres (a few thousand
-    # samples), weighed for all far points at once
-    from fae.adapt.correspondence import grid_sample
-
-    src = grid_sample(P, EXTEND_SAMPLE, np.asarray(known, dtype=bool))
-    for lo in range(0, len(idx), 512):
-        rows = slice(lo, lo + 512)
-        dist = np.linalg.norm(P[idx[rows], None, :] - P[None, src, :], axis=2)
-        w = np.exp(-0.5 * (dist / r[rows, None]) ** 2)
-        mean = w @ D[src] / np.maximum(w.sum(axis=1), 1e-300)[:, None]
-        alpha = np.minimum(1.0, (r[rows] - start) / start)[:, None]
-        out[idx[rows]] = (1.0 - alpha) * D[idx[rows]] + alpha * mean
+    L = sp.csr_matrix(L)
+    A = L[u][:, u].tocsc()
+    rhs = -(L[u][:, k] @ out[k])
+    out[u] = splu(A).solve(np.asarray(rhs))
     return out
 
 
@@ -319,6 +302,7 @@ def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray
     edges = mesh_edges(F)
     query = MeshQuery(X, F)
     L = graph_laplacian(F, n, P, NEIGHBOUR_RADIUS)
+    L_graph = L
     if stiffness is not None:
         per = np.bincount(label, weights=np.asarray(stiffness, dtype=float), minlength=n) / np.bincount(label, minlength=n)
         L = sp.diags(per) @ L
@@ -377,12 +361,17 @@ def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray
                        "blended_vertices": blended_total,
                        "untangled_vertices": untangled, "seconds": time.perf_counter() - t0})
     # skin the scan does not reach (a neck below its cut, a crown above a face scan) takes
-    # the displacement of the skin that does, averaged in space: the mesh's own rings are
-    # centimetres long on the neck and would bend it in a step
+    # the harmonic extension of the displacement around it: what the stages left there is
+    # the blends' patchwork
     on_scan = np.zeros(n, dtype=bool)
     on_scan[idx] = True
-    X_ext = P + extended_displacement(P, X - P, on_scan, EXTEND_START)
-    X_ext, _, _ = whole(P, X_whole, X_ext, F, ring, edges, query)
+    from scipy.spatial import cKDTree
+
+    far = np.zeros(n, dtype=bool)  # skin near what the scan reaches keeps its fit
+    if on_scan.any():
+        far[~on_scan] = cKDTree(P[on_scan]).query(P[~on_scan])[0] > EXTEND_START
+    X_ext = P + harmonic_displacement(L_graph, X - P, ~far)
+    X_ext, ext_blended, ext_untangled = whole(P, X_whole, X_ext, F, ring, edges, query)
     extended = not folded_triangles(P, X_ext, F).any()
     if extended:
         X = X_whole = X_ext
@@ -400,7 +389,8 @@ def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray
     # the projection neither folds nor cuts through itself: blended back to the last stage
     # (which does neither) where it would; each blend can undo the other's work, so in turn
     Y, blended, untangled = whole(P, X_whole, Y, F, ring, edges, query)
-    stages.append({"extended_to": int((~on_scan).sum()) if extended else 0, "projected": int(len(idx)),
+    stages.append({"extended_to": int((~on_scan).sum()) if extended else 0,
+                   "extension_blended": ext_blended, "extension_untangled": ext_untangled, "projected": int(len(idx)),
                    "blended_vertices": blended, "untangled_vertices": untangled,
                    "seconds": time.perf_counter() - t0})
     Y = Y[label]
