@@ -95,11 +95,11 @@ def test_a_bust_becomes_a_whole_head_on_its_scan(adapted_bust, bust, template):
     assert e["scan_to_skin_rms_rel"] < 0.002 and e["scan_coverage"] > 0.9
     # against the truth, not the fitted scan: the face's skin in the truth's frame
     from fae.adapt.errors import FACE_REGIONS
-    from fae.adapt.from_scan import skin_regions
+    from fae.adapt.from_scan import in_regions
     from fae.adapt.transfer import visible_skin
 
     S = np.linalg.inv(bust.to_scan) @ model.scan_transform
-    face = skin_regions(template, FACE_REGIONS) & visible_skin(template)
+    face = in_regions(template, FACE_REGIONS) & visible_skin(template)
     skin = apply_transform(S, model.skin_vertices[face])
     d = trimesh.proximity.closest_point(trimesh.Trimesh(bust.truth_vertices, bust.truth_faces, process=False),
                                         skin)[1]

@@ -121,10 +121,10 @@ def scored_skin(template) -> tuple[np.ndarray, np.ndarray]:
     is judged like the surface pipeline's own report: the face regions a scanner sees,
     less the lids' rims over the eyeballs."""
     from fae.adapt.errors import FACE_REGIONS
-    from fae.adapt.from_scan import EYE_RIM, near_eyeballs, skin_regions
+    from fae.adapt.from_scan import EYE_RIM, in_regions, near_eyeballs
 
     seen = visible_skin(template) & ~near_eyeballs(template, EYE_RIM)
-    return skin_regions(template, FACE_REGIONS) & seen, seen
+    return in_regions(template, FACE_REGIONS) & seen, seen
 
 
 def measured(template, X, S, scan_part, face, seen) -> dict:

@@ -66,20 +66,6 @@ def _principal_axes(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return c, Vt  # rows: axes by decreasing spread
 
 
-def similarity_icp(A: np.ndarray, tree: cKDTree, B: np.ndarray, s: float, R: np.ndarray, t: np.ndarray,
-                   iterations: int = 20, keep: float = 0.8) -> tuple[float, np.ndarray, np.ndarray, float]:
-    """Refine x -> s R x + t mapping points A (n, 3) onto the cloud B (tree over B) by
-    trimmed ICP (the closest `keep` share of pairs). Returns s, R, t and the trimmed RMS."""
-    rms = np.inf
-    for _ in range(iterations):
-        Y = s * A @ R.T + t
-        d, j = tree.query(Y)
-        good = d <= np.quantile(d, keep)
-        s, R, t = similarity_transform(A[good], B[j[good]])
-        rms = float(np.sqrt(np.mean(d[good] ** 2)))
-    return s, R, t, rms
-
-
 def rough_alignment(template_V: np.ndarray, face_V: np.ndarray, scan_V: np.ndarray) -> tuple[np.ndarray, str, float]:
     """(4, 4) scan -> template face frame (metres), the unit name and the alignment error (m).
 

@@ -35,6 +35,20 @@ def similarity_transform(A: np.ndarray, B: np.ndarray, with_scale: bool = True) 
     return s, R, mb - s * R @ ma
 
 
+def similarity_icp(A: np.ndarray, tree, B: np.ndarray, s: float, R: np.ndarray, t: np.ndarray,
+                   iterations: int = 20, keep: float = 0.8) -> tuple[float, np.ndarray, np.ndarray, float]:
+    """Refine x -> s R x + t mapping points A (n, 3) onto the cloud B (m, 3), `tree` a
+    scipy cKDTree over B, by trimmed ICP (the closest `keep` share of pairs). Returns s, R,
+    t and the trimmed RMS (in B's unit)."""
+    rms = np.inf
+    for _ in range(iterations):
+        d, j = tree.query(s * A @ R.T + t)
+        good = d <= np.quantile(d, keep)
+        s, R, t = similarity_transform(A[good], B[j[good]])
+        rms = float(np.sqrt(np.mean(d[good] ** 2)))
+    return s, R, t, rms
+
+
 def scan_unit(scale: float) -> tuple[str, float]:
     """(unit name, metres per scan unit) for a fitted scan->metres scale; ("unknown", scale)
     when no unit is within a factor 1.6."""

@@ -38,7 +38,7 @@ MAX_FACE_RMS_REL = 0.004  # face skin -> scan RMS / head diagonal beyond which t
 MIN_FACE_COVERAGE = 0.8  # share of the face skin within reach of the scan below which it failed
 
 
-def skin_regions(template: FaceModel, names) -> np.ndarray:
+def in_regions(template: FaceModel, names) -> np.ndarray:
     """(n,) bool: skin vertices in any of the regions `names`."""
     idx = [template.region_names.index(r) for r in names if r in template.region_names]
     return np.isin(np.asarray(template.skin_region), idx)
@@ -89,13 +89,13 @@ def adapt_to_scan(template: FaceModel, scan_V: np.ndarray, scan_F: np.ndarray, h
     lm = (np.concatenate(faces), np.vstack(bary), np.vstack(points)) if faces else None
     stiffness = np.ones(len(P))
     for region, k in REGION_STIFFNESS.items():
-        stiffness[skin_regions(template, [region])] = k
+        stiffness[in_regions(template, [region])] = k
     fit = fit_to_scan(P, F, scan, seen, landmarks=lm, stiffness=stiffness)
     t_fit = time.perf_counter() - t0
     model, report = personalize(template, fit.vertices, T, head.unit, "surface")
     # the errors, in the scan's own frame through the head's scan_transform (no refit)
     S = model.scan_transform
-    face = skin_regions(template, FACE_REGIONS) & seen
+    face = in_regions(template, FACE_REGIONS) & seen
     errors = scan_fit_errors(apply_transform(S, model.skin_vertices), F, face,
                              apply_transform(np.linalg.inv(T), part_V), part_F)
     errors["face_vertices_scored"] = int(face.sum())  # the lids' rims over the eyeballs are not

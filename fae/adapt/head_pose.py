@@ -43,7 +43,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.spatial import cKDTree
 
-from fae.adapt.calibration import scan_unit, similarity_transform
+from fae.adapt.calibration import scan_unit, similarity_icp, similarity_transform
+from fae.adapt.geometry import coincident_groups
 from fae.io.facemodel import FaceModel
 
 SCAN_SAMPLES = 10000  # scan vertices (at most) used by the pose search
@@ -274,10 +275,7 @@ def head_pose(head: TemplateHead, scan_V: np.ndarray) -> tuple[float, np.ndarray
             best = (e, s, R, t)
     e, s, R, t = best
     # the face decides the last turn: a head turned on its neck, hair or a wreath must not
-    for _ in range(20):
-        d, j = tree.query(s * head.face @ R.T + t)
-        good = d <= np.quantile(d, 0.8)
-        s, R, t = similarity_transform(head.face[good], S[j[good]])
+    s, R, t, _ = similarity_icp(head.face, tree, S, s, R, t, iterations=20, keep=0.8)
     return s, R, t, e
 
 
@@ -309,8 +307,7 @@ def head_part(head: TemplateHead, X: np.ndarray, F: np.ndarray) -> np.ndarray:
     if len(F) == 0 or not keep.any():
         return keep
     # texture seams split a scan's vertices: pieces are found on welded positions
-    _, weld = np.unique(np.round(X / 1e-6).astype(np.int64), axis=0, return_inverse=True)
-    weld = weld.reshape(-1)
+    _, weld = coincident_groups(X)
     both = keep[F].all(axis=1)
     G = weld[F[both]]
     n = len(X)
@@ -332,8 +329,10 @@ def kept_part(V: np.ndarray, F: np.ndarray, keep: np.ndarray) -> tuple[np.ndarra
     V = np.asarray(V, dtype=np.float64)
     F = np.asarray(F, dtype=np.int64)
     faces = F[keep[F].all(axis=1)]
-    _, first, weld = np.unique(V, axis=0, return_index=True, return_inverse=True)
-    faces = first[weld.reshape(-1)][faces]  # each corner to the first vertex at its position
+    k, weld = coincident_groups(V)
+    first = np.zeros(k, dtype=np.int64)
+    first[weld[::-1]] = np.arange(len(V))[::-1]  # the lowest index in each group
+    faces = first[weld][faces]  # each corner to the first vertex at its position
     faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 2] != faces[:, 0])]
     used = np.zeros(len(V), dtype=bool)
     used[faces.ravel()] = True

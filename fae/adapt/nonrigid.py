@@ -49,6 +49,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
+from scipy.spatial import cKDTree
 from scipy.sparse.linalg import splu
 
 from fae.adapt.calibration import apply_transform
@@ -108,8 +109,6 @@ def graph_laplacian(F: np.ndarray, n: int, P: np.ndarray | None = None, radius: 
     the smoothness is the same over a dense patch of slivers as over a coarse one."""
     A = adjacency_matrix(F, n).astype(np.float64)
     if P is not None and radius > 0:
-        from scipy.spatial import cKDTree
-
         pairs = cKDTree(P).query_pairs(radius, output_type="ndarray")
         A = A + sp.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
         A = (A + A.T).tocsr()
@@ -128,8 +127,6 @@ def near_edge(scan: Surface, reach: float = EDGE_REACH) -> np.ndarray:
         return cached[1]
     near = scan.face_on_boundary.copy()
     if scan.boundary.any():
-        from scipy.spatial import cKDTree
-
         d, _ = cKDTree(scan.V[scan.boundary]).query(scan.V[scan.F].mean(axis=1))
         near |= d < reach
     scan._near_edge = (reach, near)
@@ -161,8 +158,8 @@ def affine_to_scan(X: np.ndarray, scan: Surface, use: np.ndarray, iterations: in
                    points: tuple[np.ndarray, np.ndarray] | None = None, similarity: bool = False) -> np.ndarray:
     """(4, 4) affine map taking the vertices X[use] onto the scan by trimmed ICP (closest
     scan vertices; the closest `keep` share of pairs). points: fixed pairs (template
-    points (k, 3), scan points (k, 3)) that start it and count in every step, each as much
-    as all the surface pairs together divided by k. similarity: rotation, translation and
+    points (k, 3), scan points (k, 3)) that start it and count in every step, all k of them
+    together as much as all the surface pairs. similarity: rotation, translation and
     one scale only (the neck below a scan's cut then keeps the template's proportions)."""
     A = np.eye(4)
     P = X[use]
@@ -291,7 +288,6 @@ def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray
     detail = movable if detail is None else movable & (
         np.bincount(label, weights=np.asarray(detail, dtype=float), minlength=n) > 0)
     if landmarks is not None:
-        landmarks = (landmarks[0], landmarks[1], landmarks[2])
         lm_corners = label[F_in[landmarks[0]]]  # (k, 3) welded corners of each feature point's triangle
     fixed = None
     if landmarks is not None and len(landmarks[0]):
@@ -324,22 +320,22 @@ def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray
     for a, reach in zip(STIFFNESS, reaches):
         matched = movable if a >= DETAIL_STIFFNESS else detail
         fade = (a / STIFFNESS[0]) ** LANDMARK_FADE  # feature points place the parts; the scan gives the detail
-        factored = None
+        solve = None
         for _ in range(ROUNDS):
             NX = per_vertex_normals(X, F)
             idx_all, Q_all = scan_pairs(X, NX, scan, reach, matched, along_normal=True)
-            if factored is None:  # once a stage: skin let go in a round stays put until the next stage
+            if solve is None:  # once a stage: skin let go in a round stays put until the next stage
                 M = a * a * LtL + sp.diags((matched & ~quiet).astype(np.float64))
                 if B is not None:
                     M = M + fade * BtB
-                factored = (splu(M.tocsc()).solve, quiet.copy())
+                solve = splu(M.tocsc()).solve
             keep = ~quiet[idx_all]
             idx, Q = idx_all[keep], Q_all[keep]
             rhs = np.zeros((n, 3))
             rhs[idx] = Q - X[idx]
             if B is not None:
                 rhs += fade * LANDMARK_WEIGHT * (B.T @ (landmarks[2] - B @ X))
-            X_next = X + factored[0](rhs)
+            X_next = X + solve(rhs)
             bad = folded_triangles(P, X_next, F)
             if bad.any():
                 # the scan's pull that folds a place is let go there (from the next stage on, the
@@ -365,8 +361,6 @@ def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray
     # the blends' patchwork
     on_scan = np.zeros(n, dtype=bool)
     on_scan[idx] = True
-    from scipy.spatial import cKDTree
-
     far = np.zeros(n, dtype=bool)  # skin near what the scan reaches keeps its fit
     if on_scan.any():
         far[~on_scan] = cKDTree(P[on_scan]).query(P[~on_scan])[0] > EXTEND_START

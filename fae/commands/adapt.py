@@ -232,14 +232,7 @@ def _finish(args, model, report, V, F, keep, started) -> int:
             with atomic_open(args.report, "w") as fh:
                 json.dump(_json_safe(report), fh, indent=1)
         return 2
-    if not args.no_calibrate:
-        # Setup work belongs here, once per head: the player then loads the head at once.
-        from fae.animate.calibrate import calibrate
-
-        _say("deriving the FAP mapping of the new head (once per head)")
-        t = time.perf_counter()
-        model = calibrate(model)
-        report["calibration_seconds"] = time.perf_counter() - t
+    model = _calibrated(args, model, report)
     picture = None
     if args.compare:  # drawn before anything is written: a failure here leaves nothing behind
         from fae.render.compare import comparison_image
@@ -266,6 +259,20 @@ def _finish(args, model, report, V, F, keep, started) -> int:
           f"covered), scan->skin RMS {e['scan_to_skin_rms_rel'] * 100:.3f} % ({e['scan_coverage'] * 100:.0f} % "
           f"covered); {report['folded_triangles']['visible']} folded triangles; {report['total_seconds']:.1f} s")
     return 0
+
+
+def _calibrated(args, model, report: dict):
+    """The model with its FAP mapping derived (unless --no-calibrate); the seconds go into
+    the report. Setup work belongs here, once per head: the player then loads it at once."""
+    if args.no_calibrate:
+        return model
+    from fae.animate.calibrate import calibrate
+
+    _say("deriving the FAP mapping of the new head (once per head)")
+    started = time.perf_counter()
+    model = calibrate(model)
+    report["calibration_seconds"] = time.perf_counter() - started
+    return model
 
 
 def _json_safe(value):
@@ -317,13 +324,7 @@ def _run_paper(args, template, V, F, landmarks) -> int:
     bar.close()
     if auto is not None:
         report["automatic_feature_points"] = auto
-    if not args.no_calibrate:
-        from fae.animate.calibrate import calibrate
-
-        _say("deriving the FAP mapping of the new head (once per head)")
-        started = time.perf_counter()
-        model = calibrate(model)
-        report["calibration_seconds"] = time.perf_counter() - started
+    model = _calibrated(args, model, report)
     write_facemodel(model, args.output)
     if args.report:
         with atomic_open(args.report, "w") as fh:
