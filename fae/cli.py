@@ -24,6 +24,7 @@ COMMANDS = (
     "play",
     "template",
     "verify_faps",
+    "verify_skin",
 )
 
 

@@ -54,9 +54,10 @@ from fae.mpeg4.fdps import mirror_point
 from fae.sim.build import PullField, mesh_edges, skin_model, skin_positions
 from fae.sim.reference import ReferenceSolver
 
-# 2: the skin solver with implicit anchors, blended holds and derived ear tables; a mapping
+# 3: the skin solver with the fold guard and crease smoothing (fae.sim.folds) and pull fields
+# preferred to muscles; 2: implicit anchors, blended holds and derived ear tables. A mapping
 # calibrated for another solver moves the feature points by other amounts
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
 JAW_CONTROLS = 3
 FIELD_ONLY_FAPS = (19, 20, 21, 22)
 # pull-field radius per FAP, in units of ES0
@@ -64,13 +65,18 @@ _FIELD_RADIUS_ES = {**{k: 0.16 for k in (4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 16, 1
                     **{k: 0.18 for k in range(51, 61)}, 18: 0.3,
                     **{k: 0.15 for k in (19, 20, 21, 22)}, **{k: 0.3 for k in range(31, 39)},
                     **{k: 0.45 for k in (39, 40, 41, 42)}, **{k: 0.2 for k in (61, 62, 63, 64)}}
-MUSCLE_COST = 0.05
+# the controls' costs in the least squares: a pull field (a smooth bump around the FAP's own
+# feature point) is preferred to the muscles, whose Waters zones reach the feature point at
+# their edge and then need large contractions that crease the skin beside it (the depressor
+# labii at 2.3 for xface_joy's lowered lower lip: 183 triangles folded or creased, 109 with
+# the fields preferred; verify-faps 50/50 and 49/50)
+MUSCLE_COST = 0.5
 # a sided FAP's mirror point should stay still: its motion counts like the FAP's own error
 # when the two are at least MIRROR_FAR x ES0 apart, not at all below MIRROR_NEAR x ES0 (the
 # lower lip's 8.7 and 8.8, 0.42 ES0 apart, are one piece of tissue)
 MIRROR_NEAR = 0.4
 MIRROR_FAR = 0.7
-FIELD_COST = 0.2
+FIELD_COST = 0.05
 CONTROL_SCALE = 0.01  # metres
 
 

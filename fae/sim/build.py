@@ -50,6 +50,7 @@ import warp as wp
 from scipy.spatial import cKDTree
 
 from fae.io.facemodel import FaceModel
+from fae.sim.folds import CreaseVertex, GuardedTriangle, crease_vertices, guarded_triangles
 from fae.sim.model import (BONE_COUNT, BONE_NAMES, LAYER_COUNT, MUSCLE_FIELD, MUSCLE_LINEAR, MUSCLE_SPHINCTER,
                            SkinModel)
 from fae.sim.sdf import sample_grid, signed_distance_grid
@@ -76,6 +77,9 @@ DEFAULTS = {
     "jaw_sure": 0.5,
     "jaw_corner_blend": 0.2,
     "jaw_blend_rings": 4,
+    "fold_min_area": 0.3,
+    "fold_passes": 3,
+    "crease_tolerance": 0.25,
 }
 
 
@@ -421,6 +425,14 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
     min_height = np.zeros(P)
     min_height[:-nsv] = float(p["layer_min_height"]) * height
 
+    # Fold guard (fae.sim.folds): the triangles of the two upper layers with a movable corner
+    # (the middle layer too: folded, it drags the epidermis over with it).
+    tri = F[simulated[F].all(axis=1) & active[F].any(axis=1)]
+    guard = np.concatenate([guarded_triangles(q, pid(k, tri), particle_jaw) for k in range(LAYER_COUNT - 1)])
+    # and the epidermis's rest shape among neighbours, against creases
+    crease, crease_neighbours = crease_vertices(q, pid(0, sim_vertices), np.column_stack([pid(0, se[:, 0]), pid(0, se[:, 1])]),
+                                                particle_jaw, movable)
+
     # Bone distance grids and which particles must stay outside them.
     sdf_values, sdf_origin, sdf_spacing = [], np.zeros((BONE_COUNT, 3)), np.ones(BONE_COUNT)
     phi_rest = np.full((BONE_COUNT, P), np.inf)
@@ -481,6 +493,13 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
         influence_particle=arr(inf_p.astype(np.int32), int),
         influence_weight=arr(inf_w.astype(np.float32), float),
         contact_depth=float(p["contact_depth"]),
+        triangle_count=len(guard),
+        triangle_guard=wp.array(guard, dtype=GuardedTriangle, device=device),
+        fold_min_area=float(p["fold_min_area"]),
+        fold_passes=int(p["fold_passes"]),
+        crease_vertex=wp.array(crease, dtype=CreaseVertex, device=device),
+        crease_neighbours=arr(crease_neighbours, int),
+        crease_tolerance=float(p["crease_tolerance"]),
         sdf_values=sdf_values,
         sdf_origin=sdf_origin,
         sdf_spacing=sdf_spacing,

@@ -52,6 +52,15 @@ class SkinModel:
     particle_clearance  (P,) vec2  metres, per bone: no closer to its rest place in the bone's
                                    frame than this, the particle cannot be inside the bone
     contact_depth       metres: deeper penetrations are left to the springs (fae.sim.collision)
+    triangle_count      triangles of the two upper layers guarded against folding (fae.sim.folds)
+    triangle_guard      (T,) fae.sim.folds.GuardedTriangle: particles, rest shape, rest normal
+    fold_min_area       a guarded triangle below this fraction of its rest area is restored
+    fold_passes         guard passes per substep
+    crease_vertex       (P,) fae.sim.folds.CreaseVertex: an epidermis particle's neighbours and
+                                   rest offset from their mean (no neighbours elsewhere)
+    crease_neighbours   (N,) int   the neighbour lists
+    crease_tolerance    a particle whose offset strays more than this x its mean rest edge is
+                                   moved back (fae.sim.folds.smooth_creases)
     spring_indices      (S*2,) int particle pairs
     spring_rest_length  (S,) float metres
     spring_stiffness    (S,) float N/m
@@ -117,6 +126,13 @@ class SkinModel:
     influence_particle: wp.array
     influence_weight: wp.array
     contact_depth: float
+    triangle_count: int
+    triangle_guard: wp.array
+    fold_min_area: float
+    fold_passes: int
+    crease_vertex: wp.array
+    crease_neighbours: wp.array
+    crease_tolerance: float
     sdf_values: list
     sdf_origin: np.ndarray
     sdf_spacing: np.ndarray

@@ -79,12 +79,13 @@ class ReferenceSolver:
         return _accumulate(P, p, dirs * act[:, None]), np.bincount(p, weights=rate * np.abs(act), minlength=P)
 
     def collide(self, q: np.ndarray, qd: np.ndarray, q_prev: np.ndarray, bone_rotation: np.ndarray,
-                bone_translation: np.ndarray, hold: np.ndarray | None = None) -> None:
+                bone_translation: np.ndarray, hold: np.ndarray | None = None, only: np.ndarray | None = None) -> None:
         """Particles whose step from q_prev reached a bone go back to its surface where they
         entered; particles that were inside already are projected out (in place, as
         fae.sim.collision.bone_contact). hold (P, 3) metres: the particles' holds (None:
-        computed here)."""
-        col = np.flatnonzero(self.a["particle_collider"])
+        computed here); only (P,) bool: the particles to look at (None: every collider)."""
+        col = self.a["particle_collider"] != 0
+        col = np.flatnonzero(col if only is None else col & only)
         clearance = self.a["particle_clearance"].astype(np.float64)
         for b, values in enumerate(self.a["sdf_values"]):
             if values is None or len(col) == 0:
@@ -187,6 +188,80 @@ class ReferenceSolver:
         vn = np.sum(qd[idx] * n, axis=1)
         qd[idx] -= n * np.minimum(vn, 0.0)[:, None]
 
+    def guard_folds(self, q: np.ndarray, qd: np.ndarray, bone_rotation: np.ndarray, bone_translation: np.ndarray,
+                    hold: np.ndarray) -> int:
+        """Pull triangles near folding back towards their rest shape, stopping at the bones
+        (one pass, in place, as fae.sim.folds). Returns the number of triangles guarded."""
+        tri = self.a["triangle_guard"]
+        if len(tri) == 0:
+            return 0
+        P = self.model.particle_count
+        ids = np.column_stack([tri["i"], tri["j"], tri["k"]]).astype(np.int64)
+        w = tri["jaw"].astype(np.float64)[:, None]
+        n0 = tri["normal"].astype(np.float64)
+        n = n0 @ bone_rotation[0].T * (1.0 - w) + n0 @ bone_rotation[1].T * w
+        n /= np.linalg.norm(n, axis=1, keepdims=True)
+        x = q[ids]
+        c = x.mean(axis=1)
+        e = x[:, 1] - x[:, 0]
+        a = e - n * np.sum(e * n, axis=1, keepdims=True)
+        la = np.linalg.norm(a, axis=1)
+        alt = np.cross(n, x[:, 2] - x[:, 0])
+        a = np.where((la < 1e-12)[:, None], alt, a)
+        la = np.linalg.norm(a, axis=1)
+        ok = la >= 1e-12
+        a = a / np.maximum(la, 1e-300)[:, None]
+        b = np.cross(n, a)
+        d = x - c[:, None]
+        p = np.stack([np.sum(d * a[:, None], axis=2), np.sum(d * b[:, None], axis=2)], axis=2)
+        r = np.stack([tri["p0"], tri["p1"], tri["p2"]], axis=1).astype(np.float64)
+
+        def cross2(u, v):
+            return u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]
+
+        ratio = np.sum(np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]) * n, axis=1) / tri["area2"]
+        m = self.model.fold_min_area
+        hit = ok & (ratio < m)
+        beta = np.minimum(1.0, (m - ratio) / m)
+        s = cross2(r, p).sum(axis=1)
+        k = np.sum(r * p, axis=2).sum(axis=1)
+        h = np.hypot(s, k)
+        cs = np.where(h > 1e-20, k / np.maximum(h, 1e-300), 1.0)[:, None]
+        sn = np.where(h > 1e-20, s / np.maximum(h, 1e-300), 0.0)[:, None]
+        g = np.stack([cs * r[..., 0] - sn * r[..., 1], sn * r[..., 0] + cs * r[..., 1]], axis=2) - p
+        move = (a[:, None] * g[..., :1] + b[:, None] * g[..., 1:]) * beta[:, None, None]
+        idx, move = ids[hit].reshape(-1), move[hit].reshape(-1, 3)
+        crease_idx, crease_move = self.crease_moves(q, bone_rotation)
+        idx = np.concatenate([idx, crease_idx])
+        move = np.concatenate([move, crease_move])
+        total = _accumulate(P, idx, move)
+        count = np.bincount(idx, minlength=P)
+        on = (count > 0) & (self.inv_mass > 0.0)
+        q_prev = q.copy()
+        q[on] += total[on] / count[on, None]
+        self.collide(q, qd, q_prev, bone_rotation, bone_translation, hold, only=on)
+        return int(hit.sum()) + len(crease_idx)
+
+    def crease_moves(self, q: np.ndarray, bone_rotation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(particles (k,), moves (k, 3) metres): epidermis particles whose offset from their
+        neighbours' mean strays from the rest offset, and the move restoring it (as
+        fae.sim.folds.smooth_creases)."""
+        cv = self.a["crease_vertex"]
+        nb = self.a["crease_neighbours"].astype(np.int64)
+        count = (cv["end"] - cv["first"]).astype(np.int64)
+        has = np.flatnonzero(count > 0)
+        if len(has) == 0:
+            return np.zeros(0, dtype=np.int64), np.zeros((0, 3))
+        owner = np.repeat(has, count[has])
+        mean = _accumulate(self.model.particle_count, owner, q[nb])[has] / count[has, None]
+        delta = cv["delta"][has].astype(np.float64)
+        w = cv["jaw"][has].astype(np.float64)[:, None]
+        rest = delta @ bone_rotation[0].T * (1.0 - w) + delta @ bone_rotation[1].T * w
+        err = q[has] - mean - rest
+        excess = np.linalg.norm(err, axis=1) / (self.model.crease_tolerance * cv["edge"][has]) - 1.0
+        hit = excess > 0.0
+        return has[hit], -err[hit] * np.minimum(1.0, excess[hit])[:, None]
+
     def step(self, q: np.ndarray, qd: np.ndarray, activation: np.ndarray, bone_rotation: np.ndarray,
              bone_translation: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
         """Advance dt seconds; returns new (q (P, 3), qd (P, 3)) metres, metres/s; inputs unchanged."""
@@ -212,4 +287,7 @@ class ReferenceSolver:
             q[fixed] = hold[fixed]
             self.layer_order(q, qd, q_prev, R)
             self.collide(q, qd, q_prev, R, t, hold)
+            for _ in range(self.model.fold_passes):
+                if self.guard_folds(q, qd, R, t, hold) == 0:
+                    break
         return q, qd

@@ -52,6 +52,7 @@ from collections import OrderedDict
 import numpy as np
 import warp as wp
 
+import fae.sim.folds as _folds
 import fae.sim.integrate as _integrate
 import fae.sim.muscles as _muscles
 import fae.sim.springs as _springs
@@ -166,6 +167,11 @@ class SkinSolver:
         self.spring_chunk = CPU_SPRING_CHUNK if cpu else 1
         self.particle_chunk = CPU_PARTICLE_CHUNK if cpu else 1
         self.particle_f = wp.zeros(model.particle_count, dtype=wp.vec3, device=model.device)
+        # the fold guard's moves, cleared by the pass that applies them (fae.sim.folds)
+        self.particle_move = wp.zeros(model.particle_count, dtype=wp.vec3, device=model.device)
+        self.particle_moves = wp.zeros(model.particle_count, dtype=float, device=model.device)
+        self.guarded_count = wp.zeros(1, dtype=int, device=model.device)
+        self._cpu = cpu
         self._scratch = (model.state(), model.state())
         no_grid = wp.full((2, 2, 2), 1.0, dtype=float, device=model.device)  # far outside everywhere
         self._grids = []
@@ -201,7 +207,8 @@ class SkinSolver:
             outputs=[self._muscle_point, self._muscle_axis_u, self._muscle_axis_v])).launch()
 
     def _substep_launches(self, src: State, dst: State, control: Control, h: float) -> list:
-        """[springs, particles, h] recorded launches from src to dst, their step set to h."""
+        """[springs, particles, guard, apply guard, h] recorded launches from src to dst, their
+        step set to h (the guard launches None for a model without guarded triangles)."""
         def record() -> list:
             m = self.model
             spring_start, spring_records, particle_static = packed_arrays(m)
@@ -218,12 +225,31 @@ class SkinSolver:
                         control.bone_translation, *self._grids, float(m.contact_depth),
                         float(m.damping), float(h), m.particle_count, self.particle_chunk],
                 outputs=[dst.particle_q, dst.particle_qd], record_cmd=True)
-            return [springs, particles, h]
+            guard = apply = None
+            if m.triangle_count:
+                guard = wp.launch(_folds.guard_folds, dim=-(-m.triangle_count // self.particle_chunk), device=m.device,
+                                  inputs=[dst.particle_q, m.triangle_guard, control.bone_rotation,
+                                          float(m.fold_min_area), m.triangle_count, self.particle_chunk],
+                                  outputs=[self.particle_move, self.particle_moves, self.guarded_count],
+                                  record_cmd=True)
+                crease = wp.launch(_folds.smooth_creases, dim=-(-m.particle_count // self.particle_chunk),
+                                   device=m.device,
+                                   inputs=[dst.particle_q, m.crease_vertex, m.crease_neighbours, control.bone_rotation,
+                                           float(m.crease_tolerance), m.particle_count, self.particle_chunk],
+                                   outputs=[self.particle_move, self.particle_moves, self.guarded_count],
+                                   record_cmd=True)
+                guard = (guard, crease)
+                apply = wp.launch(_folds.apply_guard, dim=-(-m.particle_count // self.particle_chunk), device=m.device,
+                                  inputs=[particle_static, self.particle_move, self.particle_moves,
+                                          control.bone_rotation, control.bone_translation, *self._grids,
+                                          float(m.contact_depth), m.particle_count, self.particle_chunk],
+                                  outputs=[dst.particle_q, dst.particle_qd], record_cmd=True)
+            return [springs, particles, guard, apply, h]
 
         entry = self._launches.get((src, dst, control), record)
-        if entry[2] != h:
+        if entry[4] != h:
             entry[1].set_param_by_name("dt", float(h))
-            entry[2] = h
+            entry[4] = h
         return entry
 
     def step(self, model: SkinModel, state_in: State, control: Control, dt: float,
@@ -244,11 +270,19 @@ class SkinSolver:
             dst = state_out if k == n - 1 and state_out is not src else self._scratch[k % 2]
             if dst is src:
                 dst = self._scratch[(k + 1) % 2]
-            springs, particles = self._substep_launches(src, dst, control, h)[:2]
+            springs, particles, guard, apply = self._substep_launches(src, dst, control, h)[:4]
             self.particle_f.zero_()
             if model.spring_count:
                 springs.launch()
             particles.launch()
+            if guard is not None:
+                for _ in range(model.fold_passes):
+                    self.guarded_count.zero_()
+                    guard[0].launch()
+                    guard[1].launch()
+                    if self._cpu and self.guarded_count.numpy()[0] == 0:
+                        break  # nothing near folding (on CUDA, reading this would stall the queue)
+                    apply.launch()
             src = dst
         if src is not state_out:
             state_out.assign(src)

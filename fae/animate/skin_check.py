@@ -1,0 +1,223 @@
+"""Is the skin whole? Folds, edge strain and lips passing through each other, frame by frame.
+
+A visible skin triangle (none of its corners in the mouth's lining, which is seen only
+through the lips) is **folded** when its normal, in the head's own frame (head rotation
+removed), has turned more than 90 degrees from its rest normal, or when it sits on a
+**crease**: an edge whose two triangles, at most 45 degrees apart at rest, are now more
+than 90 degrees apart (a hinge fold shows as a dark line before either side has turned 90
+degrees). Edge **strain** is an edge's length over its rest length, over the edges of
+visible triangles (not shorter than `STRAIN_MIN_EDGE` of the median edge). The lips **cross** when an edge of one lip passes through a triangle of
+the other (a segment-triangle test between the two lip regions): the lower lip has gone
+through the upper one, or the reverse.
+
+    check = SkinCheck(face)
+    for name, frames in default_streams(): ...          # the FAP sweep and the six expressions
+    frame_report = check.frame(skin_in_head_frame)        # FrameCheck
+    stream_report = check_stream(player, frames, name)    # dict, JSON-ready
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass
+
+import numpy as np
+
+FOLD_COS = 0.0  # cos 90 degrees: a normal turned further than this is folded
+# a crease: two neighbours at most 45 degrees apart at rest, more than 90 degrees apart now
+CREASE_REST_COS = np.cos(np.radians(45.0))
+MAX_STRETCH = 2.0  # what a whole skin never exceeds (edge length over rest length)
+MIN_COMPRESSION = 0.3
+# strain is measured on edges at least this share of the median edge: a sliver's 1-micron
+# edge grown to 0.2 mm is 200x its length and invisible
+STRAIN_MIN_EDGE = 0.05
+SWEEP_RAMP, SWEEP_HOLD = 4, 8  # frames of the FAP sweep: rise, hold at the limit
+EXPRESSION_RAMP, EXPRESSION_HOLD = 8, 12
+HIDDEN_REGIONS = ("mouth_cavity",)
+LIP_REGIONS = ("lip_upper", "lip_lower")
+
+
+@dataclass
+class FrameCheck:
+    """One frame. folded (T,) bool per skin triangle (False where not visible); stretch and
+    compression: the largest and smallest edge length over rest length of visible edges;
+    lip_crossings: lip edges that pass through the other lip."""
+
+    folded: np.ndarray
+    stretch: float
+    compression: float
+    lip_crossings: int
+
+
+def triangle_normals(V: np.ndarray, F: np.ndarray) -> np.ndarray:
+    """(T, 3) unnormalised triangle normals (twice the area) of V (n, 3) metres, F (T, 3)."""
+    return np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+
+
+def segments_through_triangles(a: np.ndarray, b: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """(S,) bool: whether segment a[i]-b[i] passes through any triangle of T (m, 3, 3).
+
+    a, b (S, 3); Moller-Trumbore on every pair (S x m), strictly inside both (a segment that
+    shares a corner with a triangle touches it, it does not cross it)."""
+    if len(a) == 0 or len(T) == 0:
+        return np.zeros(len(a), dtype=bool)
+    d = (b - a)[:, None, :]
+    e1 = (T[:, 1] - T[:, 0])[None]
+    e2 = (T[:, 2] - T[:, 0])[None]
+    p = np.cross(d, e2)
+    det = np.einsum("stk,stk->st", e1, p)
+    ok = np.abs(det) > 1e-18
+    inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+    s = a[:, None, :] - T[None, :, 0]
+    u = np.einsum("stk,stk->st", s, p) * inv
+    q = np.cross(s, e1)
+    v = np.einsum("stk,stk->st", d, q) * inv
+    t = np.einsum("stk,stk->st", e2, q) * inv
+    eps = 1e-6
+    hit = ok & (u > eps) & (v > eps) & (u + v < 1 - eps) & (t > eps) & (t < 1 - eps)
+    return hit.any(axis=1)
+
+
+class SkinCheck:
+    """Precomputed rest normals, visible triangles and edges, lip regions of a FaceModel."""
+
+    def __init__(self, face):
+        self.face = face
+        V = np.asarray(face.skin_vertices, dtype=np.float64)
+        F = np.asarray(face.skin_faces, dtype=np.int64)
+        self.faces = F
+        names = list(face.region_names)
+        region = np.asarray(face.skin_region)
+        hidden = np.isin(region, [names.index(r) for r in HIDDEN_REGIONS if r in names])
+        n = triangle_normals(V, F)
+        area2 = np.linalg.norm(n, axis=1)
+        # degenerate rest triangles have no direction to turn from
+        self.visible = ~hidden[F].any(axis=1) & (area2 > 1e-14)
+        self.rest_normals = n / np.maximum(area2, 1e-30)[:, None]
+        # a triangle's region: the most common of its corners' (ties: the first corner's)
+        r = region[F]
+        self.triangle_region = np.where(r[:, 1] == r[:, 2], r[:, 1], r[:, 0])
+        self.region_names = names
+        e = np.concatenate([F[self.visible][:, [0, 1]], F[self.visible][:, [1, 2]], F[self.visible][:, [2, 0]]])
+        e.sort(axis=1)
+        self.edges = np.unique(e, axis=0)
+        self.rest_length = np.linalg.norm(V[self.edges[:, 0]] - V[self.edges[:, 1]], axis=1)
+        keep = self.rest_length >= STRAIN_MIN_EDGE * np.median(self.rest_length)
+        self.edges, self.rest_length = self.edges[keep], self.rest_length[keep]
+        # neighbouring visible triangles that meet smoothly at rest (for creases)
+        te = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
+        te.sort(axis=1)
+        tid = np.tile(np.arange(len(F)), 3)
+        order = np.lexsort((te[:, 1], te[:, 0]))
+        te, tid = te[order], tid[order]
+        same = np.all(te[1:] == te[:-1], axis=1)
+        a, b = tid[:-1][same], tid[1:][same]
+        smooth = self.visible[a] & self.visible[b] & (np.sum(self.rest_normals[a] * self.rest_normals[b], axis=1)
+                                                      > CREASE_REST_COS)
+        self.neighbours = np.column_stack([a[smooth], b[smooth]])
+        self.lips = []
+        if all(r in names for r in LIP_REGIONS):
+            up, low = (np.flatnonzero(np.isin(r, [names.index(x)]).all(axis=1)) for x in LIP_REGIONS)
+            self.lips = [(F[up], _triangle_edges(F[low])), (F[low], _triangle_edges(F[up]))]
+
+    def frame(self, skin: np.ndarray) -> FrameCheck:
+        """Check one frame's skin (V, 3) metres, in the head's own frame (rotation removed)."""
+        n = triangle_normals(skin, self.faces)
+        cos = np.einsum("ij,ij->i", n, self.rest_normals)
+        folded = self.visible & (cos < FOLD_COS * np.linalg.norm(n, axis=1))
+        a, b = self.neighbours[:, 0], self.neighbours[:, 1]
+        crease = np.einsum("ij,ij->i", n[a], n[b]) < 0.0
+        folded[a[crease]] = True
+        folded[b[crease]] = True
+        ratio = np.linalg.norm(skin[self.edges[:, 0]] - skin[self.edges[:, 1]], axis=1) / self.rest_length
+        crossings = 0
+        for tris, edges in self.lips:
+            crossings += int(segments_through_triangles(skin[edges[:, 0]], skin[edges[:, 1]], skin[tris]).sum())
+        return FrameCheck(folded=folded, stretch=float(ratio.max(initial=1.0)),
+                          compression=float(ratio.min(initial=1.0)), lip_crossings=crossings)
+
+
+def _triangle_edges(F: np.ndarray) -> np.ndarray:
+    e = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
+    e.sort(axis=1)
+    return np.unique(e, axis=0)
+
+
+def in_head_frame(skin: np.ndarray, head: np.ndarray) -> np.ndarray:
+    """(V, 3): skin posed by the head transform `head` (4, 4) taken back to the head's frame."""
+    return (skin - head[:3, 3]) @ head[:3, :3]
+
+
+def check_stream(player, frames: Iterable, name: str = "", fps: float | None = None,
+                 check: SkinCheck | None = None) -> dict:
+    """Play `frames` (a FapStream or DenseFrames) from rest and check every frame.
+
+    Returns {"stream", "frames", "frames_folded", "triangles_folded", "folded_by_region"
+    {region: triangles}, "worst_frame", "worst_frame_folded", "max_stretch", "min_compression",
+    "frames_lips_crossed", "max_lip_crossings", "ok"}; ok: nothing folded, strain within
+    [MIN_COMPRESSION, MAX_STRETCH] and the lips never cross."""
+    check = check or SkinCheck(player.face)
+    player.reset()
+    ever = np.zeros(len(check.faces), dtype=bool)
+    count = folded_frames = lip_frames = max_crossings = 0
+    worst, worst_count = -1, 0
+    stretch, compression = 1.0, 1.0
+    for frame in player.play(frames, fps=fps):
+        r = check.frame(in_head_frame(frame.skin_vertices, frame.bone_transforms["head"]))
+        k = int(r.folded.sum())
+        if k:
+            folded_frames += 1
+            ever |= r.folded
+            if k > worst_count:
+                worst, worst_count = frame.index, k
+        if r.lip_crossings:
+            lip_frames += 1
+            max_crossings = max(max_crossings, r.lip_crossings)
+        stretch, compression = max(stretch, r.stretch), min(compression, r.compression)
+        count += 1
+    player.reset()
+    regions = {}
+    for rid in np.unique(check.triangle_region[ever]):
+        regions[check.region_names[rid]] = int(np.sum(check.triangle_region[ever] == rid))
+    ok = (not ever.any()) and stretch <= MAX_STRETCH and compression >= MIN_COMPRESSION and lip_frames == 0
+    return {"stream": name, "frames": count, "frames_folded": folded_frames, "triangles_folded": int(ever.sum()),
+            "folded_by_region": regions, "worst_frame": worst, "worst_frame_folded": worst_count,
+            "max_stretch": round(stretch, 3), "min_compression": round(compression, 3),
+            "frames_lips_crossed": lip_frames, "max_lip_crossings": max_crossings, "ok": bool(ok)}
+
+
+def fap_sweep() -> list[np.ndarray]:
+    """(68,) frames, FAPU units: every low-level FAP 3..68 alone, 0 -> its upper limit (held)
+    -> 0 -> its lower limit (held) -> 0, the limits the Player clamps to (`FAP_LIMITS`, the
+    standard's ranges)."""
+    from fae.animate.faptables import FAP_LIMITS
+    from fae.mpeg4.faps import FAP_COUNT
+
+    ramp = np.linspace(0.0, 1.0, SWEEP_RAMP + 1)[1:]
+    shape = np.concatenate([ramp, np.ones(SWEEP_HOLD), ramp[::-1][1:], [0.0]])
+    out = []
+    for k in range(3, FAP_COUNT + 1):
+        for limit in FAP_LIMITS[k - 1, ::-1]:
+            if limit == 0.0:
+                continue
+            for a in shape:
+                v = np.zeros(FAP_COUNT)
+                v[k - 1] = a * limit
+                out.append(v)
+    return out
+
+
+def expression_sweep() -> list[np.ndarray]:
+    """(68,) frames: the standard's six expressions (FAP 2: joy, sadness, anger, fear,
+    disgust, surprise) one after another at full intensity: rise, hold, release."""
+    from fae.animate.highlevel import EXPRESSION_FAPS
+
+    ramp = np.linspace(0.0, 1.0, EXPRESSION_RAMP + 1)[1:]
+    shape = np.concatenate([ramp, np.ones(EXPRESSION_HOLD), ramp[::-1][1:], [0.0]])
+    return [np.asarray(EXPRESSION_FAPS[code], dtype=np.float64) * a for code in range(1, 7) for a in shape]
+
+
+def default_streams() -> list[tuple[str, list[np.ndarray]]]:
+    """(name, frames): what `fae verify-skin` plays when given no stream."""
+    return [("fap-sweep (every FAP alone to its limits)", fap_sweep()),
+            ("expressions (FAP 2, six at full intensity)", expression_sweep())]

@@ -1,0 +1,250 @@
+"""Fold guard: a skin triangle about to turn over is pulled back towards its rest shape, and
+creases are smoothed.
+
+Springs along edges have no say in which way a triangle faces: a triangle squeezed by
+muscles until one corner crosses the opposite edge is as happy folded as unfolded, and the
+skin creases over itself (dark folds under the lower lip, at the mouth corners and over the
+brows). After each substep, every triangle of the epidermis and the middle layer whose area, measured in the
+plane across its rest normal carried by its hold, has shrunk below `fold_min_area` of its
+rest area (or turned negative: folded) is matched to its rest shape by the best rotation in
+that plane (2D shape matching; a rotation in the plane cannot turn the triangle over, unlike
+the best rotation in 3D), and its corners are moved towards the matched shape, in the plane
+only, by
+
+    beta = min(1, (fold_min_area - area / rest area) / fold_min_area),
+
+zero at the threshold, so that the guard sets in smoothly. A corner shared by several
+guarded triangles takes the mean of their moves; a move that reaches a bone ends on it, as
+a step does (fae.sim.collision). Up to `fold_passes` passes per substep; on the CPU the
+passes stop at the first that guards no triangle (`guarded_count`), so skin far from
+folding pays one look at its triangles per substep (the shadow's area, a triple product).
+The guard changes no equilibrium of skin that is not near a fold.
+
+Crease smoothing, in the same passes: a hinge fold shows as a dark line long before
+either side has turned over. Each epidermis particle keeps its rest offset from the mean of
+its neighbours (its Laplacian coordinate, carried by its hold); where the offset strays by
+more than `crease_tolerance` x its mean rest edge (a fold line, a spike), the particle is
+moved towards the place that restores it, by the excess over the tolerance (at most all of
+it). Both moves of a particle are averaged.
+
+The numpy twin is `fae.sim.reference.ReferenceSolver.guard_folds`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from fae.sim.collision import bone_contact
+from fae.sim.integrate import ParticleStatic
+
+wp.set_module_options({"fast_math": True, "enable_backward": False})
+
+
+@wp.struct
+class GuardedTriangle:
+    """An epidermis triangle: its particles, its rest corners in its own rest plane (centred,
+    metres, counter-clockwise about `normal`), its unit rest normal, its hold's jaw weight and
+    twice its rest area (m^2)."""
+
+    i: int
+    j: int
+    k: int
+    p0: wp.vec2
+    p1: wp.vec2
+    p2: wp.vec2
+    normal: wp.vec3
+    jaw: float
+    area2: float
+
+
+def guarded_triangles(q: np.ndarray, triangles: np.ndarray, jaw: np.ndarray) -> np.ndarray:
+    """Structured array of `GuardedTriangle` for particle triangles (T, 3) at rest q (P, 3)
+    metres, with per-particle jaw weights jaw (P,); degenerate triangles are left out."""
+    x = q[triangles]
+    n = np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0])
+    area2 = np.linalg.norm(n, axis=1)
+    keep = area2 > 1e-12
+    x, n, area2, triangles = x[keep], n[keep] / area2[keep, None], area2[keep], triangles[keep]
+    c = x.mean(axis=1)
+    e = x[:, 1] - x[:, 0]
+    a = e / np.linalg.norm(e, axis=1, keepdims=True)
+    b = np.cross(n, a)
+    out = np.zeros(len(triangles), dtype=GuardedTriangle.numpy_dtype())
+    out["i"], out["j"], out["k"] = triangles[:, 0], triangles[:, 1], triangles[:, 2]
+    for corner, name in enumerate(("p0", "p1", "p2")):
+        d = x[:, corner] - c
+        out[name] = np.column_stack([np.sum(d * a, axis=1), np.sum(d * b, axis=1)])
+    out["normal"] = n
+    out["jaw"] = jaw[triangles].mean(axis=1)
+    out["area2"] = area2
+    return out
+
+
+@wp.func
+def _cross2(u: wp.vec2, v: wp.vec2):
+    return u[0] * v[1] - u[1] * v[0]
+
+
+@wp.kernel
+def guard_folds(particle_q: wp.array(dtype=wp.vec3), triangles: wp.array(dtype=GuardedTriangle),
+                bone_rotation: wp.array(dtype=wp.mat33), min_area: float, triangle_count: int, chunk: int,
+                particle_move: wp.array(dtype=wp.vec3), particle_moves: wp.array(dtype=float),
+                guarded_count: wp.array(dtype=int)):
+    """One pass over the triangles; guarded_count[0] counts those guarded."""
+    start = wp.tid() * chunk
+    R0 = bone_rotation[0]
+    R1 = bone_rotation[1]
+    for t in range(start, wp.min(start + chunk, triangle_count)):
+        tri = triangles[t]
+        n = R0 * tri.normal
+        if tri.jaw > 0.0:
+            n = wp.normalize(n * (1.0 - tri.jaw) + R1 * tri.normal * tri.jaw)
+        x0 = particle_q[tri.i]
+        x1 = particle_q[tri.j]
+        x2 = particle_q[tri.k]
+        # twice the signed area of the triangle's shadow on the plane across n
+        ratio = wp.dot(wp.cross(x1 - x0, x2 - x0), n) / tri.area2
+        if ratio >= min_area:
+            continue
+        c = (x0 + x1 + x2) / 3.0
+        e = x1 - x0
+        a = e - n * wp.dot(e, n)
+        la = wp.length(a)
+        if la < 1.0e-12:
+            a = wp.cross(n, x2 - x0)
+            la = wp.length(a)
+            if la < 1.0e-12:
+                continue
+        a = a / la
+        b = wp.cross(n, a)
+        d0 = x0 - c
+        d1 = x1 - c
+        d2 = x2 - c
+        p0 = wp.vec2(wp.dot(d0, a), wp.dot(d0, b))
+        p1 = wp.vec2(wp.dot(d1, a), wp.dot(d1, b))
+        p2 = wp.vec2(wp.dot(d2, a), wp.dot(d2, b))
+        beta = wp.min(1.0, (min_area - ratio) / min_area)
+        # the best rotation in the plane taking the rest corners onto the current ones
+        s = _cross2(tri.p0, p0) + _cross2(tri.p1, p1) + _cross2(tri.p2, p2)
+        k = wp.dot(tri.p0, p0) + wp.dot(tri.p1, p1) + wp.dot(tri.p2, p2)
+        h = wp.sqrt(s * s + k * k)
+        cs = 1.0
+        sn = 0.0
+        if h > 1.0e-20:
+            cs = k / h
+            sn = s / h
+        g0 = wp.vec2(cs * tri.p0[0] - sn * tri.p0[1], sn * tri.p0[0] + cs * tri.p0[1]) - p0
+        g1 = wp.vec2(cs * tri.p1[0] - sn * tri.p1[1], sn * tri.p1[0] + cs * tri.p1[1]) - p1
+        g2 = wp.vec2(cs * tri.p2[0] - sn * tri.p2[1], sn * tri.p2[0] + cs * tri.p2[1]) - p2
+        wp.atomic_add(particle_move, tri.i, (a * g0[0] + b * g0[1]) * beta)
+        wp.atomic_add(particle_move, tri.j, (a * g1[0] + b * g1[1]) * beta)
+        wp.atomic_add(particle_move, tri.k, (a * g2[0] + b * g2[1]) * beta)
+        wp.atomic_add(particle_moves, tri.i, 1.0)
+        wp.atomic_add(particle_moves, tri.j, 1.0)
+        wp.atomic_add(particle_moves, tri.k, 1.0)
+        wp.atomic_add(guarded_count, 0, 1)
+
+
+@wp.struct
+class CreaseVertex:
+    """An epidermis particle's rest shape among its neighbours: its neighbours are
+    `neighbours[first:end]`, `delta` (metres) its rest offset from their mean (its Laplacian
+    coordinate, in the head frame), `edge` (metres) its mean rest edge length, `jaw` its
+    hold's jaw weight."""
+
+    first: int
+    end: int
+    delta: wp.vec3
+    edge: float
+    jaw: float
+
+
+def crease_vertices(q: np.ndarray, particles: np.ndarray, edges: np.ndarray, jaw: np.ndarray,
+                    movable: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(structured array of `CreaseVertex` over all particles (P,), neighbours (N,) int32):
+    for each movable particle of `particles` (its layer's ids), its neighbours along the
+    particle pairs `edges` (E, 2) of that layer; others get no neighbours. q (P, 3) metres
+    at rest, jaw (P,), movable (P,) bool."""
+    P = len(q)
+    pairs = np.concatenate([edges, edges[:, ::-1]]).astype(np.int64)
+    pairs = pairs[movable[pairs[:, 0]] & np.isin(pairs[:, 0], particles)]
+    pairs = pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
+    count = np.bincount(pairs[:, 0], minlength=P)
+    start = np.concatenate([[0], np.cumsum(count)])
+    mean = np.column_stack([np.bincount(pairs[:, 0], weights=q[pairs[:, 1], c], minlength=P) for c in range(3)])
+    mean /= np.maximum(count, 1)[:, None]
+    length = np.bincount(pairs[:, 0], weights=np.linalg.norm(q[pairs[:, 0]] - q[pairs[:, 1]], axis=1), minlength=P)
+    out = np.zeros(P, dtype=CreaseVertex.numpy_dtype())
+    out["first"], out["end"] = start[:-1], start[1:]
+    out["delta"] = np.where((count > 0)[:, None], q - mean, 0.0)
+    out["edge"] = length / np.maximum(count, 1)
+    out["jaw"] = jaw
+    return out, pairs[:, 1].astype(np.int32)
+
+
+@wp.kernel
+def smooth_creases(particle_q: wp.array(dtype=wp.vec3), vertices: wp.array(dtype=CreaseVertex),
+                   neighbours: wp.array(dtype=int), bone_rotation: wp.array(dtype=wp.mat33), tolerance: float,
+                   particle_count: int, chunk: int, particle_move: wp.array(dtype=wp.vec3),
+                   particle_moves: wp.array(dtype=float), guarded_count: wp.array(dtype=int)):
+    """Each epidermis particle whose offset from its neighbours' mean strays from its rest
+    offset (carried by its hold) by more than `tolerance` x its mean rest edge is moved
+    towards the place that restores it (a fold line or a spike)."""
+    start = wp.tid() * chunk
+    R0 = bone_rotation[0]
+    R1 = bone_rotation[1]
+    for i in range(start, wp.min(start + chunk, particle_count)):
+        cv = vertices[i]
+        if cv.end == cv.first:
+            continue
+        mean = wp.vec3(0.0, 0.0, 0.0)
+        for k in range(cv.first, cv.end):
+            mean = mean + particle_q[neighbours[k]]
+        mean = mean / float(cv.end - cv.first)
+        rest = R0 * cv.delta * (1.0 - cv.jaw) + R1 * cv.delta * cv.jaw
+        err = particle_q[i] - mean - rest
+        excess = wp.length(err) / (tolerance * cv.edge) - 1.0
+        if excess <= 0.0:
+            continue
+        wp.atomic_add(particle_move, i, -err * wp.min(1.0, excess))
+        wp.atomic_add(particle_moves, i, 1.0)
+        wp.atomic_add(guarded_count, 0, 1)
+
+
+@wp.kernel
+def apply_guard(particle_static: wp.array(dtype=ParticleStatic), particle_move: wp.array(dtype=wp.vec3),
+                particle_moves: wp.array(dtype=float), bone_rotation: wp.array(dtype=wp.mat33),
+                bone_translation: wp.array(dtype=wp.vec3),
+                head_sdf: wp.array3d(dtype=float), head_sdf_origin: wp.vec3, head_sdf_spacing: float,
+                jaw_sdf: wp.array3d(dtype=float), jaw_sdf_origin: wp.vec3, jaw_sdf_spacing: float,
+                contact_depth: float, particle_count: int, chunk: int,
+                particle_q: wp.array(dtype=wp.vec3), particle_qd: wp.array(dtype=wp.vec3)):
+    """Each guarded movable particle moves by the mean of its triangles' moves, and a move
+    that reached a bone stops on it as a step does (fae.sim.collision); the move arrays are
+    cleared for the next pass."""
+    start = wp.tid() * chunk
+    R0 = bone_rotation[0]
+    R1 = bone_rotation[1]
+    t0 = bone_translation[0]
+    t1 = bone_translation[1]
+    for i in range(start, wp.min(start + chunk, particle_count)):
+        m = particle_moves[i]
+        if m > 0.0:
+            ps = particle_static[i]
+            if ps.inv_mass > 0.0:
+                x0 = particle_q[i]
+                x = x0 + particle_move[i] / m
+                if ps.collider != 0:
+                    v = particle_qd[i]
+                    rest = ps.rest
+                    target = (R0 * rest + t0) * (1.0 - ps.jaw) + (R1 * rest + t1) * ps.jaw
+                    clear = ps.clearance
+                    x, v = bone_contact(x0, x, v, rest, target, clear[0], head_sdf, head_sdf_origin,
+                                        head_sdf_spacing, R0, t0, contact_depth)
+                    x, v = bone_contact(x0, x, v, rest, target, clear[1], jaw_sdf, jaw_sdf_origin,
+                                        jaw_sdf_spacing, R1, t1, contact_depth)
+                    particle_qd[i] = v
+                particle_q[i] = x
+            particle_move[i] = wp.vec3(0.0, 0.0, 0.0)
+            particle_moves[i] = 0.0
