@@ -19,11 +19,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from fae.data import shipped_head_path
 from fae.net.client import send_fap, split_fap_text
 from test_net_server import DATA, expect, fap_text, n, read_all, task, xface_connect
 
 REPO = Path(__file__).resolve().parents[1]
-SHIPPED_HEAD = REPO / "templates" / "generic_head.glb"
+SHIPPED_HEAD = shipped_head_path()
 START_TIMEOUT = 300.0  # a head without a stored FAP mapping is calibrated first
 
 pytestmark = pytest.mark.slow

@@ -9,7 +9,8 @@ import pytest
 
 from fae.anatomy import template_shapes as S
 from fae.anatomy.checks import edge_counts, facemodel_problems, points_inside, self_intersections
-from fae.anatomy.template import TEMPLATE_PATH, build_template
+from fae.anatomy.template import build_template
+from fae.data import shipped_head_path
 from fae.cli import main
 from fae.io.facemodel_gltf import facemodel_to_glb, read_facemodel, structural_problems
 from fae.mpeg4 import FEATURE_POINTS, fapu0_from_positions
@@ -19,9 +20,9 @@ MM = 1e-3
 
 @pytest.fixture(scope="module")
 def head():
-    if not TEMPLATE_PATH.exists():
-        pytest.fail(f"{TEMPLATE_PATH} is missing: run python tools/build_template.py")
-    return read_facemodel(TEMPLATE_PATH)
+    if not shipped_head_path().exists():
+        pytest.fail(f"{shipped_head_path()} is missing: run python tools/build_template.py")
+    return read_facemodel(shipped_head_path())
 
 
 @pytest.fixture(scope="module")
@@ -166,7 +167,7 @@ def test_regions_cover_the_face_and_muscles_are_anatomical(head):
 
 
 def test_committed_file_round_trips_exactly(head):
-    assert facemodel_to_glb(head) == TEMPLATE_PATH.read_bytes()
+    assert facemodel_to_glb(head) == shipped_head_path().read_bytes()
 
 
 def assert_same(a, b, where: str = "model") -> None:
@@ -223,7 +224,7 @@ def read_facemodel_bytes(data: bytes):
 
 
 def test_check_command_reports_json_and_exit_status(tmp_path, capsys):
-    assert main(["template", "check", str(TEMPLATE_PATH), "--json"]) == 0
+    assert main(["template", "check", str(shipped_head_path()), "--json"]) == 0
     report = json.loads(capsys.readouterr().out)
     assert report["problems"] == []
     assert report["skin_vertex_count"] >= 6000
