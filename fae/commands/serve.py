@@ -28,7 +28,7 @@ def register(subparsers) -> None:
     parser.add_argument("--head", metavar="HEAD.glb",
                         help="face model to animate (default: the shipped generic head)")
     parser.add_argument("--record", metavar="OUT.mp4", help="render what plays into this mp4, one whole stream "
-                        "after another; written when the server stops")
+                        "after another, each pose held until the next; written when the server stops")
     add_view_arguments(parser, "640x480")  # of the --record video
     parser.add_argument("--fap-dir", metavar="DIR", help="folder Xface LOAD_FAP may read .fap files from "
                         "(default: LOAD_FAP is refused)")
