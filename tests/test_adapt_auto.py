@@ -9,7 +9,7 @@ import pytest
 from fae.adapt.auto_landmarks import CylindricalError, auto_landmarks, ga_refine
 from fae.adapt.query import MeshQuery
 from fae.anatomy.checks import facemodel_problems
-from fae.anatomy.template import TEMPLATE_PATH
+from fae.data import shipped_head_path
 from fae.io.facemodel_gltf import read_facemodel
 
 from test_adapt_transfer import person_scan
@@ -19,7 +19,7 @@ SHARED = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "heads
 
 @pytest.fixture(scope="module")
 def template():
-    return read_facemodel(TEMPLATE_PATH)
+    return read_facemodel(shipped_head_path())
 
 
 @pytest.fixture(scope="module")

@@ -23,7 +23,7 @@ from fae.adapt.head_pose import find_head, kept_part
 from fae.adapt.nonrigid import blend_away_folds, folded_triangles
 from fae.adapt.synthetic import bust_scan
 from fae.anatomy.checks import facemodel_problems
-from fae.anatomy.template import TEMPLATE_PATH
+from fae.data import shipped_head_path
 from fae.cli import main
 from fae.io.facemodel_gltf import read_facemodel
 
@@ -37,7 +37,7 @@ BUSTS = ("marble_bust", "man_with_wreath", "demosthenes")
 
 @pytest.fixture(scope="module")
 def template():
-    return read_facemodel(TEMPLATE_PATH)
+    return read_facemodel(shipped_head_path())
 
 
 def mouth_lining(template):

@@ -11,7 +11,7 @@ from fae.adapt.calibration import apply_transform
 from fae.adapt.synthetic import template_scan
 from fae.adapt.transfer import adapt_facemodel, visible_skin
 from fae.anatomy.checks import facemodel_problems, self_intersections
-from fae.anatomy.template import TEMPLATE_PATH
+from fae.data import shipped_head_path
 from fae.io.facemodel_gltf import read_facemodel, write_facemodel
 from fae.mpeg4.fapu import fapu0_from_positions
 
@@ -21,7 +21,7 @@ FAP_DIR = REPO / ".." / "shared" / "data" / "fap"
 
 @pytest.fixture(scope="module")
 def template():
-    return read_facemodel(TEMPLATE_PATH)
+    return read_facemodel(shipped_head_path())
 
 
 def skin_fdps(model):

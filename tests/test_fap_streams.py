@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from dataclasses import astuple
 
 import numpy as np
 
@@ -14,12 +15,26 @@ from fae.mpeg4.faps import FAPS
 from fae.mpeg4.highlevel import VISEMES
 
 
-def test_the_tool_reproduces_the_shipped_files_byte_for_byte(repo_root, tmp_path):
+def test_the_tool_reproduces_the_shipped_files(repo_root, tmp_path):
+    """Same header, frames and masks; each value within one FAP unit (the tool rounds
+    smooth curves to integers, and another machine's last float digit may round the other
+    way at a half)."""
     result = subprocess.run([sys.executable, str(repo_root / "tools" / "make_fap_streams.py"), str(tmp_path)],
                             capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr
     for name in ("expressions.fap", "visemes.fap", "eyes_head.fap", "all_faps_sweep.fap"):
-        assert (tmp_path / name).read_bytes() == (repo_root / "fap_streams" / name).read_bytes(), name
+        fresh, shipped = read_fap(tmp_path / name), read_fap(repo_root / "fap_streams" / name)
+        assert fresh.header == shipped.header, name
+        fresh, shipped = list(fresh), list(shipped)
+        assert len(fresh) == len(shipped), name
+        for a, b in zip(fresh, shipped):
+            assert a.number == b.number and np.array_equal(a.mask, b.mask), f"{name} frame {b.number}"
+            assert np.abs(a.values - b.values).max(initial=0) <= 1, f"{name} frame {b.number}"
+            for x, y in ((a.viseme, b.viseme), (a.expression, b.expression)):
+                assert (x is None) == (y is None), f"{name} frame {b.number}"
+                if x is not None:  # selections exact, blend and intensities within one unit
+                    assert np.abs(np.subtract(astuple(x), astuple(y))).max() <= 1, f"{name} frame {b.number}"
+                    assert x.select1 == y.select1 and x.select2 == y.select2, f"{name} frame {b.number}"
 
 
 def test_sweep_moves_every_low_level_fap_alone_through_its_range(repo_root):

@@ -1,4 +1,5 @@
-"""Recording what the server plays: the mp4 holds every frame sent, in order."""
+"""Recording what the server plays: the mp4 holds every frame sent, in order, each pose held
+until the next one (the stream's clock for native streams, the wall clock for Xface)."""
 
 from __future__ import annotations
 
@@ -8,7 +9,9 @@ import numpy as np
 import pytest
 
 from fae.net.client import send_fap
-from fae.net.record import StreamRecorder
+from fae.net.faces import Pose
+from fae.net.hub import FrameEvent
+from fae.net.record import RecordingClock, StreamRecorder
 from fae.net.server import FapServer
 from test_net_server import LinearFace, fap_text
 
@@ -91,3 +94,57 @@ def test_record_follows_one_stream_at_a_time(tmp_path):
 
 def run_main(coro):
     return asyncio.run(asyncio.wait_for(coro, 60))
+
+
+def numbered_stream(numbers: list[int], fps: int = 25) -> str:
+    """A .fap text whose frames carry `numbers` (gaps: frames not sent), each moving FAP 3."""
+    mask = " ".join("1" if k == 2 else "0" for k in range(68))
+    body = "".join(f"{mask}\n{number} {100 * (i + 1)}\n" for i, number in enumerate(numbers))
+    return f"2.1 gaps {fps} {len(numbers)}\n{body}"
+
+
+def test_a_native_stream_that_skips_frame_numbers_keeps_its_own_clock(tmp_path):
+    """One frame a second on a 25 fps stream (numbers 0, 25, 50, 75): each pose is held
+    for a second of video, however fast the frames were sent."""
+    out = tmp_path / "gaps.mp4"
+
+    async def main():
+        server = FapServer(LinearFace, port=0)
+        await server.start()
+        recorder = StreamRecorder(server.subscribe(maxsize=4, lossless=True), out, GreyRenderer, (64, 64))
+        recorder.start()
+        header, *lines = numbered_stream([0, 25, 50, 75]).splitlines()
+        reader, writer = await asyncio.open_connection("127.0.0.1", server.port)
+        writer.write(f"{header}\n".encode())
+        assert (await reader.readline()).startswith(b"ok header")
+        for mask, values in zip(lines[::2], lines[1::2]):  # each after the previous one's ack: one pose each
+            writer.write(f"{mask}\n{values}\n".encode())
+            assert (await reader.readline()).startswith(f"ok {values.split()[0]} ".encode())
+        writer.close()
+        await server.close()
+        await recorder.close()
+        return recorder
+
+    recorder = run_main(main())
+    assert recorder.frames_written == 76 and recorder.frames_rendered == 4
+    levels = decoded_grey_levels(out)
+    np.testing.assert_allclose(levels, [0] * 25 + [5] * 25 + [10] * 25 + [15], atol=3)
+
+
+def event(stream: str, index: int, made: float, fps: float = 25.0) -> FrameEvent:
+    return FrameEvent(stream, index, index / fps, fps, Pose(LinearFace.rest, {}), made=made)
+
+
+def test_xface_frames_fall_on_the_wall_clock_and_a_following_stream_starts_one_frame_later():
+    clock = RecordingClock(1 / 25)
+    # Xface uploads of one frame each (every one numbered 0), played 1.0 s and 2.5 s apart.
+    times = [clock.place(event("xface", 0, made), starts_stream=True) for made in (100.0, 101.0, 103.5)]
+    assert times == pytest.approx([0.0, 1.0, 3.5])
+    # A playback: its frames were played 40 ms apart.
+    times = [clock.place(event("xface", k, 104.0 + k / 25), starts_stream=k == 0) for k in range(3)]
+    assert times == pytest.approx([4.0, 4.04, 4.08])
+    # A native stream then keeps its own clock from one frame after the last pose.
+    times = [clock.place(event("native-3", k, made=500.0), starts_stream=k == 0) for k in (0, 1, 26)]
+    assert times == pytest.approx([4.12, 4.16, 5.16])
+    # Back to Xface after a native stream: it starts one frame later, not at its wall time.
+    assert clock.place(event("xface", 0, 900.0), starts_stream=True) == pytest.approx(5.2)

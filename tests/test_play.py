@@ -152,9 +152,9 @@ _TEMPLATE_STATE: dict = {}
 def shipped_head() -> Path:
     """The head `fae play` uses by default; skips while it cannot play without calibrating."""
     pytest.importorskip("fae.animate.player", reason="the animation runtime has not landed yet")
-    from fae.commands.play import default_head_path
+    from fae.data import shipped_head_path
 
-    path = default_head_path()
+    path = shipped_head_path()
     if not path.is_file():
         pytest.skip(f"{path} has not been built yet")
     if path not in _TEMPLATE_STATE:

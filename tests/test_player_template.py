@@ -9,7 +9,7 @@ import json
 import numpy as np
 import pytest
 
-from fae.anatomy.template import TEMPLATE_PATH
+from fae.data import shipped_head_path
 from fae.animate.calibrate import calibrate
 from fae.animate.faptables import FAP_LIMITS, fapu_of
 from fae.animate.player import Player
@@ -26,7 +26,7 @@ pytestmark = pytest.mark.slow
 
 @pytest.fixture(scope="module")
 def face():
-    face = read_facemodel(TEMPLATE_PATH)
+    face = read_facemodel(shipped_head_path())
     return face if face.fap_mapping else calibrate(face)
 
 
@@ -105,13 +105,13 @@ def test_shipped_head_passes_the_fap_check(player):
 
 
 def test_verify_faps_command_reports_json(capsys):
-    assert main(["verify-faps", str(TEMPLATE_PATH), "--json", "--faps", "12,19"]) in (0, 1)
+    assert main(["verify-faps", str(shipped_head_path()), "--json", "--faps", "12,19"]) in (0, 1)
     out = json.loads(capsys.readouterr().out)
     assert [r["fap"] for r in out["faps"]] == [12, 19]
     r = out["faps"][0]
     assert r["name"] == "raise_l_cornerlip" and r["feature_point"] == "2.4"
     assert r["expected_m"][1] > 0 and r["measured_m"][1] > 0 and 0.0 <= out["passed_fraction"] <= 1.0
-    assert main(["verify-faps", str(TEMPLATE_PATH), "--faps", "29"]) == 2  # a pupil: no feature-point motion
+    assert main(["verify-faps", str(shipped_head_path()), "--faps", "29"]) == 2  # a pupil: no feature-point motion
     assert "FAP 29" in capsys.readouterr().err
 
 

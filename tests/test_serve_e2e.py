@@ -19,11 +19,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from fae.data import shipped_head_path
 from fae.net.client import send_fap, split_fap_text
 from test_net_server import DATA, expect, fap_text, n, read_all, task, xface_connect
 
 REPO = Path(__file__).resolve().parents[1]
-SHIPPED_HEAD = REPO / "templates" / "generic_head.glb"
+SHIPPED_HEAD = shipped_head_path()
 START_TIMEOUT = 300.0  # a head without a stored FAP mapping is calibrated first
 
 pytestmark = pytest.mark.slow
@@ -235,6 +236,65 @@ def test_record_holds_every_frame_sent_and_appears_on_sigint(head, tmp_path):
     change = max(float(np.abs(im.astype(int) - images[0].astype(int)).mean()) for im in images)
     assert change > 0.5
     assert [p.name for p in tmp_path.iterdir()] == ["served.mp4"]
+
+
+def one_frame_streams(count: int) -> list[str]:
+    """`count` one-frame .fap texts, frames spread over fap_streams/expressions.fap (the
+    latest pose of a performance, as an Xface client uploads it)."""
+    header, frames = split_fap_text((REPO / "fap_streams" / "expressions.fap").read_text())
+    fps = header.split()[-2]
+    picks = np.linspace(20, len(frames) - 20, count).astype(int)
+    texts = []
+    for k in picks:
+        mask, values = frames[k]
+        texts.append(f"2.1 pose {fps} 1\n{mask}\n0 {values.split(None, 1)[1]}\n")
+    return texts
+
+
+def test_record_keeps_the_time_of_an_xface_client_that_uploads_a_pose_each_second(head, tmp_path):
+    """An Xface client uploads its latest pose about once a second and plays it: each pose
+    lasts in the video until the next one arrived, so the video lasts as long as the
+    performance, not one frame per upload."""
+    import imageio_ffmpeg
+
+    out = tmp_path / "xface.mp4"
+    uploads = one_frame_streams(5)
+    proc = ServeProcess("--head", str(head), "--record", str(out), "--size", "96x72")
+    try:
+        async def main():
+            loop = asyncio.get_running_loop()
+            reader, writer, me = await xface_connect(proc.port)
+            played_at = []
+            for k, text in enumerate(uploads):
+                if played_at:  # one pose a second, on the client's clock
+                    await asyncio.sleep(max(0.0, played_at[0] + k - loop.time()))
+                writer.write(task("UPLOAD_FAP", me, 2 * k + 1, text) + task("RESUME_PLAYBACK", me, 2 * k + 2))
+                got = await expect(reader, 6, timeout=60)
+                assert n("RESUME_PLAYBACK", me, 2 * k + 2, 3) in got, got
+                played_at.append(loop.time())
+            writer.close()
+            return played_at
+
+        played_at = run(main(), timeout=180)
+        code, err = proc.stop(signal.SIGINT)
+    finally:
+        if proc.proc.poll() is None:
+            proc.proc.kill()
+    assert code == 0, err
+    reader = imageio_ffmpeg.read_frames(str(out))
+    meta = next(reader)
+    images = [np.frombuffer(f, np.uint8).reshape(72, 96, 3).astype(int) for f in reader]
+    assert meta["fps"] == 25
+    # The last pose shows for one frame; each earlier one until the next was played.
+    performed = played_at[-1] - played_at[0]
+    duration = len(images) / 25
+    print(f"performed {performed:.2f} s, video {duration:.2f} s ({len(images)} frames)")
+    assert abs(duration - (performed + 1 / 25)) < 0.25, (duration, performed)
+    # The first pose is held for the first second: its frames stay (almost) the same.
+    held = max(float(np.abs(im - images[0]).mean()) for im in images[1:20])
+    assert held < 0.5
+    change = max(float(np.abs(im - images[0]).mean()) for im in images)
+    assert change > 0.5
 
 
 def test_served_poses_are_the_players_own_when_the_client_waits_for_each_ack(head):

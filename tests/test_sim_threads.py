@@ -7,6 +7,8 @@ from pathlib import Path
 
 import pytest
 
+from fae.data import shipped_head_path
+
 ROOT = Path(__file__).resolve().parents[1]
 
 # Runs in a fresh interpreter: the hazard is in the first calls of each kernel in a process,
@@ -47,7 +49,7 @@ sys.exit(0 if moved > 1e-4 and worst < 1e-6 else 1)
 def test_faces_step_in_threads_from_their_first_frame():
     """Four spawned faces' first steps at once crashed the interpreter (Warp's kernels
     entered for the first time by several threads) in every run before the fix."""
-    head = ROOT / "templates" / "generic_head.glb"
+    head = shipped_head_path()
     stream = ROOT / "fap_streams" / "expressions.fap"
     done = subprocess.run([sys.executable, "-c", SCRIPT, str(head), str(stream)], cwd=ROOT,
                           capture_output=True, text=True, timeout=600)

@@ -46,7 +46,7 @@ from fae.adapt.geometry import per_vertex_normals
 from fae.adapt.multilevel import METHODS, fit_template
 from fae.adapt.synthetic import template_scan
 from fae.adapt.transfer import adapt_facemodel, scan_landmarks_in_face_frame, visible_skin
-from fae.anatomy.template import TEMPLATE_PATH
+from fae.data import shipped_head_path
 from fae.io.facemodel_gltf import read_facemodel
 
 
@@ -65,7 +65,7 @@ def compare_feature_searches(seeds=(4, 5, 6)) -> None:
     the template fit, and by paper 003's GA; error against the true points, seconds."""
     from fae.adapt.auto_landmarks import auto_landmarks
 
-    model = read_facemodel(TEMPLATE_PATH)
+    model = read_facemodel(shipped_head_path())
     V, F = model.skin_vertices, model.skin_faces.astype(np.int64)
     seen = visible_skin(model)
     lm = {n: p for n, p in model.feature_point_positions().items() if model.feature_points[n].part == "skin"}
@@ -205,7 +205,7 @@ def compare_real_scans(nricp: bool) -> None:
     """The table of --real (see the module docstring)."""
     from fae.adapt.head_pose import kept_part
 
-    template = read_facemodel(TEMPLATE_PATH)
+    template = read_facemodel(shipped_head_path())
     face, seen = scored_skin(template)
     scans = real_scans(template)
     warm_up(template)
@@ -284,7 +284,7 @@ def main() -> None:
     if args.real:
         compare_real_scans(args.nricp)
         return
-    model = read_facemodel(TEMPLATE_PATH)
+    model = read_facemodel(shipped_head_path())
     V, F = model.skin_vertices, model.skin_faces.astype(np.int64)
     seen = visible_skin(model)
     lm = {n: p for n, p in model.feature_point_positions().items() if model.feature_points[n].part == "skin"}

@@ -15,7 +15,7 @@ Measured in one run, on the same frames:
   overlapped  the whole pipeline with the Player in a producer thread (what `fae play` runs)
 and prints frames/s and the ratios render/pyrender and overlapped/serial.
 
-Head: --head, else templates/generic_head.glb (a head without a baked fap_mapping is
+Head: --head, else the shipped head (fae/data/generic_head.glb) (a head without a baked fap_mapping is
 calibrated first, which takes minutes); the synthetic test head with generated jaw frames
 when the Player or the head is missing.
 """
@@ -34,6 +34,8 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
+
+from fae.data import shipped_head_path  # noqa: E402
 
 
 def load_head_and_frames(head: Path, stream_path: Path, n: int):
@@ -152,7 +154,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--frames", type=int, default=100)
     parser.add_argument("--baseline-frames", type=int, default=40)
-    parser.add_argument("--head", type=Path, default=REPO / "templates" / "generic_head.glb")
+    parser.add_argument("--head", type=Path, default=shipped_head_path())
     parser.add_argument("--stream", type=Path, default=REPO / "fap_streams" / "expressions.fap")
     parser.add_argument("--size", default="640x480")
     args = parser.parse_args()

@@ -45,7 +45,7 @@ def main(argv=None) -> int:
     ap.add_argument("--head", default=None, help="FaceModel .glb (default: the generic head)")
     args = ap.parse_args(argv)
 
-    from fae.anatomy.template import TEMPLATE_PATH
+    from fae.data import shipped_head_path
     from fae.animate.player import Player
     from fae.io.fap import read_fap
     from fae.io.facemodel_gltf import read_facemodel
@@ -54,10 +54,10 @@ def main(argv=None) -> int:
     from fae.sim.reference import ReferenceSolver
     from fae.sim.solver import substep_count
 
-    face = read_facemodel(args.head or TEMPLATE_PATH)
+    face = read_facemodel(args.head or shipped_head_path())
     t0 = time.perf_counter()
     player = Player(face)
-    print(f"head: {args.head or TEMPLATE_PATH.name}, {player.sim.particle_count} particles, "
+    print(f"head: {args.head or shipped_head_path().name}, {player.sim.particle_count} particles, "
           f"{player.sim.spring_count} springs; Player ready in {time.perf_counter() - t0:.1f} s")
     ref = ReferenceSolver(player.sim)
     for path in streams():

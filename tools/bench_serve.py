@@ -40,6 +40,7 @@ import numpy as np  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from fae.data import shipped_head_path  # noqa: E402
 from fae.io.fap import FapParser  # noqa: E402
 from fae.io.frames import dense_frames  # noqa: E402
 from fae.net.client import send_fap, split_fap_text  # noqa: E402
@@ -140,7 +141,7 @@ async def client_main(path: str, port: int, clients: int, rate: str, phases: str
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--face", choices=("player", "linear"), default="player")
-    ap.add_argument("--head", default=str(ROOT / "templates" / "generic_head.glb"))
+    ap.add_argument("--head", default=str(shipped_head_path()))
     ap.add_argument("--vertices", type=int, default=0, help="linear face size (default: the head's, else 20000)")
     ap.add_argument("--frames", type=int, default=2000, help="frames per client in throughput runs")
     ap.add_argument("--paced-seconds", type=float, default=10.0,

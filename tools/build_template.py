@@ -1,6 +1,6 @@
 """Build the shipped generic head: `python tools/build_template.py [-o FILE]`.
 
-Writes templates/generic_head.glb by default (the same as `fae template build`): the head
+Writes the shipped head, fae/data/generic_head.glb, by default (the same as `fae template build`): the head
 with its calibrated FAP mapping (build, then fae.animate.calibrate). The file is
 generated, never hand-edited; tests check that it equals a fresh build.
 """

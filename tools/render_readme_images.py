@@ -1,6 +1,6 @@
 """Render the README pictures into docs/images/ from the shipped head.
 
-    .venv/bin/python tools/render_readme_images.py [--head templates/generic_head.glb]
+    .venv/bin/python tools/render_readme_images.py [--head HEAD.glb]
 
 Writes (PNG, each well under 300 KB):
   docs/images/template_front.png          the generic head at rest, front view
@@ -23,6 +23,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
+from fae.data import shipped_head_path  # noqa: E402
 from fae.io.facemodel_gltf import read_facemodel  # noqa: E402
 from fae.io.fap import read_fap  # noqa: E402
 from fae.render.png import write_png  # noqa: E402
@@ -67,7 +68,7 @@ def adapt_picture(model) -> np.ndarray:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--head", type=Path, default=REPO / "templates" / "generic_head.glb")
+    parser.add_argument("--head", type=Path, default=shipped_head_path())
     parser.add_argument("--stream", type=Path, default=REPO / "fap_streams" / "expressions.fap")
     parser.add_argument("--out", type=Path, default=REPO / "docs" / "images")
     parser.add_argument("--strip-frames", type=int, default=6)

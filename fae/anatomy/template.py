@@ -1,7 +1,8 @@
 """The shipped generic head: an anatomical FaceModel built from the fields of template_shapes.
 
     build_template() -> FaceModel      deterministic: the same arrays on every build
-    TEMPLATE_PATH                      where the package ships the built head (.glb)
+
+The built head ships as fae/data/generic_head.glb (fae.data.shipped_head_path).
 
 Every surface is meshed from a signed distance field by marching cubes on the x >= 0 half
 of a regular grid, decimated by quadric error and mirrored, so each mesh is exactly
@@ -11,8 +12,6 @@ the eyelids wrap a socket around each eyeball with an almond-shaped opening.
 """
 
 from __future__ import annotations
-
-from pathlib import Path
 
 import numpy as np
 
@@ -31,7 +30,6 @@ from fae.anatomy.template_regions import REGION_NAMES, skin_regions
 from fae.io.facemodel import FaceModel, Part, SurfacePoint
 from fae.mpeg4 import FEATURE_POINTS
 
-TEMPLATE_PATH = Path(__file__).resolve().parents[2] / "templates" / "generic_head.glb"
 MM = 1e-3  # the shape fields are in millimetres
 
 SKIN_STEP = 1.0  # mm, marching-cubes grid of the skin

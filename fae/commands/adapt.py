@@ -25,6 +25,7 @@ import sys
 import time
 
 from fae.adapt.multilevel import METHODS
+from fae.data import shipped_head_path
 
 ADAPT_METHODS = ("surface",) + METHODS
 # A face found on the scan is trusted with at least this many point pairs, whose RMS
@@ -34,8 +35,7 @@ MIN_PAIRS = 20
 MIN_HEAD_TRIANGLES = 100
 MAX_PAIR_RESIDUAL_SHARE = 0.2
 
-DEFAULT_TEMPLATE = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))),
-                                "templates", "generic_head.glb")
+DEFAULT_TEMPLATE = str(shipped_head_path())
 
 
 def register(subparsers) -> None:

@@ -9,10 +9,10 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import sys
 
 import numpy as np
 
+from fae.commands.common import fail
 from fae.io.fap import FapFormatError, read_fap
 from fae.mpeg4.faps import FAP_COUNT, FAPS
 from fae.mpeg4.highlevel import EXPRESSIONS, VISEMES
@@ -99,13 +99,11 @@ def _text(summary: dict) -> str:
 def run(args: argparse.Namespace) -> int:
     if not os.path.isfile(args.path):
         reason = "is not a file" if os.path.exists(args.path) else "no such file"
-        print(f"fae inspect: {args.path}: {reason}", file=sys.stderr)
-        return 2
+        return fail("inspect", f"{args.path}: {reason}")
     try:
         summary = summarize(args.path)
     except FapFormatError as exc:
-        print(f"fae inspect: {exc}", file=sys.stderr)
-        return 2
+        return fail("inspect", str(exc))
     if args.json:
         print(json.dumps(summary))
     else:

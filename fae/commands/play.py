@@ -9,80 +9,10 @@ input (stream, head, output path, size), 1 when encoding fails.
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from pathlib import Path
 
-import fae
-
-TEMPLATE_NAME = "generic_head.glb"
-
-
-def default_head_path() -> Path:
-    """The shipped generic head: `<repo>/templates/generic_head.glb` beside the `fae` package,
-    else `fae/data/generic_head.glb` (an installed copy), else `$FAE_TEMPLATES/generic_head.glb`.
-
-    Returns the first existing candidate, or the repository path (for the error message).
-    """
-    package = Path(fae.__file__).resolve().parent
-    candidates = []
-    if os.environ.get("FAE_TEMPLATES"):
-        candidates.append(Path(os.environ["FAE_TEMPLATES"]) / TEMPLATE_NAME)
-    candidates += [package.parent / "templates" / TEMPLATE_NAME, package / "data" / TEMPLATE_NAME,
-                   Path(sys.prefix) / "share" / "fae" / "templates" / TEMPLATE_NAME]
-    for path in candidates:
-        if path.is_file():
-            return path
-    return package.parent / "templates" / TEMPLATE_NAME
-
-
-def parse_size(text: str) -> tuple[int, int]:
-    """'640x480' -> (640, 480); argparse type: bad text exits 2 with the reason."""
-    try:
-        w, h = (int(p) for p in text.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected WIDTHxHEIGHT in pixels, e.g. 640x480") from None
-    if w <= 0 or h <= 0 or w > 8192 or h > 8192:
-        raise argparse.ArgumentTypeError(f"{text!r}: width and height must be between 1 and 8192 pixels")
-    return w, h
-
-
-def output_problem(path: str, suffix: str) -> str | None:
-    """Why `path` cannot receive an output file with `suffix`, or None when it can."""
-    target = Path(path)
-    if target.suffix.lower() != suffix:
-        return f"{path}: expected a {suffix} file name"
-    if target.is_dir():
-        return f"{path}: is a folder, expected a {suffix} file name"
-    folder = target.parent if str(target.parent) else Path(".")
-    if not folder.is_dir():
-        return f"{path}: output folder {folder} does not exist"
-    if not os.access(folder, os.W_OK):
-        return f"{path}: output folder {folder} is not writable"
-    return None
-
-
-def load_head(path: str | None):
-    """(FaceModel, path) of --head or the shipped template; raises FaceModelError."""
-    from fae.io.facemodel_gltf import FaceModelError, read_facemodel
-
-    head = Path(path) if path else default_head_path()
-    if not head.is_file():
-        what = "head file" if path else "shipped generic head (pass --head HEAD.glb)"
-        raise FaceModelError(f"{head}: {what} not found")
-    return read_facemodel(head), head
-
-
-def add_view_arguments(parser: argparse.ArgumentParser, default_size: str) -> None:
-    from fae.render.framing import VIEWS
-
-    parser.add_argument("--size", type=parse_size, default=parse_size(default_size), metavar="WxH",
-                        help=f"image size in pixels (default {default_size})")
-    parser.add_argument("--view", choices=list(VIEWS), default="front", help="camera preset (default front)")
-    parser.add_argument("--supersample", type=int, default=1, metavar="K",
-                        help="render at K x size and average (anti-aliasing; costs about K^2)")
-    parser.add_argument("--show-bones", action="store_true",
-                        help="also draw the cranium and mandible (hidden under the skin; for checking how it sits)")
+from fae.commands.common import add_view_arguments, fail, load_head, output_problem, video_size_problem
 
 
 def register(subparsers) -> None:
@@ -99,37 +29,31 @@ def register(subparsers) -> None:
     parser.set_defaults(func=run)
 
 
-def _fail(message: str, status: int = 2) -> int:
-    print(f"fae play: {message}", file=sys.stderr)
-    return status
-
-
 def run(args: argparse.Namespace) -> int:
     from fae.io.facemodel_gltf import FaceModelError
     from fae.io.fap import FapFormatError, read_fap
 
     width, height = args.size
-    if width % 2 or height % 2:
-        return _fail(f"--size {width}x{height}: H.264 video needs an even width and height")
-    if args.supersample < 1 or args.supersample > 8:
-        return _fail(f"--supersample {args.supersample}: expected 1..8")
+    problem = video_size_problem(args.size)
+    if problem:
+        return fail("play", problem)
     if args.fps is not None and not (0 < args.fps <= 1000):
-        return _fail(f"--fps {args.fps:g}: expected a frame rate in (0, 1000]")
+        return fail("play", f"--fps {args.fps:g}: expected a frame rate in (0, 1000]")
     problem = output_problem(args.output, ".mp4")
     if problem:
-        return _fail(problem)
+        return fail("play", problem)
     frames_dir = None
     if args.frames_dir:
         frames_dir = Path(args.frames_dir)
         try:
             frames_dir.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
-            return _fail(f"{frames_dir}: cannot create the frames folder ({exc.strerror or exc})")
+            return fail("play", f"{frames_dir}: cannot create the frames folder ({exc.strerror or exc})")
     try:
         stream = read_fap(args.stream)
         model, _ = load_head(args.head)
     except (FapFormatError, FaceModelError) as exc:
-        return _fail(str(exc))
+        return fail("play", str(exc))
 
     from fae.animate.player import Player
     from fae.render.play import render_video
@@ -151,9 +75,9 @@ def run(args: argparse.Namespace) -> int:
                                    frames_dir=frames_dir,
                                    on_frame=(lambda n: progress.update(1)) if progress else None)
     except FapFormatError as exc:
-        return _fail(f"{exc} (no video written)")
+        return fail("play", f"{exc} (no video written)")
     except VideoError as exc:
-        return _fail(str(exc), status=1)
+        return fail("play", str(exc), status=1)
     finally:
         if progress is not None:
             progress.close()

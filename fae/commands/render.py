@@ -8,7 +8,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from fae.commands.play import add_view_arguments, load_head, output_problem
+from fae.commands.common import add_view_arguments, fail, load_head, output_problem
 
 
 def register(subparsers) -> None:
@@ -22,23 +22,16 @@ def register(subparsers) -> None:
     parser.set_defaults(func=run)
 
 
-def _fail(message: str) -> int:
-    print(f"fae render: {message}", file=sys.stderr)
-    return 2
-
-
 def run(args: argparse.Namespace) -> int:
     from fae.io.facemodel_gltf import FaceModelError
 
-    if args.supersample < 1 or args.supersample > 8:
-        return _fail(f"--supersample {args.supersample}: expected 1..8")
     problem = output_problem(args.output, ".png")
     if problem:
-        return _fail(problem)
+        return fail("render", problem)
     try:
         model, head = load_head(args.head)
     except FaceModelError as exc:
-        return _fail(str(exc))
+        return fail("render", str(exc))
     from fae.render.png import write_png
     from fae.render.renderer import FaceRenderer
 

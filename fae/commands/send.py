@@ -10,6 +10,7 @@ from __future__ import annotations
 import asyncio
 import sys
 
+from fae.commands.common import fail
 from fae.net.client import send_fap
 from fae.net.server import DEFAULT_HOST, DEFAULT_PORT
 
@@ -33,16 +34,13 @@ def run(args) -> int:
         with open(args.path, encoding="utf-8", errors="replace") as handle:
             text = handle.read()
     except OSError as exc:
-        print(f"fae send: {args.path}: {exc.strerror or exc}", file=sys.stderr)
-        return 2
+        return fail("send", f"{args.path}: {exc.strerror or exc}")
     try:
         report = asyncio.run(send_fap(text, args.host, args.port, rate=args.rate, timeout=args.timeout))
     except ValueError as exc:
-        print(f"fae send: {args.path}: {exc}", file=sys.stderr)
-        return 2
+        return fail("send", f"{args.path}: {exc}")
     except (OSError, asyncio.TimeoutError) as exc:
-        print(f"fae send: {args.host}:{args.port}: {exc or 'no reply'}", file=sys.stderr)
-        return 2
+        return fail("send", f"{args.host}:{args.port}: {exc or 'no reply'}")
     for line in report.errors[:20]:
         print(f"fae send: server: {line}", file=sys.stderr)
     if len(report.errors) > 20:

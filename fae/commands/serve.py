@@ -12,17 +12,8 @@ import signal
 import sys
 from pathlib import Path
 
+from fae.commands.common import add_view_arguments, fail, load_head, output_problem, video_size_problem
 from fae.net.server import DEFAULT_HOST, DEFAULT_PORT, FapServer
-
-DEFAULT_HEAD = Path(__file__).resolve().parents[2] / "templates" / "generic_head.glb"
-
-
-def _size(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise ValueError(f"--size {text!r}: expected WIDTHxHEIGHT, e.g. 640x480") from None
-    return w, h
 
 
 def register(subparsers) -> None:
@@ -34,12 +25,11 @@ def register(subparsers) -> None:
         "docs/protocol.md.")
     parser.add_argument("--host", default=DEFAULT_HOST, help=f"address to listen on (default {DEFAULT_HOST})")
     parser.add_argument("--port", type=int, default=DEFAULT_PORT, help=f"TCP port (default {DEFAULT_PORT}; 0: any)")
-    parser.add_argument("--head", default=str(DEFAULT_HEAD), metavar="HEAD.glb",
+    parser.add_argument("--head", metavar="HEAD.glb",
                         help="face model to animate (default: the shipped generic head)")
     parser.add_argument("--record", metavar="OUT.mp4", help="render what plays into this mp4, one whole stream "
-                        "after another; written when the server stops")
-    parser.add_argument("--size", default="640x480", help="--record image size WIDTHxHEIGHT (default 640x480)")
-    parser.add_argument("--view", default="front", help="--record camera: front, three-quarter, profile")
+                        "after another, each pose held until the next; written when the server stops")
+    add_view_arguments(parser, "640x480")  # of the --record video
     parser.add_argument("--fap-dir", metavar="DIR", help="folder Xface LOAD_FAP may read .fap files from "
                         "(default: LOAD_FAP is refused)")
     parser.add_argument("--device", default="cpu", help="Warp device for the faces (default cpu)")
@@ -56,9 +46,9 @@ async def _serve(args, model, player=None) -> int:
         from fae.net.record import StreamRecorder
         from fae.render.renderer import FaceRenderer
 
-        size = _size(args.size)
         recorder = StreamRecorder(server.subscribe(maxsize=64, lossless=True), args.record,
-                                  lambda: FaceRenderer(model, size, args.view), size)
+                                  lambda: FaceRenderer(model, args.size, args.view, supersample=args.supersample,
+                                                       show_bones=args.show_bones), args.size)
     await server.start()
     if recorder is not None:
         recorder.start()
@@ -83,21 +73,21 @@ async def _serve(args, model, player=None) -> int:
 def run(args) -> int:
     logging.basicConfig(level=logging.WARNING, format="fae serve: %(message)s")
     if args.record:
-        folder = Path(args.record).resolve().parent
-        if not folder.is_dir():
-            print(f"fae serve: --record {args.record}: folder {folder} does not exist", file=sys.stderr)
-            return 2
-        _size(args.size)
+        problem = output_problem(args.record, ".mp4")
+        if problem:
+            return fail("serve", f"--record {problem}")
+        problem = video_size_problem(args.size)
+        if problem:
+            return fail("serve", problem)
     if args.fap_dir and not Path(args.fap_dir).is_dir():
-        print(f"fae serve: --fap-dir {args.fap_dir}: not a folder", file=sys.stderr)
-        return 2
-    from fae.io.facemodel_gltf import read_facemodel
+        return fail("serve", f"--fap-dir {args.fap_dir}: not a folder")
+    from fae.io.facemodel_gltf import FaceModelError
 
     try:
-        model = read_facemodel(args.head)
-    except (OSError, ValueError) as exc:
-        print(f"fae serve: --head {args.head}: {exc}", file=sys.stderr)
-        return 2
+        model, head = load_head(args.head)
+    except FaceModelError as exc:
+        return fail("serve", f"--head {exc}")
+    args.head = str(head)
     player = None
     if not model.fap_mapping:  # calibrate once here, not in every client's face
         from fae.animate.player import Player

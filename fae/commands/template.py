@@ -1,7 +1,7 @@
 """`fae template build [-o FILE]` and `fae template check FILE [--json]`.
 
-build  writes the generic head (default: the package's templates/generic_head.glb, the
-       file `fae` plays when no head is given), with its FAP mapping calibrated
+build  writes the generic head (default: fae/data/generic_head.glb, the file `fae` plays
+       when no head is given: fae.data.shipped_head_path), with its FAP mapping calibrated
        (fae.animate.calibrate) so that players load it at once; the same builder
        tools/build_template.py runs.
 check  validates any FaceModel file: structure (fae.io.facemodel_gltf) and geometry
@@ -12,7 +12,8 @@ check  validates any FaceModel file: structure (fae.io.facemodel_gltf) and geome
 from __future__ import annotations
 
 import json
-import sys
+
+from fae.commands.common import fail
 
 
 def register(subparsers) -> None:
@@ -21,7 +22,7 @@ def register(subparsers) -> None:
     sub = parser.add_subparsers(dest="template_command", metavar="ACTION")
     build = sub.add_parser("build", help="build the generic head (.glb)")
     build.add_argument("-o", "--output", default=None,
-                       help="output .glb (default: the package's templates/generic_head.glb)")
+                       help="output .glb (default: the shipped head, fae/data/generic_head.glb)")
     build.set_defaults(func=run)
     check = sub.add_parser("check", help="validate a FaceModel .glb")
     check.add_argument("file", help="FaceModel .glb to check")
@@ -36,16 +37,16 @@ def run(args) -> int:
         return _build(args.output)
     if action == "check":
         return _check(args.file, args.json)
-    print("fae template: expected an action: build or check (see fae template --help)", file=sys.stderr)
-    return 2
+    return fail("template", "expected an action: build or check (see fae template --help)")
 
 
 def _build(output: str | None) -> int:
-    from fae.anatomy.template import TEMPLATE_PATH, build_template
+    from fae.anatomy.template import build_template
     from fae.animate.calibrate import calibrate
+    from fae.data import shipped_head_path
     from fae.io.facemodel_gltf import write_facemodel
 
-    path = output or str(TEMPLATE_PATH)
+    path = output or str(shipped_head_path())
     model = calibrate(build_template())
     write_facemodel(model, path)
     print(f"wrote {path}: {model.skin_vertex_count} skin vertices, {len(model.muscles)} muscles, "
@@ -86,8 +87,7 @@ def _check(path: str, as_json: bool) -> int:
     try:
         model = read_facemodel(path, check=False)
     except (OSError, ValueError, KeyError) as exc:
-        print(f"fae template check: cannot read {path}: {exc}", file=sys.stderr)
-        return 2
+        return fail("template check", f"cannot read {path}: {exc}")
     report = check_report(model)
     if as_json:
         print(json.dumps(report, indent=1))

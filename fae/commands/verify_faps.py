@@ -13,6 +13,8 @@ from __future__ import annotations
 import json
 import sys
 
+from fae.commands.common import fail, load_head
+
 PASS_FRACTION = 0.9
 
 
@@ -44,20 +46,17 @@ def parse_fap_list(text: str) -> list[int]:
 
 
 def run(args) -> int:
-    from fae.anatomy.template import TEMPLATE_PATH
-    from fae.io.facemodel_gltf import read_facemodel
+    from fae.io.facemodel_gltf import FaceModelError
 
-    path = args.head or str(TEMPLATE_PATH)
     try:
         faps = parse_fap_list(args.faps) if args.faps else None
     except ValueError as exc:
-        print(f"fae verify-faps: {exc}", file=sys.stderr)
-        return 2
+        return fail("verify-faps", str(exc))
     try:
-        face = read_facemodel(path)
-    except (OSError, ValueError, KeyError) as exc:
-        print(f"fae verify-faps: cannot read {path}: {exc}", file=sys.stderr)
-        return 2
+        face, head = load_head(args.head)
+    except FaceModelError as exc:
+        return fail("verify-faps", str(exc))
+    path = str(head)
 
     import contextlib
 
@@ -69,8 +68,7 @@ def run(args) -> int:
         try:
             report = verify_faps(player, faps)
         except ValueError as exc:
-            print(f"fae verify-faps: {exc}", file=sys.stderr)
-            return 2
+            return fail("verify-faps", str(exc))
     fraction = passed_fraction(report)
     if args.json:
         print(json.dumps({"head": path, "tolerance": TOLERANCE, "faps": report, "passed_fraction": fraction}, indent=1))

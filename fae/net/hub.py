@@ -9,7 +9,8 @@ server; a lossless one (a recorder) makes the producing stream wait for room ins
 from __future__ import annotations
 
 import asyncio
-from dataclasses import dataclass
+import time
+from dataclasses import dataclass, field
 from typing import AsyncIterator, Union
 
 from fae.net.faces import Pose
@@ -26,6 +27,7 @@ class FrameEvent:
     pose    the face's Pose after this frame
     step    the face's simulation step that produced `pose` (1, 2, ...): frames that
             arrived while the face was busy share one step, and one Pose object
+    made    time.monotonic() when the event was made: when the pose was shown live
     """
 
     stream: str
@@ -34,6 +36,7 @@ class FrameEvent:
     fps: float
     pose: Pose
     step: int = 0
+    made: float = field(default_factory=time.monotonic)
 
 
 @dataclass(frozen=True)

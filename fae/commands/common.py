@@ -1,0 +1,100 @@
+"""What several commands share: saying why they stop, image sizes, output paths, the head.
+
+    fail(command, message, status=2) -> status   the reason on stderr, as `fae COMMAND: ...`
+    parse_size("640x480") -> (640, 480)           argparse type for --size (parse_supersample: --supersample)
+    output_problem(path, ".mp4") -> str | None   why an output file cannot be written there
+    video_size_problem((w, h)) -> str | None     why frames of that size cannot be encoded
+    load_head(path | None) -> (FaceModel, Path)  --head, or the shipped generic head
+    add_view_arguments(parser, "640x480")        --size, --view, --supersample, --show-bones
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+
+def fail(command: str, message: str, status: int = 2) -> int:
+    """Print `fae COMMAND: MESSAGE` on stderr and return the exit status (2: bad input)."""
+    print(f"fae {command}: {message}", file=sys.stderr)
+    return status
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    """'640x480' -> (640, 480); argparse type: bad text exits 2 with the reason."""
+    try:
+        w, h = (int(p) for p in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected WIDTHxHEIGHT in pixels, e.g. 640x480") from None
+    if w <= 0 or h <= 0 or w > 8192 or h > 8192:
+        raise argparse.ArgumentTypeError(f"{text!r}: width and height must be between 1 and 8192 pixels")
+    return w, h
+
+
+def parse_supersample(text: str) -> int:
+    """'2' -> 2; argparse type for --supersample (1..8: the cost grows as its square)."""
+    try:
+        k = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected a whole number 1..8") from None
+    if not 1 <= k <= 8:
+        raise argparse.ArgumentTypeError(f"{text}: expected 1..8")
+    return k
+
+
+def output_problem(path: str, suffix: str) -> str | None:
+    """Why `path` cannot receive an output file with `suffix`, or None when it can."""
+    target = Path(path)
+    if target.suffix.lower() != suffix:
+        return f"{path}: expected a {suffix} file name"
+    if target.is_dir():
+        return f"{path}: is a folder, expected a {suffix} file name"
+    folder = target.parent if str(target.parent) else Path(".")
+    if not folder.is_dir():
+        return f"{path}: output folder {folder} does not exist"
+    if not os.access(folder, os.W_OK):
+        return f"{path}: output folder {folder} is not writable"
+    return None
+
+
+def video_size_problem(size: tuple[int, int]) -> str | None:
+    """Why frames of `size` cannot be encoded as H.264 (it needs an even width and height)."""
+    width, height = size
+    if width % 2 or height % 2:
+        return f"--size {width}x{height}: H.264 video needs an even width and height"
+    return None
+
+
+def load_head(path: str | os.PathLike | None):
+    """(FaceModel, path) of the head at `path`, or of the shipped generic head when None.
+
+    Raises FaceModelError naming the file: missing, unreadable or inconsistent.
+    """
+    from fae.data import TEMPLATES_VARIABLE, shipped_head_path
+    from fae.io.facemodel_gltf import FaceModelError, read_facemodel
+
+    head = Path(path) if path else shipped_head_path()
+    if not head.is_file():
+        if path:
+            what = "head file"
+        elif os.environ.get(TEMPLATES_VARIABLE):
+            what = f"shipped generic head (${TEMPLATES_VARIABLE} names its folder)"
+        else:
+            what = "shipped generic head (pass --head HEAD.glb, or build it with `fae template build`)"
+        raise FaceModelError(f"{head}: {what} not found")
+    return read_facemodel(head), head
+
+
+def add_view_arguments(parser: argparse.ArgumentParser, default_size: str) -> None:
+    """The camera and image options of the commands that render (play, render)."""
+    from fae.render.framing import VIEWS
+
+    parser.add_argument("--size", type=parse_size, default=parse_size(default_size), metavar="WxH",
+                        help=f"image size in pixels (default {default_size})")
+    parser.add_argument("--view", choices=list(VIEWS), default="front", help="camera preset (default front)")
+    parser.add_argument("--supersample", type=parse_supersample, default=1, metavar="K",
+                        help="render at K x size and average (anti-aliasing; costs about K^2)")
+    parser.add_argument("--show-bones", action="store_true",
+                        help="also draw the cranium and mandible (hidden under the skin; for checking how it sits)")
