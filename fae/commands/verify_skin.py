@@ -28,30 +28,26 @@ def register(subparsers) -> None:
     parser.set_defaults(func=run)
 
 
-def _fail(message: str) -> int:
-    print(f"fae verify-skin: {message}", file=sys.stderr)
-    return 2
-
-
 def run(args) -> int:
-    from fae.anatomy.template import TEMPLATE_PATH
-    from fae.io.facemodel_gltf import FaceModelError, read_facemodel
+    from fae.commands.common import fail, load_head
+    from fae.io.facemodel_gltf import FaceModelError
     from fae.io.fap import FapFormatError, read_fap
 
     head, streams = args.head, list(args.streams)
     if head is not None and head.lower().endswith(".fap"):  # streams only: the shipped head
         head, streams = None, [head] + streams
-    path = head or str(TEMPLATE_PATH)
     try:
-        face = read_facemodel(path)
-    except (OSError, ValueError, KeyError, FaceModelError) as exc:
-        return _fail(f"cannot read the head {path}: {exc}")
+        face, path = load_head(head)
+    except (OSError, FaceModelError) as exc:
+        return fail("verify-skin", str(exc))
     loaded = []
     for s in streams:
         try:
             loaded.append((s, read_fap(s)))
-        except (OSError, FapFormatError) as exc:
-            return _fail(str(exc) if isinstance(exc, FapFormatError) else f"cannot read {s}: {exc}")
+        except FapFormatError as exc:
+            return fail("verify-skin", str(exc))
+        except OSError as exc:
+            return fail("verify-skin", f"{s}: cannot read ({exc.strerror or exc})")
 
     with contextlib.redirect_stdout(sys.stderr):  # Warp's banner and kernel-load lines: stdout is the report's
         from fae.animate.player import Player
@@ -66,10 +62,10 @@ def run(args) -> int:
             try:
                 reports.append(check_stream(player, frames, name, check=check))
             except FapFormatError as exc:
-                return _fail(str(exc))
+                return fail("verify-skin", str(exc))
     whole = all(r["ok"] for r in reports)
     if args.json:
-        print(json.dumps({"head": path, "streams": reports, "ok": whole}, indent=1))
+        print(json.dumps({"head": str(path), "streams": reports, "ok": whole}, indent=1))
     else:
         print(f"{path}: folded = visible skin triangles turned over (ever); stretch / compression = "
               f"extreme edge length over rest length; lips = frames where the lips pass through each other")
