@@ -11,12 +11,15 @@ so fae applies the standard's "bit mask follows" semantics):
   defines left/right pairs so that equal values are mirror-symmetric); failing that, an
   inner lip FAP takes its outer lip partner's value and vice versa (same FAPU, same
   direction); failing that, it holds.
-- clamp (``clamp=True``): values outside the standard's range are clamped, with one
-  warning per FAP. The range used is the I (intra) range times the quantiser step
+- clamp (``clamp=True``): values outside the standard's range are clamped. The range used
+  is the I (intra) range times the quantiser step
   (:attr:`fae.mpeg4.faps.FapInfo.value_range`): an intra frame codes the value itself, so
   its range bounds values; the P range bounds frame-to-frame differences and would clamp
   legitimate poses (e.g. a head turn of 8500 AU is within 1860 x 170 but a P range reading
-  of 600 would cut it). FAPs 1 and 2 (codes) are not clamped.
+  of 600 would cut it). FAPs 1 and 2 (codes) are not clamped. The face plays a narrower
+  range still (fae.animate.faptables.FAP_LIMITS, e.g. open_jaw 0..1080 MNS): one warning
+  per FAP names that range, the one a viewer sees the value cut to (a unidirectional FAP
+  slightly below 0, as real streams send, is cut to 0 without a warning).
 - time: the first frame of a stream is at t = 0 whatever its number (0 or 1); frame
   numbers that skip are filled with held frames so dense index k is at t = k / fps.
 - resampling to another fps: output frame j is at t = j / fps_out for all t inside the
@@ -33,6 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from fae.animate.faptables import FAP_LIMITS
 from fae.io.fap import FapFrame
 from fae.mpeg4.faps import FAP_COUNT, FAPS, LIP_PARTNER_FAP, MIRROR_FAP
 from fae.mpeg4.highlevel import Expression, Viseme
@@ -69,6 +73,13 @@ _MIRROR_INDEX = _partner_index(MIRROR_FAP)
 _LIP_INDEX = _partner_index(LIP_PARTNER_FAP)
 _RANGE_LOW = np.array([-np.inf if i < 2 else FAPS[i].value_range[0] for i in range(FAP_COUNT)])
 _RANGE_HIGH = np.array([np.inf if i < 2 else FAPS[i].value_range[1] for i in range(FAP_COUNT)])
+# Values beyond these get the clamp warning. A unidirectional FAP (open_jaw, lift_*_cheek, ...)
+# is played from 0 up, but real streams send it slightly negative (-4 in the Xface samples):
+# that cut is the FAP's definition, not news, so only a value as far below 0 as its top
+# is above is warned about.
+_WARN_HIGH = np.where(np.arange(FAP_COUNT) < 2, np.inf, FAP_LIMITS[:, 1])
+_WARN_LOW = np.where(np.arange(FAP_COUNT) < 2, -np.inf,
+                     np.where(FAP_LIMITS[:, 0] >= 0, -FAP_LIMITS[:, 1], FAP_LIMITS[:, 0]))
 
 
 class FrameState:
@@ -103,15 +114,15 @@ class FrameState:
             from_lip = ~sent & ~from_mirror & has_lip & sent[np.where(has_lip, _LIP_INDEX, 0)]
             values[from_lip] = incoming[_LIP_INDEX[from_lip]]
         if self.clamp:
-            outside = (values < _RANGE_LOW) | (values > _RANGE_HIGH)
+            outside = (values < _WARN_LOW) | (values > _WARN_HIGH)
             if outside.any():
                 for i in np.flatnonzero(outside & ~self._clamped):
                     info = FAPS[i]
-                    low, high = info.value_range
+                    low, high = FAP_LIMITS[i]
                     self.warnings.append(
                         f"{self.source_name}: frame {frame.number}: FAP {info.number} {info.name} = {values[i]:g} "
-                        f"{info.fapu} is outside the standard's range [{low:g}, {high:g}] (I range x quantiser "
-                        "step); clamped here and wherever else it is out of range")
+                        f"{info.fapu} is outside [{low:g}, {high:g}], the range the face plays; played as "
+                        f"{min(max(values[i], low), high):g} here and cut to that range wherever else it is outside")
                 self._clamped |= outside
                 values = np.clip(values, _RANGE_LOW, _RANGE_HIGH)
         if sent[0]:
