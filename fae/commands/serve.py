@@ -12,7 +12,7 @@ import signal
 import sys
 from pathlib import Path
 
-from fae.net.server import DEFAULT_HOST, DEFAULT_PORT, FapServer
+from fae.net.server import DEFAULT_HOST, DEFAULT_PORT, FapServer, ServerLimits
 
 DEFAULT_HEAD = Path(__file__).resolve().parents[2] / "templates" / "generic_head.glb"
 
@@ -43,14 +43,25 @@ def register(subparsers) -> None:
     parser.add_argument("--fap-dir", metavar="DIR", help="folder Xface LOAD_FAP may read .fap files from "
                         "(default: LOAD_FAP is refused)")
     parser.add_argument("--device", default="cpu", help="Warp device for the faces (default cpu)")
+    defaults = ServerLimits()
+    parser.add_argument("--idle-timeout", type=float, default=defaults.idle_timeout, metavar="SECONDS",
+                        help="close a client silent this long with nothing in progress "
+                        f"(default {defaults.idle_timeout:g})")
+    parser.add_argument("--max-clients", type=int, default=defaults.max_clients, metavar="N",
+                        help=f"connections at once (default {defaults.max_clients})")
+    parser.add_argument("--max-per-address", type=int, default=defaults.max_per_address, metavar="N",
+                        help=f"connections at once from one IP address (default {defaults.max_per_address}); when "
+                        "either limit is reached, the connection idle longest makes room for a newcomer")
     parser.set_defaults(func=run)
 
 
 async def _serve(args, model, player=None) -> int:
     from fae.net.faces import player_face_factory
 
+    limits = ServerLimits(idle_timeout=args.idle_timeout, max_clients=args.max_clients,
+                          max_per_address=args.max_per_address)
     server = FapServer(player_face_factory(model, args.device, first=player), args.host, args.port,
-                       fap_dir=args.fap_dir, spare_faces=1)
+                       fap_dir=args.fap_dir, spare_faces=1, limits=limits)
     recorder = None
     if args.record:
         from fae.net.record import StreamRecorder
@@ -88,6 +99,13 @@ def run(args) -> int:
             print(f"fae serve: --record {args.record}: folder {folder} does not exist", file=sys.stderr)
             return 2
         _size(args.size)
+    if not args.idle_timeout > 0:
+        print(f"fae serve: --idle-timeout {args.idle_timeout:g}: expected a positive number of seconds", file=sys.stderr)
+        return 2
+    for flag, value in (("--max-clients", args.max_clients), ("--max-per-address", args.max_per_address)):
+        if value < 1:
+            print(f"fae serve: {flag} {value}: expected at least 1", file=sys.stderr)
+            return 2
     if args.fap_dir and not Path(args.fap_dir).is_dir():
         print(f"fae serve: --fap-dir {args.fap_dir}: not a folder", file=sys.stderr)
         return 2
