@@ -124,3 +124,18 @@ def test_dense_frames_can_be_stepped_with_next_or_looped_again(repo_root):
     first, second = next(dense), next(dense)
     assert (first.index, second.index) == (0, 1) and second.time == pytest.approx(0.02)
     assert len(list(dense)) == len(list(dense)) == 500
+
+
+def test_the_clamp_warning_names_the_range_the_face_plays():
+    from fae.animate.faptables import FAP_LIMITS
+
+    state = FrameState(source_name="s.fap")
+    state.update(frame(4, {3: 5000}))
+    low, high = FAP_LIMITS[2]
+    assert (low, high) == (0, 1080)  # open_jaw: what the Player clamps to
+    assert state.warnings == [f"s.fap: frame 4: FAP 3 open_jaw = 5000 MNS is outside [0, 1080], the range the face "
+                              "plays; played as 1080 here and cut to that range wherever else it is outside"]
+    state.update(frame(5, {3: -5}))  # a unidirectional FAP a little below 0, as real streams send
+    quiet = FrameState()
+    quiet.update(frame(0, {3: -5, 41: -4}))
+    assert quiet.warnings == []
