@@ -11,9 +11,11 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import tempfile
 from pathlib import Path
 
 import fae
+from fae.io.frames import MAX_HOLD_SECONDS
 
 TEMPLATE_NAME = "generic_head.glb"
 
@@ -47,18 +49,23 @@ def parse_size(text: str) -> tuple[int, int]:
     return w, h
 
 
-def output_problem(path: str, suffix: str) -> str | None:
-    """Why `path` cannot receive an output file with `suffix`, or None when it can."""
+def output_problem(path: str, suffix: str | None = None) -> str | None:
+    """Why `path` cannot receive an output file (with `suffix`, when given), or None when it can."""
     target = Path(path)
-    if target.suffix.lower() != suffix:
+    if suffix is not None and target.suffix.lower() != suffix:
         return f"{path}: expected a {suffix} file name"
     if target.is_dir():
-        return f"{path}: is a folder, expected a {suffix} file name"
+        return f"{path}: is a folder, expected a {suffix or 'file'} name"
     folder = target.parent if str(target.parent) else Path(".")
     if not folder.is_dir():
         return f"{path}: output folder {folder} does not exist"
     if not os.access(folder, os.W_OK):
         return f"{path}: output folder {folder} is not writable"
+    try:  # the one sure test (root passes os.access everywhere, /proc takes no files)
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as exc:
+        return f"{path}: output folder {folder} cannot take a file ({exc.strerror or exc})"
     return None
 
 
@@ -95,6 +102,9 @@ def register(subparsers) -> None:
     parser.add_argument("-o", "--output", required=True, metavar="OUT.mp4", help="the video to write")
     add_view_arguments(parser, "640x480")
     parser.add_argument("--fps", type=float, default=None, help="resample to this frame rate (default: the stream's)")
+    parser.add_argument("--max-hold", type=float, default=MAX_HOLD_SECONDS, metavar="SECONDS",
+                        help=f"longest a gap in the frame numbers is held (default {MAX_HOLD_SECONDS:g}); a longer "
+                        "gap is cut to it, with a warning, so that no stream plays for ever")
     parser.add_argument("--frames-dir", metavar="DIR", help="also write each frame as DIR/frame_00000.png, ...")
     parser.set_defaults(func=run)
 
@@ -115,6 +125,8 @@ def run(args: argparse.Namespace) -> int:
         return _fail(f"--supersample {args.supersample}: expected 1..8")
     if args.fps is not None and not (0 < args.fps <= 1000):
         return _fail(f"--fps {args.fps:g}: expected a frame rate in (0, 1000]")
+    if not 0 <= args.max_hold <= 1e6:
+        return _fail(f"--max-hold {args.max_hold:g}: expected seconds in [0, 1e6]")
     problem = output_problem(args.output, ".mp4")
     if problem:
         return _fail(problem)
@@ -132,6 +144,7 @@ def run(args: argparse.Namespace) -> int:
         return _fail(str(exc))
 
     from fae.animate.player import Player
+    from fae.io.frames import dense_frames
     from fae.render.play import render_video
     from fae.render.renderer import FaceRenderer
     from fae.render.video import VideoError
@@ -147,16 +160,21 @@ def run(args: argparse.Namespace) -> int:
         with FaceRenderer(model, size=(width, height), view=args.view, supersample=args.supersample,
                           show_bones=args.show_bones) as renderer:
             player = Player(model, device="cpu")
-            timings = render_video(player.play(stream, fps=args.fps), renderer, args.output, fps,
+            frames = dense_frames(stream, fps=args.fps, max_hold=args.max_hold)
+            timings = render_video(player.play(frames, fps=fps), renderer, args.output, fps,
                                    frames_dir=frames_dir,
                                    on_frame=(lambda n: progress.update(1)) if progress else None)
     except FapFormatError as exc:
         return _fail(f"{exc} (no video written)")
     except VideoError as exc:
         return _fail(str(exc), status=1)
+    except OSError as exc:  # the output folder refused the file (OutputError names it)
+        return _fail(str(exc) if exc.filename is None else f"{exc.filename}: {exc.strerror}")
     finally:
         if progress is not None:
             progress.close()
+    for warning in frames.warnings:
+        print(f"fae play: warning: {warning}", file=sys.stderr)
     print(f"{args.output}: {timings.frames} frames at {fps:g} fps, {width}x{height} "
           f"({timings.fps:.1f} frames/s)", file=sys.stderr)
     return 0

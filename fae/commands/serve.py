@@ -94,9 +94,11 @@ async def _serve(args, model, player=None) -> int:
 def run(args) -> int:
     logging.basicConfig(level=logging.WARNING, format="fae serve: %(message)s")
     if args.record:
-        folder = Path(args.record).resolve().parent
-        if not folder.is_dir():
-            print(f"fae serve: --record {args.record}: folder {folder} does not exist", file=sys.stderr)
+        from fae.commands.play import output_problem
+
+        problem = output_problem(args.record, ".mp4")
+        if problem:
+            print(f"fae serve: --record {problem}", file=sys.stderr)
             return 2
         _size(args.size)
     if not args.idle_timeout > 0:

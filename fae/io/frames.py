@@ -22,6 +22,10 @@ so fae applies the standard's "bit mask follows" semantics):
   slightly below 0, as real streams send, is cut to 0 without a warning).
 - time: the first frame of a stream is at t = 0 whatever its number (0 or 1); frame
   numbers that skip are filled with held frames so dense index k is at t = k / fps.
+- long gaps: a hold is cut to ``max_hold`` seconds (MAX_HOLD_SECONDS by default; None: no
+  limit), with one warning per cut, and the frames after it come that much earlier. A
+  stream of frames 0 and 10**12 is legal, but playing its 1.3 years of held frames is not
+  what anyone asked for; the cut keeps the cost of any gap bounded.
 - resampling to another fps: output frame j is at t = j / fps_out for all t inside the
   stream's duration N / fps_in (so there are ceil(N * fps_out / fps_in) frames); values
   are interpolated linearly between the two source frames around t, the viseme and
@@ -41,7 +45,9 @@ from fae.io.fap import FapFrame
 from fae.mpeg4.faps import FAP_COUNT, FAPS, LIP_PARTNER_FAP, MIRROR_FAP
 from fae.mpeg4.highlevel import Expression, Viseme
 
-__all__ = ["DenseFrame", "FrameState", "DenseFrames", "dense_frames"]
+__all__ = ["DenseFrame", "FrameState", "DenseFrames", "dense_frames", "MAX_HOLD_SECONDS"]
+
+MAX_HOLD_SECONDS = 60.0  # longest hold played by default (a pause in speech is seconds)
 
 
 @dataclass(eq=False)
@@ -142,9 +148,12 @@ class DenseFrames:
     """
 
     def __init__(self, frames: Iterable[FapFrame], source_fps: float, fps: float | None, fill: bool,
-                 clamp: bool, source_name: str):
+                 clamp: bool, source_name: str, max_hold: float | None = MAX_HOLD_SECONDS):
         if not (math.isfinite(source_fps) and source_fps > 0):
             raise ValueError(f"{source_name}: source fps must be positive, got {source_fps!r}")
+        if max_hold is not None and not max_hold >= 0:
+            raise ValueError(f"max_hold must be a number of seconds >= 0 or None, got {max_hold!r}")
+        self.max_hold = max_hold
         if fps is not None and not (math.isfinite(fps) and fps > 0):
             raise ValueError(f"output fps must be positive, got {fps!r}")
         self.frames = frames
@@ -164,10 +173,22 @@ class DenseFrames:
     def _source(self, state: FrameState) -> Iterator[DenseFrame]:
         first = None
         previous: DenseFrame | None = None
+        previous_number = 0
+        cut = 0  # frames left out of long holds so far
+        longest = None if self.max_hold is None else math.floor(self.max_hold * self.source_fps + 1e-9)
         for frame in self.frames:
             if first is None:
                 first = frame.number
-            index = frame.number - first
+            index = frame.number - first - cut
+            if previous is not None and longest is not None and index - previous.index - 1 > longest:
+                missing = frame.number - previous_number - 1
+                state.warnings.append(
+                    f"{self.source_name}: frames {previous_number + 1}..{frame.number - 1} are missing "
+                    f"({missing / self.source_fps:.6g} s): frame {previous_number} is held for {self.max_hold:g} s "
+                    "only, and the stream goes on from there")
+                cut += index - previous.index - 1 - longest
+                index = previous.index + 1 + longest
+            previous_number = frame.number
             if previous is not None:
                 for held in range(previous.index + 1, index):  # frame numbers that skip: hold
                     yield DenseFrame(held, held / self.source_fps, previous.values.copy(), previous.viseme, previous.expression)
@@ -209,7 +230,7 @@ class DenseFrames:
 
 
 def dense_frames(stream, fps: float | None = None, fill: bool = False, clamp: bool = True,
-                 source_fps: float | None = None) -> DenseFrames:
+                 source_fps: float | None = None, max_hold: float | None = MAX_HOLD_SECONDS) -> DenseFrames:
     """Dense frames of a stream: every FAP valued at every frame (see the module rules).
 
     stream      a :class:`fae.io.fap.FapStream` (its header gives the fps) or any iterable
@@ -217,7 +238,9 @@ def dense_frames(stream, fps: float | None = None, fill: bool = False, clamp: bo
     fps         output frame rate (None: the stream's own)
     fill        fill unsent FAPs from their left/right, then inner/outer lip partner
     clamp       clamp to the standard's value ranges (one warning per FAP)
-    Returns a re-iterable :class:`DenseFrames` whose ``warnings`` lists the clamp warnings.
+    max_hold    seconds a gap in the frame numbers is held at most (None: as long as it is)
+    Returns a re-iterable :class:`DenseFrames` whose ``warnings`` lists the clamp and cut
+    warnings.
     """
     header = getattr(stream, "header", None)
     if source_fps is None:
@@ -225,4 +248,4 @@ def dense_frames(stream, fps: float | None = None, fill: bool = False, clamp: bo
             raise ValueError("dense_frames: give source_fps for a stream without a header")
         source_fps = header.fps
     name = getattr(stream, "source_name", "<stream>")
-    return DenseFrames(stream, source_fps, fps, fill, clamp, name)
+    return DenseFrames(stream, source_fps, fps, fill, clamp, name, max_hold)
