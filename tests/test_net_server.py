@@ -714,3 +714,54 @@ def test_a_face_is_never_stepped_by_two_pool_threads_even_when_a_waiter_gives_up
 
     asyncio.run(main())
     assert len(overlaps) >= 3 and not any(overlaps)
+
+
+# -- limits on connections -------------------------------------------------------------
+
+def test_silent_sockets_make_room_for_a_newcomer_and_are_closed_when_idle():
+    limits = ServerLimits(max_clients=4, max_per_address=3, idle_timeout=1.0, evict_idle=0.2)
+
+    async def closed(reader) -> bool:
+        try:
+            while await asyncio.wait_for(reader.read(65536), 5):
+                pass
+        except asyncio.TimeoutError:
+            return False
+        except ConnectionError:  # the one that made room was reset
+            pass
+        return True
+
+    async def main():
+        server = await started(limits=limits)
+        try:
+            horde = [await asyncio.open_connection("127.0.0.1", server.port) for _ in range(10)]
+            await asyncio.sleep(0.3)
+            assert len(server.clients) == 3  # one address's share
+            await well_behaved(server.port)  # the same address: takes the idlest one's place
+            assert all(await asyncio.gather(*(closed(r) for r, _ in horde)))  # idle timeout
+            assert server.clients == {}
+            for _, w in horde:
+                w.close()
+        finally:
+            await server.close()
+
+    run(main())
+
+
+def test_an_xface_client_waiting_for_its_playback_is_not_idle():
+    """A client silent while the stream it started plays is waiting, not idle."""
+    text = fap_text()  # 43 frames at 25 fps: 1.7 s, longer than the idle timeout
+
+    async def main():
+        server = await started(limits=ServerLimits(idle_timeout=0.5))
+        try:
+            reader, writer, owner = await xface_connect(server.port)
+            writer.write(task("UPLOAD_FAP", owner, 1, text) + task("RESUME_PLAYBACK", owner, 2))
+            got = await expect(reader, 6, timeout=10)
+            assert got[-1] == n("RESUME_PLAYBACK", owner, 2, 3)  # finished, after 1.7 s of silence
+            assert await asyncio.wait_for(reader.read(65536), 5) == b""  # then idle: closed
+            writer.close()
+        finally:
+            await server.close()
+
+    run(main())

@@ -75,7 +75,8 @@ def overwritten_input(outputs: dict[str, str | None], inputs: dict[str, str | No
     for out_flag, out in outputs.items():
         for in_name, src in inputs.items():
             if out and src and same(out, src):
-                return f"{out_flag} {out}: is the {in_name}; expected a new file (inputs are never overwritten)"
+                return (f"{out_flag} {out}: would overwrite the {in_name}; expected a new file (inputs are "
+                        "never overwritten)")
     return None
 
 

@@ -63,12 +63,13 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None, sweep: bool 
     `suffix` defaults to the target's own suffix (some writers pick the format from it).
     sweep  first remove the target's stale temporary files (see `sweep_stale`); writers of
            many files into one folder (a frame per PNG) pass False: each sweep lists the folder.
-    Raises OutputError (an OSError naming the target) when the folder cannot take a file.
+    Raises FileNotFoundError when the folder does not exist, OutputError (an OSError
+    naming the target) when it cannot take a file.
     """
     target = Path(path)
     folder = target.parent if str(target.parent) else Path(".")
     if not folder.is_dir():
-        raise OutputError(f"{target}: output folder {folder} does not exist")
+        raise FileNotFoundError(f"{target}: output folder {folder} does not exist")
     if sweep:
         sweep_stale(target)
     try:

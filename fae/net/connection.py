@@ -25,6 +25,7 @@ class Connection:
                   connection is closed, so silent sockets cannot hold places for ever
     busy          tells whether the client is waiting on the server (frames being played,
                   a playback it started); a busy client is never timed out
+    last_active   time.monotonic() of the client's latest bytes (or of its connection)
     """
 
     client_id: int
@@ -49,7 +50,7 @@ class Connection:
 
     @property
     def idle_seconds(self) -> float:
-        """Seconds since the client last sent or was sent anything (0 while it is busy)."""
+        """Seconds since the client last sent anything (0 while it is busy)."""
         return 0.0 if self.busy() else time.monotonic() - self.last_active
 
     async def read(self, timeout: float | None = None) -> bytes:
@@ -75,7 +76,6 @@ class Connection:
             self.drop()
             return False
         self.writer.write(data)
-        self.last_active = time.monotonic()
         return True
 
     async def send_and_drain(self, data: bytes) -> bool:

@@ -16,6 +16,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -65,7 +66,7 @@ class ServerLimits:
     max_output: int = 1 << 20
     max_clients: int = 64
     max_per_address: int = 16
-    idle_timeout: float = 120.0
+    idle_timeout: float = 300.0
     evict_idle: float = 1.0
 
 
@@ -231,6 +232,7 @@ class FapServer:
                 break
             if not chunk:
                 return b""
+            conn.last_active = time.monotonic()
             data += chunk
         while not data.strip():  # greeted: an Xface client may now take its time
             if len(data) > self.limits.max_line:
