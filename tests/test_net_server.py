@@ -765,3 +765,18 @@ def test_an_xface_client_waiting_for_its_playback_is_not_idle():
             await server.close()
 
     run(main())
+
+
+def test_an_uploaded_stream_keeps_only_the_frames_it_sent():
+    from fae.net.decode import decode_text
+
+    mask = " ".join(["0", "0", "1"] + ["0"] * 65)
+    fps, frames = decode_text(f"2.1 gap 25 2\n{mask}\n0 100\n{mask}\n{10 ** 12} 900\n", "upload")
+    assert fps == 25 and len(frames) == 10 ** 12 + 1 and frames.sent == 2
+    held = frames[123_456_789]
+    assert held.index == 123_456_789 and held.time == 123_456_789 / 25 and held.values[2] == 100
+    assert held.values is frames[0].values  # shared, not copied
+    assert frames[-1].values[2] == 900 and frames[-1].index == 10 ** 12
+    assert [f.index for f in frames[10 ** 12 - 1:]] == [10 ** 12 - 1, 10 ** 12]
+    with pytest.raises(IndexError):
+        frames[10 ** 12 + 1]

@@ -113,3 +113,13 @@ def test_an_output_folder_that_takes_no_files_is_one_line_naming_it(capsys):
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith("fae play: /proc/x.mp4: output folder /proc ")
     assert "Traceback" not in err
+
+
+@pytest.mark.slow
+def test_a_stream_at_a_hundredth_of_a_frame_per_second_plays_at_once(tmp_path):
+    """Each frame lasts 100 s; the face simulates one second of each (fae.animate.player)."""
+    stream = tmp_path / "slow.fap"
+    stream.write_text("2.1 slow 0.01 3\n" + jaw_frame(0, 100) + jaw_frame(1, 500) + jaw_frame(2, 900))
+    proc = fae_play(str(stream), "-o", str(tmp_path / "slow.mp4"))
+    _, err = proc.communicate(timeout=300)
+    assert proc.returncode == 0 and "slow.mp4: 3 frames at 0.01 fps" in err, err
