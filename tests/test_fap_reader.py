@@ -248,3 +248,28 @@ def test_missing_file_and_directory_raise_format_errors(tmp_path):
         read_fap(tmp_path / "no-such.fap")
     with pytest.raises(FapFormatError):
         read_fap(tmp_path)
+
+
+def test_the_parser_refuses_an_overlong_line_itself_naming_the_line():
+    """A caller that feeds lines without bounding them (FapParser is public) still cannot
+    make it split a 50 MB line: the line is refused by its length, before any token."""
+    parser = FapParser("socket", max_line=4096)
+    parser.feed_line("2.1 test 25 3", 1)
+    with pytest.raises(FapFormatError, match=r"socket:2: expected a line of at most 4096 characters, got 50000000"):
+        parser.feed_line("0 " * 25_000_000, 2)
+    assert FapParser("x").max_line == 65536  # the file reader's own bound
+
+
+@pytest.mark.parametrize("header, line, token", [
+    ("2.1 test ２５ 3", None, "２５"),                 # fullwidth fps
+    ("2.1 test 25 ٣", None, "٣"),                     # Arabic-Indic frame count
+    ("2.1 test 25 3", "１２３ 100 0 7 8500", "１２３"),   # fullwidth frame number
+    ("2.1 test 25 3", "0 １００ 0 7 8500", "１００"),     # fullwidth value
+])
+def test_only_ascii_digits_are_numbers(header, line, token):
+    parser = FapParser("s.fap")
+    with pytest.raises(FapFormatError) as info:
+        parser.feed_line(header, 1)
+        parser.feed_line(HEAD_MASK, 2)
+        parser.feed_line(line, 3)
+    assert info.value.token == token and "s.fap:" in str(info.value)

@@ -124,3 +124,32 @@ def test_dense_frames_can_be_stepped_with_next_or_looped_again(repo_root):
     first, second = next(dense), next(dense)
     assert (first.index, second.index) == (0, 1) and second.time == pytest.approx(0.02)
     assert len(list(dense)) == len(list(dense)) == 500
+
+
+def test_the_clamp_warning_names_the_range_the_face_plays():
+    from fae.animate.faptables import FAP_LIMITS
+
+    state = FrameState(source_name="s.fap")
+    state.update(frame(4, {3: 5000}))
+    low, high = FAP_LIMITS[2]
+    assert (low, high) == (0, 1080)  # open_jaw: what the Player clamps to
+    assert state.warnings == [f"s.fap: frame 4: FAP 3 open_jaw = 5000 MNS is outside [0, 1080], the range the face "
+                              "plays; played as 1080 here and cut to that range wherever else it is outside"]
+    state.update(frame(5, {3: -5}))  # a unidirectional FAP a little below 0, as real streams send
+    quiet = FrameState()
+    quiet.update(frame(0, {3: -5, 41: -4}))
+    assert quiet.warnings == []
+
+
+def test_a_gap_longer_than_max_hold_is_cut_with_one_warning():
+    """Frames 0 and 10**12 are legal; their 10**12 held frames are not played: the hold is
+    cut to max_hold seconds and the frames after it move up (resampled alike)."""
+    frames = [frame(0, {3: 10}), frame(10 ** 12, {3: 20}), frame(10 ** 12 + 2, {3: 30})]
+    dense = dense_frames(frames, source_fps=2, max_hold=3)
+    out = list(dense)
+    assert [d.index for d in out] == list(range(10)) and [d.values[2] for d in out] == [10] * 7 + [20, 20, 30]
+    assert dense.warnings == ["<stream>: frames 1..999999999999 are missing (5e+11 s): frame 0 is held for 3 s only, "
+                              "and the stream goes on from there"]
+    assert len(list(dense_frames(frames, source_fps=2, max_hold=3, fps=4))) == 20
+    assert len(list(dense_frames(frames[:1] + [frame(100, {3: 1})], source_fps=2, max_hold=None))) == 101
+    assert len(list(dense_frames([frame(0, {}), frame(10 ** 12, {})], source_fps=25))) == 1502  # 60 s by default

@@ -714,3 +714,69 @@ def test_a_face_is_never_stepped_by_two_pool_threads_even_when_a_waiter_gives_up
 
     asyncio.run(main())
     assert len(overlaps) >= 3 and not any(overlaps)
+
+
+# -- limits on connections -------------------------------------------------------------
+
+def test_silent_sockets_make_room_for_a_newcomer_and_are_closed_when_idle():
+    limits = ServerLimits(max_clients=4, max_per_address=3, idle_timeout=1.0, evict_idle=0.2)
+
+    async def closed(reader) -> bool:
+        try:
+            while await asyncio.wait_for(reader.read(65536), 5):
+                pass
+        except asyncio.TimeoutError:
+            return False
+        except ConnectionError:  # the one that made room was reset
+            pass
+        return True
+
+    async def main():
+        server = await started(limits=limits)
+        try:
+            horde = [await asyncio.open_connection("127.0.0.1", server.port) for _ in range(10)]
+            await asyncio.sleep(0.3)
+            assert len(server.clients) == 3  # one address's share
+            await well_behaved(server.port)  # the same address: takes the idlest one's place
+            assert all(await asyncio.gather(*(closed(r) for r, _ in horde)))  # idle timeout
+            assert server.clients == {}
+            for _, w in horde:
+                w.close()
+        finally:
+            await server.close()
+
+    run(main())
+
+
+def test_an_xface_client_waiting_for_its_playback_is_not_idle():
+    """A client silent while the stream it started plays is waiting, not idle."""
+    text = fap_text()  # 43 frames at 25 fps: 1.7 s, longer than the idle timeout
+
+    async def main():
+        server = await started(limits=ServerLimits(idle_timeout=0.5))
+        try:
+            reader, writer, owner = await xface_connect(server.port)
+            writer.write(task("UPLOAD_FAP", owner, 1, text) + task("RESUME_PLAYBACK", owner, 2))
+            got = await expect(reader, 6, timeout=10)
+            assert got[-1] == n("RESUME_PLAYBACK", owner, 2, 3)  # finished, after 1.7 s of silence
+            assert await asyncio.wait_for(reader.read(65536), 5) == b""  # then idle: closed
+            writer.close()
+        finally:
+            await server.close()
+
+    run(main())
+
+
+def test_an_uploaded_stream_keeps_only_the_frames_it_sent():
+    from fae.net.decode import decode_text
+
+    mask = " ".join(["0", "0", "1"] + ["0"] * 65)
+    fps, frames = decode_text(f"2.1 gap 25 2\n{mask}\n0 100\n{mask}\n{10 ** 12} 900\n", "upload")
+    assert fps == 25 and len(frames) == 10 ** 12 + 1 and frames.sent == 2
+    held = frames[123_456_789]
+    assert held.index == 123_456_789 and held.time == 123_456_789 / 25 and held.values[2] == 100
+    assert held.values is frames[0].values  # shared, not copied
+    assert frames[-1].values[2] == 900 and frames[-1].index == 10 ** 12
+    assert [f.index for f in frames[10 ** 12 - 1:]] == [10 ** 12 - 1, 10 ** 12]
+    with pytest.raises(IndexError):
+        frames[10 ** 12 + 1]

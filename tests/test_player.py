@@ -70,3 +70,31 @@ def test_spawned_players_share_the_model_and_step_independently(player):
     assert np.abs(ska - ref).max() < 1e-7
     assert np.abs(skb - ska).max() > 1e-3
     assert np.abs(player.step(np.zeros(68), dt=1 / 25) - player.face.skin_vertices).max() < 1e-6
+
+
+def test_a_step_of_a_million_seconds_costs_what_one_second_costs(player):
+    """A frame lasting 1e6 s (a gap in a stream, a tiny fps) simulates MAX_STEP_SECONDS of
+    it: it returns at once with the pose one second of the frame gives; +inf lasts as long.
+    Zero, negative and NaN durations are refused by name."""
+    from fae.animate.player import MAX_STEP_SECONDS
+
+    v = np.zeros(68)
+    v[2] = FAP_LIMITS[2, 1] / 2  # open_jaw
+    player.reset()
+    one_second = player.step(v, dt=MAX_STEP_SECONDS)
+    for dt in (1e6, float("inf")):
+        player.reset()
+        long_frame = player.step(v, dt=dt)  # 5e7 substeps if it were not bounded
+        assert np.array_equal(long_frame, one_second)
+    for dt in (0.0, -1.0, float("nan")):
+        with pytest.raises(ValueError, match="dt must be a positive number of seconds"):
+            player.step(v, dt=dt)
+
+
+def test_infinite_values_clamp_like_the_largest_finite_ones(player):
+    for big in (np.inf, -np.inf):
+        inf_values, huge_values = np.full(68, big), np.full(68, np.sign(big) * 1e308)
+        assert np.array_equal(player.frame_values(inf_values), player.frame_values(huge_values))
+    top = player.frame_values(np.full(68, np.inf))
+    assert np.array_equal(top[2:], FAP_LIMITS[2:, 1])
+    assert np.array_equal(player.frame_values(np.full(68, np.nan))[2:], np.zeros(66))

@@ -63,8 +63,11 @@ def fap_unit_scale(face) -> np.ndarray:
 
 
 def clamp_values(values: np.ndarray) -> np.ndarray:
-    """(68,) low-level FAP values clamped to `FAP_LIMITS` (FAPs 1, 2 untouched); NaN -> 0."""
-    v = np.nan_to_num(np.asarray(values, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+    """(68,) low-level FAP values clamped to `FAP_LIMITS` (FAPs 1, 2 set to 0); NaN -> 0.
+
+    Infinities are clamped like any value beyond the range (+inf to the upper limit, as
+    1e308 is), not zeroed."""
+    v = np.nan_to_num(np.asarray(values, dtype=np.float64), nan=0.0, posinf=np.inf, neginf=-np.inf)
     out = np.clip(v, FAP_LIMITS[:, 0], FAP_LIMITS[:, 1])
     out[:2] = 0.0
     return out

@@ -34,6 +34,12 @@ from fae.sim.skin import SkinOutput
 from fae.sim.solver import SkinSolver
 
 DEFAULT_FPS = 25.0
+# Seconds of physics one step simulates at most. A longer frame (a gap in a stream's frame
+# numbers, a tiny fps, dt=1e6 through the API) simulates only MAX_STEP_SECONDS: the skin
+# has settled by then (a wide-open mouth on the shipped head is within 0.03 mm of its rest
+# after 0.9 s), so the time left out would change nothing, and a step costs at most
+# MAX_STEP_SECONDS / dt_max substeps (50) whatever its dt.
+MAX_STEP_SECONDS = 1.0
 SETTLED_MOTION = 1e-8  # metres: a frame moving no particle more than this has settled
 
 
@@ -129,9 +135,16 @@ class Player:
         return clamp_values(v + extra)
 
     def step(self, frame, dt: float | None = None) -> np.ndarray:
-        """Advance one frame of `dt` seconds (None: 1/fps) with FAP `frame`; (V, 3) float64 metres."""
+        """Advance one frame of `dt` seconds (None: 1/fps) with FAP `frame`; (V, 3) float64 metres.
+
+        dt must be a positive number of seconds (+inf included: the frame lasts for ever);
+        the skin is simulated for at most MAX_STEP_SECONDS of it (see there).
+        """
         v = self.frame_values(frame)
         dt = 1.0 / self.fps if dt is None else float(dt)
+        if not dt > 0.0:  # NaN fails this too
+            raise ValueError(f"step: dt must be a positive number of seconds, got {dt!r}")
+        dt = min(dt, MAX_STEP_SECONDS)
         activation, jaw = self.controls.controls(v)
         J = self.rig.jaw(*jaw)
         self._R[1], self._t[1] = J[:3, :3], J[:3, 3]

@@ -92,17 +92,29 @@ def write_plot(report: dict, path: str) -> None:
 
 
 def run(args) -> int:
+    from fae.commands.adapt_checks import landmark_problem, overwritten_input, scan_problem
+    from fae.commands.common import output_problem
     from fae.io.facemodel_gltf import read_facemodel
     from fae.io.scan import LandmarkError, read_landmarks, read_scan
 
     if args.method != "surface" and args.compare:
         print("fae adapt: --compare needs --method surface", file=sys.stderr)
         return 2
+    outputs = {"-o": args.output, "--report": args.report, "--plot": args.plot, "--compare": args.compare}
     try:
-        if os.path.abspath(args.output) == os.path.abspath(args.scan):
-            raise ValueError(f"{args.output}: the output would overwrite the scan")
+        problem = overwritten_input(outputs, {"scan": args.scan, "--landmarks file": args.landmarks,
+                                              "--template": args.template})
+        for flag, path in outputs.items():
+            problem = problem or (path and output_problem(path) and f"{flag} {output_problem(path)}")
+        if problem:
+            raise ValueError(problem)
         V, F = read_scan(args.scan)
-        landmarks = read_landmarks(args.landmarks, V) if args.landmarks else None
+        problem = scan_problem(V, F, args.scan)
+        landmarks = read_landmarks(args.landmarks, V) if args.landmarks and not problem else None
+        if landmarks is not None:
+            problem = landmark_problem(V, landmarks, args.landmarks, args.scan)
+        if problem:
+            raise ValueError(problem)
         if not os.path.isfile(args.template):
             print(f"fae adapt: template {args.template} not found (build it with `fae template`)", file=sys.stderr)
             return 2
@@ -222,7 +234,9 @@ def _finish(args, model, report, V, F, keep, started) -> int:
     from fae.io.atomic import atomic_open, atomic_path
     from fae.io.facemodel_gltf import write_facemodel
 
-    verdict = report.get("verdict", [])
+    from fae.commands.adapt_checks import implausible_fit
+
+    verdict = report["verdict"] = report.get("verdict", []) + implausible_fit(report)
     for why in verdict:
         _say(f"{args.scan}: {why}")
     if verdict and not args.force:
@@ -230,7 +244,7 @@ def _finish(args, model, report, V, F, keep, started) -> int:
              "--landmarks may help)")
         if args.report:
             with atomic_open(args.report, "w") as fh:
-                json.dump(_json_safe(report), fh, indent=1)
+                json.dump(_json_safe(report), fh, indent=1, allow_nan=False)
         return 2
     model = _calibrated(args, model, report)
     picture = None
@@ -246,7 +260,7 @@ def _finish(args, model, report, V, F, keep, started) -> int:
     write_facemodel(model, args.output)
     if args.report:
         with atomic_open(args.report, "w") as fh:
-            json.dump(_json_safe(report), fh, indent=1)
+            json.dump(_json_safe(report), fh, indent=1, allow_nan=False)
     if picture is not None:
         from fae.render.png import write_png
 
@@ -324,11 +338,22 @@ def _run_paper(args, template, V, F, landmarks) -> int:
     bar.close()
     if auto is not None:
         report["automatic_feature_points"] = auto
+    from fae.commands.adapt_checks import implausible_fit
+
+    verdict = report["verdict"] = implausible_fit(report)
+    for why in verdict:
+        _say(f"{args.scan}: {why}")
+    if verdict and not args.force:
+        _say(f"not writing {args.output}: the head is not to be trusted (--force writes it anyway)")
+        if args.report:
+            with atomic_open(args.report, "w") as fh:
+                json.dump(_json_safe(report), fh, indent=1, allow_nan=False)
+        return 2
     model = _calibrated(args, model, report)
     write_facemodel(model, args.output)
     if args.report:
         with atomic_open(args.report, "w") as fh:
-            json.dump(_json_safe(report), fh, indent=1)
+            json.dump(_json_safe(report), fh, indent=1, allow_nan=False)
     if args.plot:
         write_plot(report, args.plot)
     f = report["final"]

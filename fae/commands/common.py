@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import tempfile
 from pathlib import Path
 
 
@@ -44,18 +45,23 @@ def parse_supersample(text: str) -> int:
     return k
 
 
-def output_problem(path: str, suffix: str) -> str | None:
-    """Why `path` cannot receive an output file with `suffix`, or None when it can."""
+def output_problem(path: str, suffix: str | None = None) -> str | None:
+    """Why `path` cannot receive an output file (with `suffix`, when given), or None when it can."""
     target = Path(path)
-    if target.suffix.lower() != suffix:
+    if suffix is not None and target.suffix.lower() != suffix:
         return f"{path}: expected a {suffix} file name"
     if target.is_dir():
-        return f"{path}: is a folder, expected a {suffix} file name"
+        return f"{path}: is a folder, expected a {suffix or 'file'} name"
     folder = target.parent if str(target.parent) else Path(".")
     if not folder.is_dir():
         return f"{path}: output folder {folder} does not exist"
     if not os.access(folder, os.W_OK):
         return f"{path}: output folder {folder} is not writable"
+    try:  # the one sure test (root passes os.access everywhere, /proc takes no files)
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as exc:
+        return f"{path}: output folder {folder} cannot take a file ({exc.strerror or exc})"
     return None
 
 

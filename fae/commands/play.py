@@ -10,9 +10,11 @@ from __future__ import annotations
 
 import argparse
 import sys
+import tempfile
 from pathlib import Path
 
 from fae.commands.common import add_view_arguments, fail, load_head, output_problem, video_size_problem
+from fae.io.frames import MAX_HOLD_SECONDS
 
 
 def register(subparsers) -> None:
@@ -25,6 +27,9 @@ def register(subparsers) -> None:
     parser.add_argument("-o", "--output", required=True, metavar="OUT.mp4", help="the video to write")
     add_view_arguments(parser, "640x480")
     parser.add_argument("--fps", type=float, default=None, help="resample to this frame rate (default: the stream's)")
+    parser.add_argument("--max-hold", type=float, default=MAX_HOLD_SECONDS, metavar="SECONDS",
+                        help=f"longest a gap in the frame numbers is held (default {MAX_HOLD_SECONDS:g}); a longer "
+                        "gap is cut to it, with a warning, so that no stream plays for ever")
     parser.add_argument("--frames-dir", metavar="DIR", help="also write each frame as DIR/frame_00000.png, ...")
     parser.set_defaults(func=run)
 
@@ -39,6 +44,8 @@ def run(args: argparse.Namespace) -> int:
         return fail("play", problem)
     if args.fps is not None and not (0 < args.fps <= 1000):
         return fail("play", f"--fps {args.fps:g}: expected a frame rate in (0, 1000]")
+    if not 0 <= args.max_hold <= 1e6:
+        return fail("play", f"--max-hold {args.max_hold:g}: expected seconds in [0, 1e6]")
     problem = output_problem(args.output, ".mp4")
     if problem:
         return fail("play", problem)
@@ -56,6 +63,7 @@ def run(args: argparse.Namespace) -> int:
         return fail("play", str(exc))
 
     from fae.animate.player import Player
+    from fae.io.frames import dense_frames
     from fae.render.play import render_video
     from fae.render.renderer import FaceRenderer
     from fae.render.video import VideoError
@@ -71,16 +79,21 @@ def run(args: argparse.Namespace) -> int:
         with FaceRenderer(model, size=(width, height), view=args.view, supersample=args.supersample,
                           show_bones=args.show_bones) as renderer:
             player = Player(model, device="cpu")
-            timings = render_video(player.play(stream, fps=args.fps), renderer, args.output, fps,
+            frames = dense_frames(stream, fps=args.fps, max_hold=args.max_hold)
+            timings = render_video(player.play(frames, fps=fps), renderer, args.output, fps,
                                    frames_dir=frames_dir,
                                    on_frame=(lambda n: progress.update(1)) if progress else None)
     except FapFormatError as exc:
         return fail("play", f"{exc} (no video written)")
     except VideoError as exc:
         return fail("play", str(exc), status=1)
+    except OSError as exc:  # the output folder refused the file (OutputError names it)
+        return fail("play", str(exc) if exc.filename is None else f"{exc.filename}: {exc.strerror}")
     finally:
         if progress is not None:
             progress.close()
+    for warning in frames.warnings:
+        print(f"fae play: warning: {warning}", file=sys.stderr)
     print(f"{args.output}: {timings.frames} frames at {fps:g} fps, {width}x{height} "
           f"({timings.fps:.1f} frames/s)", file=sys.stderr)
     return 0

@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 
 from fae.commands.common import add_view_arguments, fail, load_head, output_problem, video_size_problem
-from fae.net.server import DEFAULT_HOST, DEFAULT_PORT, FapServer
+from fae.net.server import DEFAULT_HOST, DEFAULT_PORT, FapServer, ServerLimits
 
 
 def register(subparsers) -> None:
@@ -33,14 +33,25 @@ def register(subparsers) -> None:
     parser.add_argument("--fap-dir", metavar="DIR", help="folder Xface LOAD_FAP may read .fap files from "
                         "(default: LOAD_FAP is refused)")
     parser.add_argument("--device", default="cpu", help="Warp device for the faces (default cpu)")
+    defaults = ServerLimits()
+    parser.add_argument("--idle-timeout", type=float, default=defaults.idle_timeout, metavar="SECONDS",
+                        help="close a client silent this long with nothing in progress "
+                        f"(default {defaults.idle_timeout:g})")
+    parser.add_argument("--max-clients", type=int, default=defaults.max_clients, metavar="N",
+                        help=f"connections at once (default {defaults.max_clients})")
+    parser.add_argument("--max-per-address", type=int, default=defaults.max_per_address, metavar="N",
+                        help=f"connections at once from one IP address (default {defaults.max_per_address}); when "
+                        "either limit is reached, the connection idle longest makes room for a newcomer")
     parser.set_defaults(func=run)
 
 
 async def _serve(args, model, player=None) -> int:
     from fae.net.faces import player_face_factory
 
+    limits = ServerLimits(idle_timeout=args.idle_timeout, max_clients=args.max_clients,
+                          max_per_address=args.max_per_address)
     server = FapServer(player_face_factory(model, args.device, first=player), args.host, args.port,
-                       fap_dir=args.fap_dir, spare_faces=1)
+                       fap_dir=args.fap_dir, spare_faces=1, limits=limits)
     recorder = None
     if args.record:
         from fae.net.record import StreamRecorder
@@ -79,6 +90,11 @@ def run(args) -> int:
         problem = video_size_problem(args.size)
         if problem:
             return fail("serve", problem)
+    if not args.idle_timeout > 0:
+        return fail("serve", f"--idle-timeout {args.idle_timeout:g}: expected a positive number of seconds")
+    for flag, value in (("--max-clients", args.max_clients), ("--max-per-address", args.max_per_address)):
+        if value < 1:
+            return fail("serve", f"{flag} {value}: expected at least 1")
     if args.fap_dir and not Path(args.fap_dir).is_dir():
         return fail("serve", f"--fap-dir {args.fap_dir}: not a folder")
     from fae.io.facemodel_gltf import FaceModelError

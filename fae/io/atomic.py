@@ -1,33 +1,89 @@
-"""Outputs appear only when complete: write to a temporary file beside the target, then rename."""
+"""Outputs appear only when complete: write to a temporary file beside the target, then rename.
+
+The temporary file is named `.NAME.PID.XXXXXXXX.SUFFIX` (hidden, beside the target NAME),
+and is removed on any exception, SIGINT and SIGTERM included (fae.cli turns SIGTERM into
+an exception). A process killed outright (SIGKILL, power loss) cannot remove its own, so
+the next write of the same target sweeps the temporary files of that target whose
+writer, named by PID, is no longer running.
+"""
 
 from __future__ import annotations
 
 import contextlib
 import os
+import re
 import tempfile
 from pathlib import Path
 from typing import Iterator
 
 
+class OutputError(OSError):
+    """An output that cannot be written where it was asked for; the message names it."""
+
+
+def _running(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # someone else's process
+        return True
+    return True
+
+
+def sweep_stale(path: str | os.PathLike) -> list[Path]:
+    """Remove the temporary files of `path` left by writers that are no longer running;
+    returns them. Files of running writers (this process included) are left alone."""
+    target = Path(path)
+    folder = target.parent if str(target.parent) else Path(".")
+    pattern = re.compile(r"\." + re.escape(target.name) + r"\.(\d+)\.[A-Za-z0-9_]+\.[A-Za-z0-9]+\Z")
+    removed = []
+    try:
+        entries = list(os.scandir(folder))
+    except OSError:
+        return removed
+    for entry in entries:
+        match = pattern.match(entry.name)
+        if match is None or not entry.is_file(follow_symlinks=False):
+            continue
+        pid = int(match.group(1))
+        if pid == os.getpid() or _running(pid):
+            continue
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(entry.path)
+            removed.append(Path(entry.path))
+    return removed
+
+
 @contextlib.contextmanager
-def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[Path]:
+def atomic_path(path: str | os.PathLike, suffix: str | None = None, sweep: bool = True) -> Iterator[Path]:
     """Yield a temporary path in the target's folder; rename it onto `path` on success.
 
     On any exception the temporary file is removed and `path` is left untouched.
     `suffix` defaults to the target's own suffix (some writers pick the format from it).
+    sweep  first remove the target's stale temporary files (see `sweep_stale`); writers of
+           many files into one folder (a frame per PNG) pass False: each sweep lists the folder.
+    Raises FileNotFoundError when the folder does not exist, OutputError (an OSError
+    naming the target) when it cannot take a file.
     """
     target = Path(path)
     folder = target.parent if str(target.parent) else Path(".")
     if not folder.is_dir():
         raise FileNotFoundError(f"{target}: output folder {folder} does not exist")
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=suffix if suffix is not None else target.suffix, dir=folder)
+    if sweep:
+        sweep_stale(target)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.{os.getpid()}.",
+                                   suffix=suffix if suffix is not None else target.suffix, dir=folder)
+    except OSError as exc:
+        raise OutputError(f"{target}: cannot write a file in {folder} ({exc.strerror or exc})") from None
     os.close(fd)
     tmp_path = Path(tmp)
-    # mkstemp creates 0600 files; an output should get the ordinary umask-based mode.
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp_path, 0o666 & ~umask)
     try:
+        # mkstemp creates 0600 files; an output should get the ordinary umask-based mode.
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp_path, 0o666 & ~umask)
         yield tmp_path
         os.replace(tmp_path, target)
     except BaseException:

@@ -73,10 +73,11 @@ _MAX_FPS = 10_000.0
 _MAX_NUMBER = 1e15  # larger frame numbers or counts are not real streams (and lose integer precision)
 _VISEME_TOKENS = 4
 _EXPRESSION_TOKENS = 6
-_INT_RE = re.compile(r"[+-]?\d+\Z")
+# ASCII only: Python's \d also takes other scripts' digits ("１２３"), which no .fap writer means.
+_INT_RE = re.compile(r"[+-]?\d+\Z", re.ASCII)
 # Unambiguous (the digits before a point belong to one group), so a failing match backtracks
 # in linear, not quadratic, time on a long hostile token.
-_NUMBER_RE = re.compile(r"[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?\Z")
+_NUMBER_RE = re.compile(r"[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?\Z", re.ASCII)
 # Characters a decimal number may hold: a values line made only of these is converted in one
 # call (no regex, so no backtracking on hostile input); anything else takes the per-token path.
 _NUMBER_CHARS = frozenset("0123456789+-.eE")
@@ -159,10 +160,15 @@ class FapParser:
 
     ``header`` is None until the header line has been read; ``warnings`` collects what
     was accepted with a warning. Every problem raises :class:`FapFormatError`.
+
+    max_line  characters one line may hold (its line end included); a longer line is
+              refused before any of it is split, so a caller feeding unbounded lines
+              cannot make the parser allocate for them
     """
 
-    def __init__(self, source_name: str = "<stream>"):
+    def __init__(self, source_name: str = "<stream>", max_line: int = MAX_LINE_BYTES):
         self.source_name = str(source_name)
+        self.max_line = int(max_line)
         self.header: FapHeader | None = None
         self.warnings: list[str] = []
         self.frame_count = 0
@@ -202,6 +208,9 @@ class FapParser:
 
         Returns the frame completed by this line (a values line), else None.
         """
+        if len(line) > self.max_line:
+            raise self._error(line_number, None, f"a line of at most {self.max_line} characters, "
+                              f"got {len(line)}")
         if line.startswith("\ufeff") and self.header is None:
             line = line[1:]
         text = line.rstrip("\r\n")

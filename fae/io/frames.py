@@ -11,14 +11,21 @@ so fae applies the standard's "bit mask follows" semantics):
   defines left/right pairs so that equal values are mirror-symmetric); failing that, an
   inner lip FAP takes its outer lip partner's value and vice versa (same FAPU, same
   direction); failing that, it holds.
-- clamp (``clamp=True``): values outside the standard's range are clamped, with one
-  warning per FAP. The range used is the I (intra) range times the quantiser step
+- clamp (``clamp=True``): values outside the standard's range are clamped. The range used
+  is the I (intra) range times the quantiser step
   (:attr:`fae.mpeg4.faps.FapInfo.value_range`): an intra frame codes the value itself, so
   its range bounds values; the P range bounds frame-to-frame differences and would clamp
   legitimate poses (e.g. a head turn of 8500 AU is within 1860 x 170 but a P range reading
-  of 600 would cut it). FAPs 1 and 2 (codes) are not clamped.
+  of 600 would cut it). FAPs 1 and 2 (codes) are not clamped. The face plays a narrower
+  range still (fae.animate.faptables.FAP_LIMITS, e.g. open_jaw 0..1080 MNS): one warning
+  per FAP names that range, the one a viewer sees the value cut to (a unidirectional FAP
+  slightly below 0, as real streams send, is cut to 0 without a warning).
 - time: the first frame of a stream is at t = 0 whatever its number (0 or 1); frame
   numbers that skip are filled with held frames so dense index k is at t = k / fps.
+- long gaps: a hold is cut to ``max_hold`` seconds (MAX_HOLD_SECONDS by default; None: no
+  limit), with one warning per cut, and the frames after it come that much earlier. A
+  stream of frames 0 and 10**12 is legal, but playing its 1.3 years of held frames is not
+  what anyone asked for; the cut keeps the cost of any gap bounded.
 - resampling to another fps: output frame j is at t = j / fps_out for all t inside the
   stream's duration N / fps_in (so there are ceil(N * fps_out / fps_in) frames); values
   are interpolated linearly between the two source frames around t, the viseme and
@@ -33,11 +40,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from fae.animate.faptables import FAP_LIMITS
 from fae.io.fap import FapFrame
 from fae.mpeg4.faps import FAP_COUNT, FAPS, LIP_PARTNER_FAP, MIRROR_FAP
 from fae.mpeg4.highlevel import Expression, Viseme
 
-__all__ = ["DenseFrame", "FrameState", "DenseFrames", "dense_frames"]
+__all__ = ["DenseFrame", "FrameState", "DenseFrames", "dense_frames", "MAX_HOLD_SECONDS"]
+
+MAX_HOLD_SECONDS = 60.0  # longest hold played by default (a pause in speech is seconds)
 
 
 @dataclass(eq=False)
@@ -69,6 +79,13 @@ _MIRROR_INDEX = _partner_index(MIRROR_FAP)
 _LIP_INDEX = _partner_index(LIP_PARTNER_FAP)
 _RANGE_LOW = np.array([-np.inf if i < 2 else FAPS[i].value_range[0] for i in range(FAP_COUNT)])
 _RANGE_HIGH = np.array([np.inf if i < 2 else FAPS[i].value_range[1] for i in range(FAP_COUNT)])
+# Values beyond these get the clamp warning. A unidirectional FAP (open_jaw, lift_*_cheek, ...)
+# is played from 0 up, but real streams send it slightly negative (-4 in the Xface samples):
+# that cut is the FAP's definition, not news, so only a value as far below 0 as its top
+# is above is warned about.
+_WARN_HIGH = np.where(np.arange(FAP_COUNT) < 2, np.inf, FAP_LIMITS[:, 1])
+_WARN_LOW = np.where(np.arange(FAP_COUNT) < 2, -np.inf,
+                     np.where(FAP_LIMITS[:, 0] >= 0, -FAP_LIMITS[:, 1], FAP_LIMITS[:, 0]))
 
 
 class FrameState:
@@ -103,15 +120,15 @@ class FrameState:
             from_lip = ~sent & ~from_mirror & has_lip & sent[np.where(has_lip, _LIP_INDEX, 0)]
             values[from_lip] = incoming[_LIP_INDEX[from_lip]]
         if self.clamp:
-            outside = (values < _RANGE_LOW) | (values > _RANGE_HIGH)
+            outside = (values < _WARN_LOW) | (values > _WARN_HIGH)
             if outside.any():
                 for i in np.flatnonzero(outside & ~self._clamped):
                     info = FAPS[i]
-                    low, high = info.value_range
+                    low, high = FAP_LIMITS[i]
                     self.warnings.append(
                         f"{self.source_name}: frame {frame.number}: FAP {info.number} {info.name} = {values[i]:g} "
-                        f"{info.fapu} is outside the standard's range [{low:g}, {high:g}] (I range x quantiser "
-                        "step); clamped here and wherever else it is out of range")
+                        f"{info.fapu} is outside [{low:g}, {high:g}], the range the face plays; played as "
+                        f"{min(max(values[i], low), high):g} here and cut to that range wherever else it is outside")
                 self._clamped |= outside
                 values = np.clip(values, _RANGE_LOW, _RANGE_HIGH)
         if sent[0]:
@@ -131,9 +148,12 @@ class DenseFrames:
     """
 
     def __init__(self, frames: Iterable[FapFrame], source_fps: float, fps: float | None, fill: bool,
-                 clamp: bool, source_name: str):
+                 clamp: bool, source_name: str, max_hold: float | None = MAX_HOLD_SECONDS):
         if not (math.isfinite(source_fps) and source_fps > 0):
             raise ValueError(f"{source_name}: source fps must be positive, got {source_fps!r}")
+        if max_hold is not None and not max_hold >= 0:
+            raise ValueError(f"max_hold must be a number of seconds >= 0 or None, got {max_hold!r}")
+        self.max_hold = max_hold
         if fps is not None and not (math.isfinite(fps) and fps > 0):
             raise ValueError(f"output fps must be positive, got {fps!r}")
         self.frames = frames
@@ -153,10 +173,22 @@ class DenseFrames:
     def _source(self, state: FrameState) -> Iterator[DenseFrame]:
         first = None
         previous: DenseFrame | None = None
+        previous_number = 0
+        cut = 0  # frames left out of long holds so far
+        longest = None if self.max_hold is None else math.floor(self.max_hold * self.source_fps + 1e-9)
         for frame in self.frames:
             if first is None:
                 first = frame.number
-            index = frame.number - first
+            index = frame.number - first - cut
+            if previous is not None and longest is not None and index - previous.index - 1 > longest:
+                missing = frame.number - previous_number - 1
+                state.warnings.append(
+                    f"{self.source_name}: frames {previous_number + 1}..{frame.number - 1} are missing "
+                    f"({missing / self.source_fps:.6g} s): frame {previous_number} is held for {self.max_hold:g} s "
+                    "only, and the stream goes on from there")
+                cut += index - previous.index - 1 - longest
+                index = previous.index + 1 + longest
+            previous_number = frame.number
             if previous is not None:
                 for held in range(previous.index + 1, index):  # frame numbers that skip: hold
                     yield DenseFrame(held, held / self.source_fps, previous.values.copy(), previous.viseme, previous.expression)
@@ -198,7 +230,7 @@ class DenseFrames:
 
 
 def dense_frames(stream, fps: float | None = None, fill: bool = False, clamp: bool = True,
-                 source_fps: float | None = None) -> DenseFrames:
+                 source_fps: float | None = None, max_hold: float | None = MAX_HOLD_SECONDS) -> DenseFrames:
     """Dense frames of a stream: every FAP valued at every frame (see the module rules).
 
     stream      a :class:`fae.io.fap.FapStream` (its header gives the fps) or any iterable
@@ -206,7 +238,9 @@ def dense_frames(stream, fps: float | None = None, fill: bool = False, clamp: bo
     fps         output frame rate (None: the stream's own)
     fill        fill unsent FAPs from their left/right, then inner/outer lip partner
     clamp       clamp to the standard's value ranges (one warning per FAP)
-    Returns a re-iterable :class:`DenseFrames` whose ``warnings`` lists the clamp warnings.
+    max_hold    seconds a gap in the frame numbers is held at most (None: as long as it is)
+    Returns a re-iterable :class:`DenseFrames` whose ``warnings`` lists the clamp and cut
+    warnings.
     """
     header = getattr(stream, "header", None)
     if source_fps is None:
@@ -214,4 +248,4 @@ def dense_frames(stream, fps: float | None = None, fill: bool = False, clamp: bo
             raise ValueError("dense_frames: give source_fps for a stream without a header")
         source_fps = header.fps
     name = getattr(stream, "source_name", "<stream>")
-    return DenseFrames(stream, source_fps, fps, fill, clamp, name)
+    return DenseFrames(stream, source_fps, fps, fill, clamp, name, max_hold)

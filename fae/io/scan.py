@@ -85,10 +85,14 @@ def read_scan(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     path = os.fspath(path)
     if not os.path.isfile(path):
         raise FileNotFoundError(f"{path}: scan file not found")
+    expected = "expected a mesh file (OBJ, PLY, STL, OFF, GLB/glTF)"
     try:
         loaded = trimesh.load(path, force="mesh", process=False)
+    except ImportError:  # a loader wanting an optional module for bytes it cannot place
+        raise ValueError(f"{path}: cannot read a mesh: {expected}") from None
     except Exception as exc:  # trimesh raises many kinds
-        raise ValueError(f"{path}: cannot read a mesh ({exc})") from exc
+        reason = " ".join(str(exc).split())[:200] or type(exc).__name__
+        raise ValueError(f"{path}: cannot read a mesh ({reason}): {expected}") from None
     V = np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))), dtype=np.float64)
     F = np.asarray(getattr(loaded, "faces", np.zeros((0, 3))), dtype=np.int64)
     if len(V) == 0 or len(F) == 0:
@@ -99,12 +103,20 @@ def read_scan(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
 
 
 def ibug68_to_fdp(points: np.ndarray, source: str = "landmarks") -> dict[str, np.ndarray]:
-    """FDP name -> (3,) from 68 iBUG points (68, 3), by IBUG68_TO_FDP."""
+    """FDP name -> (3,) from 68 iBUG points (68, 3), by IBUG68_TO_FDP.
+
+    Raises LandmarkError naming the points that are null or not finite among those used
+    (a feature point silently missing would bend the fit where nobody looks)."""
     points = np.asarray(points, dtype=np.float64)
     if points.shape != (68, 3):
         raise LandmarkError(f"{source}: expected 68 iBUG points with x, y, z, got shape {points.shape}")
-    return {name: points[list(idx)].mean(axis=0) for name, idx in IBUG68_TO_FDP.items()
-            if np.all(np.isfinite(points[list(idx)]))}
+    used = sorted({i for idx in IBUG68_TO_FDP.values() for i in idx})
+    missing = [i for i in used if not np.all(np.isfinite(points[i]))]
+    if missing:
+        shown = ", ".join(str(i) for i in missing[:10]) + (", ..." if len(missing) > 10 else "")
+        raise LandmarkError(f"{source}: {len(missing)} iBUG points are null or not finite (0-based: {shown}); "
+                            "expected x, y, z numbers for every point fae uses")
+    return {name: points[list(idx)].mean(axis=0) for name, idx in IBUG68_TO_FDP.items()}
 
 
 def _check_name(name: str, source: str) -> str:
@@ -132,10 +144,20 @@ def read_landmarks(path: str | os.PathLike, vertices: np.ndarray | None = None) 
     """FDP name -> (3,) float64 in the scan's frame and unit (see module docstring).
 
     vertices (n, 3): the scan's vertices, needed when the file gives vertex indices.
+    Raises LandmarkError naming the file (and line or field) for any content it cannot use.
     """
     path = os.fspath(path)
     if not os.path.isfile(path):
         raise FileNotFoundError(f"{path}: landmark file not found")
+    try:
+        return _read_landmarks(path, vertices)
+    except UnicodeDecodeError as exc:
+        raise LandmarkError(f"{path}: byte {exc.start}: expected UTF-8 text") from None
+    except RecursionError:
+        raise LandmarkError(f"{path}: nested too deeply; expected a JSON object of feature points") from None
+
+
+def _read_landmarks(path: str, vertices: np.ndarray | None) -> dict[str, np.ndarray]:
     ext = os.path.splitext(path)[1].lower()
     if ext in (".json", ".ljson"):
         try:
@@ -173,10 +195,11 @@ def read_landmarks(path: str | os.PathLike, vertices: np.ndarray | None = None) 
             if len(r) != 4:
                 raise LandmarkError(f"{path}: line {line}: expected name,x,y,z, got {len(r)} fields")
             try:
-                out[_check_name(r[0], f"{path}: line {line}")] = np.array(r[1:], dtype=np.float64)
+                point = np.array(r[1:], dtype=np.float64)
             except ValueError as exc:
-                if isinstance(exc, LandmarkError):
-                    raise
                 raise LandmarkError(f"{path}: line {line}: x, y, z must be numbers") from exc
+            if not np.all(np.isfinite(point)):
+                raise LandmarkError(f"{path}: line {line}: x, y, z must be finite numbers, got {', '.join(r[1:])}")
+            out[_check_name(r[0], f"{path}: line {line}")] = point
         return out
     raise LandmarkError(f"{path}: unknown landmark format {ext!r} (expected .json, .ljson or .csv)")

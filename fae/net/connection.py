@@ -1,37 +1,72 @@
-"""One client connection: its id, streams, and bounded output."""
+"""One client connection: its id, reads with an idle timeout, and bounded output."""
 
 from __future__ import annotations
 
 import asyncio
+import logging
+import time
 from dataclasses import dataclass, field
+from typing import Callable
 
 READ_CHUNK = 65536
+
+log = logging.getLogger("fae.net")
 
 
 @dataclass
 class Connection:
     """A connected client.
 
-    client_id   counts up from 1 over the server's life, never reused (Xface ownerId)
-    max_output  bytes that may wait unsent to this client; past that the client is
-                treated as dead and dropped, so one that never reads cannot grow memory
+    client_id     counts up from 1 over the server's life, never reused (Xface ownerId)
+    max_output    bytes that may wait unsent to this client; past that the client is
+                  treated as dead and dropped, so one that never reads cannot grow memory
+    idle_timeout  seconds a read may wait for the client's next bytes while the client
+                  has nothing in progress on the server (None: no limit); then the
+                  connection is closed, so silent sockets cannot hold places for ever
+    busy          tells whether the client is waiting on the server (frames being played,
+                  a playback it started); a busy client is never timed out
+    last_active   time.monotonic() of the client's latest bytes (or of its connection)
     """
 
     client_id: int
     reader: asyncio.StreamReader
     writer: asyncio.StreamWriter
     max_output: int = 1 << 20
+    idle_timeout: float | None = None
     peer: str = field(default="")
     dropped: bool = False
+    busy: Callable[[], bool] = field(default=lambda: False)
+    last_active: float = field(default_factory=time.monotonic)
 
     def __post_init__(self) -> None:
+        info = self.writer.get_extra_info("peername")
+        self.address = info[0] if isinstance(info, tuple) else str(info)
         if not self.peer:
-            info = self.writer.get_extra_info("peername")
             self.peer = f"{info[0]}:{info[1]}" if isinstance(info, tuple) else str(info)
 
     @property
     def closing(self) -> bool:
         return self.dropped or self.writer.transport.is_closing()
+
+    @property
+    def idle_seconds(self) -> float:
+        """Seconds since the client last sent anything (0 while it is busy)."""
+        return 0.0 if self.busy() else time.monotonic() - self.last_active
+
+    async def read(self, timeout: float | None = None) -> bytes:
+        """The client's next bytes; b"" when it has closed, or has been idle for
+        `timeout` (default: idle_timeout) seconds with nothing in progress."""
+        limit = self.idle_timeout if timeout is None else timeout
+        while True:
+            try:
+                data = await asyncio.wait_for(self.reader.read(READ_CHUNK), limit)
+            except asyncio.TimeoutError:
+                if self.busy():
+                    continue
+                log.warning("client %d (%s): idle for %g s; closing", self.client_id, self.peer, limit)
+                return b""
+            self.last_active = time.monotonic()
+            return data
 
     def send(self, data: bytes) -> bool:
         """Queue bytes without waiting; False (and the connection dropped) when it cannot."""

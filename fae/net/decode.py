@@ -7,13 +7,15 @@ frame (the reader is re-synchronized on the next mask line).
 
 from __future__ import annotations
 
+from bisect import bisect_right
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 from fae.io.fap import FapFormatError, FapParser
 from fae.mpeg4.faps import FAP_COUNT
-from fae.io.frames import DenseFrame, FrameState, dense_frames
+from fae.io.frames import DenseFrame, FrameState
 
-__all__ = ["FapFormatError", "HeaderRead", "StreamFrame", "StreamDecoder", "decode_text"]
+__all__ = ["FapFormatError", "HeaderRead", "StreamFrame", "StreamDecoder", "HeldFrames", "decode_text"]
 
 
 @dataclass(frozen=True)
@@ -124,13 +126,56 @@ class StreamDecoder:
         return StreamFrame(frame.number, dt, dense)
 
 
-def decode_text(text: str, source_name: str) -> tuple[float, list[DenseFrame]]:
-    """A whole .fap text -> (fps, dense frames: held, clamped, gaps filled). Raises FapFormatError."""
+class HeldFrames(Sequence):
+    """A stream's dense frames, one per frame number from its first to its last, holding
+    only the frames it sent: the frames of a gap are made when asked for, from the frame
+    before the gap (their values are that frame's, shared, not copied). So a stream of two
+    frames numbered 0 and 10**12 costs two frames of memory, not a trillion.
+
+    keys  the dense frames the stream sent, their indices increasing (the first is 0)
+    fps   the stream's frame rate (a frame's time is its index / fps)
+    """
+
+    def __init__(self, keys: list[DenseFrame], fps: float) -> None:
+        self._keys = keys
+        self._indices = [k.index for k in keys]
+        self.fps = float(fps)
+
+    @property
+    def sent(self) -> int:
+        """Frames the stream sent (the others hold one of them)."""
+        return len(self._keys)
+
+    def __len__(self) -> int:
+        return self._indices[-1] + 1 if self._keys else 0
+
+    def __getitem__(self, i):
+        if isinstance(i, slice):
+            return [self[j] for j in range(*i.indices(len(self)))]
+        n = len(self)
+        if i < 0:
+            i += n
+        if not 0 <= i < n:
+            raise IndexError(f"frame {i}: the stream has frames 0..{n - 1}")
+        key = self._keys[bisect_right(self._indices, i) - 1]
+        if key.index == i:
+            return key
+        return DenseFrame(i, i / self.fps, key.values, key.viseme, key.expression)
+
+
+def decode_text(text: str, source_name: str) -> tuple[float, HeldFrames]:
+    """A whole .fap text -> (fps, its dense frames: held, clamped, gaps held; see HeldFrames).
+    Raises FapFormatError."""
     parser = FapParser(source_name)
-    frames = []
+    state = FrameState(source_name=source_name)
+    keys: list[DenseFrame] = []
+    first = None
     for number, line in enumerate(text.splitlines(), start=1):
         frame = parser.feed_line(line, number)
         if frame is not None:
-            frames.append(frame)
+            first = frame.number if first is None else first
+            index = frame.number - first
+            values = state.update(frame)
+            keys.append(DenseFrame(index, index / parser.header.fps, values, state.viseme, state.expression))
     parser.finish()
-    return float(parser.header.fps), list(dense_frames(frames, source_fps=parser.header.fps))
+    return float(parser.header.fps), HeldFrames(keys, parser.header.fps)

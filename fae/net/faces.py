@@ -10,6 +10,7 @@ faces use several cores.
 from __future__ import annotations
 
 import asyncio
+import math
 import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
@@ -48,6 +49,8 @@ class FrameConsumer(Protocol):
 
 
 FaceFactory = Callable[[], FrameConsumer]
+
+FRAME_SLICE = 0.1  # seconds of a long frame stepped per job (5 substeps on the shipped head)
 
 
 class FaceWorker:
@@ -100,8 +103,22 @@ class FaceWorker:
         return asyncio.shield(task)
 
     def submit(self, frame: DenseFrame, dt: float) -> asyncio.Future:
-        """Queue one step; the returned future resolves to its Pose. Steps run in order."""
-        return self._queue(self._step, frame, dt)
+        """Queue one step; the returned future resolves to its Pose. Steps run in order.
+
+        A frame longer than FRAME_SLICE seconds (a gap in a stream's frame numbers, a low
+        fps) is stepped as equal slices of at most FRAME_SLICE, together the part of it the
+        Player simulates (at most fae.animate.player.MAX_STEP_SECONDS): each slice is a job
+        of its own on the shared pool, so other faces' steps take turns with them instead
+        of waiting behind one long step."""
+        if not dt > FRAME_SLICE:
+            return self._queue(self._step, frame, dt)
+        from fae.animate.player import MAX_STEP_SECONDS
+
+        total = min(float(dt), MAX_STEP_SECONDS)
+        slices = max(1, math.ceil(total / FRAME_SLICE - 1e-9))
+        for _ in range(slices - 1):
+            self._queue(self._step, frame, total / slices)
+        return self._queue(self._step, frame, total / slices)
 
     async def ready(self) -> None:
         """Wait until the face is built; raises what its factory raised."""

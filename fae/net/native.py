@@ -27,7 +27,7 @@ from __future__ import annotations
 import asyncio
 import logging
 
-from fae.net.connection import READ_CHUNK, Connection
+from fae.net.connection import Connection
 from fae.net.decode import FapFormatError, HeaderRead, StreamDecoder, StreamFrame
 from fae.net.faces import FacePool, FaceWorker
 from fae.net.hub import FrameEvent, FrameHub, StreamEnd
@@ -98,7 +98,7 @@ class NativeSession:
                 while self.unacknowledged >= self.window and not self._stopped():
                     self._room.clear()
                     await self._room.wait()
-                data = await self.conn.reader.read(READ_CHUNK)
+                data = await self.conn.read()
             clean_end = not data and not self._stop_reading and not self.conn.closing
             if clean_end and (self.splitter.pending or self.decoder.in_frame):
                 await self._error(self.splitter.line_count + 1,

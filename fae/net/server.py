@@ -16,6 +16,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -23,10 +24,12 @@ from fae.net import xface
 from fae.net.connection import READ_CHUNK, Connection
 from fae.net.faces import FaceFactory, FacePool
 from fae.net.hub import FrameHub, Subscription
+from fae.net.logbound import bound_logger
 from fae.net.native import NativeSession
 from fae.net.stage import XfaceStage
 
 log = logging.getLogger("fae.net")
+bound_logger()
 
 DEFAULT_HOST = "127.0.0.1"
 DEFAULT_PORT = 50011
@@ -41,9 +44,18 @@ class ServerLimits:
     max_task        bytes per Xface task (an UPLOAD_FAP carries a whole file)
     window          native frames decoded but not yet acknowledged per client before
                     reading from it pauses
-    max_errors      error replies after which a native connection is closed
+    max_errors      error replies after which a connection is closed
     max_output      bytes waiting unsent to a client before it is dropped as dead
-    max_clients     connections at once; more are closed on accept
+    max_clients     connections at once
+    max_per_address connections at once from one IP address
+    idle_timeout    seconds a client may stay silent with nothing in progress before it
+                    is closed (an Xface client's playback, a native client's frames in
+                    play count as in progress)
+    evict_idle      when a newcomer finds no place (max_clients, or its address's
+                    max_per_address), the connection idle longest is closed to make room,
+                    if it has been idle at least this many seconds; otherwise the
+                    newcomer is refused. So sockets that hold places and say nothing
+                    cannot lock a well-behaved client out.
     """
 
     greeting_delay: float = 0.25
@@ -53,6 +65,9 @@ class ServerLimits:
     max_errors: int = 32
     max_output: int = 1 << 20
     max_clients: int = 64
+    max_per_address: int = 16
+    idle_timeout: float = 300.0
+    evict_idle: float = 1.0
 
 
 class FapServer:
@@ -78,7 +93,8 @@ class FapServer:
         self.hub = FrameHub()
         self.clients: dict[int, Connection] = {}
         self.stage = XfaceStage(self.faces, self.hub, self.clients,
-                                fap_dir=Path(fap_dir) if fap_dir is not None else None, max_task=limits.max_task)
+                                fap_dir=Path(fap_dir) if fap_dir is not None else None, max_task=limits.max_task,
+                                max_errors=limits.max_errors)
         self.connections_total = 0
         self.native_frames = 0
         self.native_steps = 0
@@ -146,20 +162,22 @@ class FapServer:
         client_id = self._next_id
         self._next_id += 1
         self.connections_total += 1
-        conn = Connection(client_id, reader, writer, max_output=self.limits.max_output)
+        conn = Connection(client_id, reader, writer, max_output=self.limits.max_output,
+                          idle_timeout=self.limits.idle_timeout)
         try:
-            if len(self.clients) >= self.limits.max_clients:
-                log.warning("client %d (%s): refused, %d clients connected", client_id, conn.peer, len(self.clients))
+            if not self._make_room(conn):
                 return
             self.clients[client_id] = conn
             first = await self._first_bytes(conn)
             if not first:
                 return
             if first.lstrip()[:1] == b"<":
+                conn.busy = lambda: self.stage.busy_for(client_id)
                 await self.stage.session(conn, first)
             else:
                 session = NativeSession(conn, self.faces, self.hub, window=self.limits.window,
                                         max_line=self.limits.max_line, max_errors=self.limits.max_errors)
+                conn.busy = lambda: session.unacknowledged > 0
                 try:
                     await session.run(first)
                 finally:
@@ -176,19 +194,50 @@ class FapServer:
             with contextlib.suppress(Exception):
                 await asyncio.wait_for(writer.wait_closed(), 1.0)
 
+    def _make_room(self, conn: Connection) -> bool:
+        """Whether `conn` may stay: there is a place for it, or one was made by closing the
+        connection idle longest (of its own address when that address is at its cap)."""
+        limits = self.limits
+        same = [c for c in self.clients.values() if c.address == conn.address]
+        if len(same) >= limits.max_per_address:
+            candidates, why = same, f"{len(same)} connections from {conn.address}"
+        elif len(self.clients) >= limits.max_clients:
+            candidates, why = list(self.clients.values()), f"{len(self.clients)} clients connected"
+        else:
+            return True
+        idlest = max(candidates, key=lambda c: c.idle_seconds)
+        idle = idlest.idle_seconds
+        if idle < limits.evict_idle:
+            log.warning("client %d (%s): refused, %s and none idle", conn.client_id, conn.peer, why)
+            return False
+        log.warning("client %d (%s): %s; closing client %d (%s), idle for %.1f s, to make room",
+                    conn.client_id, conn.peer, why, idlest.client_id, idlest.peer, idle)
+        self.clients.pop(idlest.client_id, None)
+        idlest.drop()
+        return True
+
     async def _first_bytes(self, conn: Connection) -> bytes:
-        """Bytes up to and including the first non-blank one (b"" if the client left)."""
+        """Bytes up to and including the first non-blank one (b"" if the client left or
+        stayed silent for the idle timeout after its greeting)."""
         greeted = False
         data = b""
         while not data.strip():
             if len(data) > self.limits.max_line:
                 return b""
             try:
-                chunk = await asyncio.wait_for(conn.reader.read(READ_CHUNK), None if greeted else self.limits.greeting_delay)
+                chunk = await asyncio.wait_for(conn.reader.read(READ_CHUNK), self.limits.greeting_delay)
             except asyncio.TimeoutError:
                 greeted = True
                 conn.send(xface.notify_bytes("CONNECTION_OK", conn.client_id, 0, xface.STATUS_UNKNOWN))
-                continue
+                break
+            if not chunk:
+                return b""
+            conn.last_active = time.monotonic()
+            data += chunk
+        while not data.strip():  # greeted: an Xface client may now take its time
+            if len(data) > self.limits.max_line:
+                return b""
+            chunk = await conn.read()
             if not chunk:
                 return b""
             data += chunk

@@ -15,10 +15,13 @@ from __future__ import annotations
 
 import asyncio
 import logging
+from collections import Counter
+from collections.abc import Sequence
 from pathlib import Path
 
 from fae.net import xface
-from fae.net.connection import READ_CHUNK, Connection
+from fae.io.frames import DenseFrame
+from fae.net.connection import Connection
 from fae.net.decode import FapFormatError, decode_text
 from fae.net.faces import FacePool, FaceWorker, Pose
 from fae.net.hub import FrameEvent, FrameHub, StreamEnd
@@ -37,7 +40,7 @@ def wav_byte_count(task: xface.XfaceTask) -> int | None:
     if len(task.params) < 2:
         return None
     text = task.params[1].strip()
-    return int(text) if text.isdigit() and len(text) <= 12 else None
+    return int(text) if text.isascii() and text.isdigit() and len(text) <= 12 else None
 
 
 def resolve_fap_path(fap_dir: Path | None, param: str) -> Path:
@@ -67,16 +70,19 @@ class XfaceStage:
     clients    the server's connections by client id (notifications are routed by ownerId)
     fap_dir    folder LOAD_FAP may read from, or None to refuse LOAD_FAP
     max_task   bytes per task message (an UPLOAD_FAP holds a whole file)
+    max_errors error replies after which a client is closed
     """
 
     def __init__(self, faces: FacePool, hub: FrameHub, clients: dict[int, Connection], *,
-                 fap_dir: Path | None = None, max_task: int = 8 << 20, queue_size: int = 64) -> None:
+                 fap_dir: Path | None = None, max_task: int = 8 << 20, queue_size: int = 64,
+                 max_errors: int = 32) -> None:
         self.faces = faces
         self.hub = hub
         self.clients = clients
         self.fap_dir = Path(fap_dir) if fap_dir is not None else None
         self.max_task = max_task
-        self.frames: list = []
+        self.max_errors = max_errors
+        self.frames: Sequence[DenseFrame] = ()
         self.fps = 25.0
         self.pos = 0
         self.last_pose: Pose | None = None
@@ -86,15 +92,24 @@ class XfaceStage:
         self.frames_applied = 0
         self.steps = 0
         self._epoch = 0  # bumped when the stream or its position changes outside playback
+        self._waiting: Counter[int] = Counter()  # tasks queued or running, by client id
+        self._playing_for: int | None = None  # the client whose RESUME_PLAYBACK is playing
         self._queue: asyncio.Queue = asyncio.Queue(queue_size)
         self._dispatcher: asyncio.Task | None = None
 
     # -- per connection ------------------------------------------------------------
+    def busy_for(self, client_id: int) -> bool:
+        """Whether the client waits on the stage: a task of its queued or running, or the
+        playback it started still playing (its silence then is no idleness)."""
+        playing = self.playback is not None and not self.playback.done()
+        return self._waiting[client_id] > 0 or (playing and self._playing_for == client_id)
+
     async def session(self, conn: Connection, first: bytes) -> None:
         """Read tasks from one Xface client until it closes."""
         if self._dispatcher is None:
             self._dispatcher = asyncio.create_task(self._dispatch())
         splitter = xface.TaskSplitter(self.max_task)
+        errors = 0
         data = first
         while data and not conn.closing:
             splitter.push(data)
@@ -110,8 +125,9 @@ class XfaceStage:
                 try:
                     task = xface.parse_task(message)
                 except xface.TaskFormatError as exc:
-                    log.warning("xface client %d: %s", conn.client_id, exc)
-                    await conn.send_and_drain(xface.error_notify_bytes())
+                    errors += 1
+                    if await self._refuse(conn, str(exc), errors):
+                        return
                     continue
                 if task.name == "UPLOAD_WAV":  # audio is not played: pass over its bytes
                     count = wav_byte_count(task)
@@ -123,12 +139,22 @@ class XfaceStage:
                         return
                     splitter.skip(count)
                 if task.name not in HANDLED:
-                    log.warning("xface client %d: task %s is not supported", conn.client_id, task.name)
-                    await conn.send_and_drain(xface.error_notify_bytes())
+                    errors += 1
+                    if await self._refuse(conn, f"task {task.name!r} is not supported", errors):
+                        return
                     continue
                 await conn.send_and_drain(xface.notify_bytes(task.name, task.owner_id, task.task_id, xface.STATUS_QUEUED))
-                await self._queue.put(task)
-            data = await conn.reader.read(READ_CHUNK)
+                self._waiting[conn.client_id] += 1
+                await self._queue.put((conn.client_id, task))
+            data = await conn.read()
+
+    async def _refuse(self, conn: Connection, why: str, errors: int) -> bool:
+        """Answer a task with ERROR (the client's `errors`-th); True when that is
+        `max_errors` and the client is to be closed (each error costs a log line and a reply)."""
+        closing = errors >= self.max_errors
+        log.warning("xface client %d: %s%s", conn.client_id, why, f" (error {errors}: closing)" if closing else "")
+        await conn.send_and_drain(xface.error_notify_bytes())
+        return closing
 
     # -- the shared task queue -----------------------------------------------------
     def _route(self, task: xface.XfaceTask, status: int) -> None:
@@ -140,14 +166,20 @@ class XfaceStage:
 
     async def _dispatch(self) -> None:
         while True:
-            task = await self._queue.get()
+            client_id, task = await self._queue.get()
             try:
+                if task.name == "RESUME_PLAYBACK":
+                    self._playing_for = client_id
                 await getattr(self, "_task_" + task.name.lower())(task)
             except asyncio.CancelledError:
                 raise
             except Exception:
                 log.exception("xface task %s failed", task.name)
                 self._route(task, xface.STATUS_ERROR)
+            finally:
+                self._waiting[client_id] -= 1
+                if self._waiting[client_id] <= 0:
+                    del self._waiting[client_id]
 
     async def _load(self, task: xface.XfaceTask, read_text) -> None:
         self._route(task, xface.STATUS_STARTED)
@@ -223,15 +255,19 @@ class XfaceStage:
             self.worker = self.faces.take()
         return self.worker
 
-    async def _apply(self, frame, skipped: list = ()) -> None:
-        """One step of one frame period towards `frame`; publish it and the `skipped` frames
-        before it (their held values are in `frame`'s) with the resulting pose."""
+    async def _apply(self, frame, skipped: range = range(0)) -> None:
+        """One step of one frame period towards `frame`; publish it and the frames at the
+        `skipped` positions before it (their held values are in `frame`'s) with the
+        resulting pose."""
         pose = await self._face().submit(frame, 1.0 / self.fps)
         self.steps += 1
         self.frames_applied += len(skipped) + 1
         self.last_pose, self.last_index = pose, frame.index
-        for f in (*skipped, frame):
+        frames = self.frames
+        for i in skipped:
+            f = frames[i]
             await self.hub.publish(FrameEvent(STREAM, f.index, f.time, self.fps, pose, self.steps))
+        await self.hub.publish(FrameEvent(STREAM, frame.index, frame.time, self.fps, pose, self.steps))
 
     async def _play(self, task: xface.XfaceTask) -> None:
         self._route(task, xface.STATUS_STARTED)
@@ -242,7 +278,7 @@ class XfaceStage:
                 epoch, start, first, period = self._epoch, loop.time(), self.pos, 1.0 / self.fps
             due = first + int((loop.time() - start) / period)
             target = min(max(self.pos, due), len(self.frames) - 1)
-            skipped = self.frames[self.pos:target]
+            skipped = range(self.pos, target)  # the frames that fell due while the last step ran
             self.pos = target + 1
             await self._apply(self.frames[target], skipped)
             if epoch == self._epoch:

@@ -7,6 +7,7 @@ Pure codec, no sockets: :class:`TaskSplitter` cuts a byte stream into task messa
 
 from __future__ import annotations
 
+import re
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 
@@ -18,6 +19,9 @@ STATUS_FINISHED = 3
 STATUS_ERROR = 7
 
 _END_TAG = b"</task>"
+MAX_NAME = 64  # task names are short words (UPLOAD_FAP)
+MAX_ID_DIGITS = 10  # ownerId and taskId are C ints in Xface
+_ID_RE = re.compile(r"[+-]?[0-9]{1,%d}\Z" % MAX_ID_DIGITS)
 
 
 class TaskFormatError(ValueError):
@@ -69,13 +73,16 @@ def parse_task(message: bytes) -> XfaceTask:
     name = root.get("name")
     if not name:
         raise TaskFormatError('<task>: expected a name="..." attribute')
+    if len(name) > MAX_NAME:
+        raise TaskFormatError(f'<task>: expected a name of at most {MAX_NAME} characters, got {len(name)}')
     ids = []
     for attr in ("ownerId", "taskId"):
-        raw = root.get(attr, "0")
-        try:
-            ids.append(int(raw))
-        except ValueError:
-            raise TaskFormatError(f'<task name="{name}">: expected an integer {attr}, got {raw!r}') from None
+        raw = root.get(attr, "0").strip()
+        if not _ID_RE.match(raw):
+            shown = raw if len(raw) <= 20 else f"{raw[:20]}... ({len(raw)} characters)"
+            raise TaskFormatError(f'<task name="{name}">: expected {attr} as an integer of at most '
+                                  f'{MAX_ID_DIGITS} digits, got {shown!r}')
+        ids.append(int(raw))
     params = tuple(p.text or "" for p in root.findall("param"))
     return XfaceTask(name=name, owner_id=ids[0], task_id=ids[1], params=params)
 

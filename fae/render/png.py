@@ -18,5 +18,5 @@ def write_png(path: str | os.PathLike, image: np.ndarray, compress_level: int = 
     image = np.asarray(image)
     if image.ndim != 3 or image.shape[2] not in (3, 4) or image.dtype != np.uint8:
         raise ValueError(f"{path}: expected an (H, W, 3|4) uint8 image, got {image.shape} {image.dtype}")
-    with atomic_path(path, suffix=".png") as tmp:
+    with atomic_path(path, suffix=".png", sweep=False) as tmp:
         Image.fromarray(image, mode="RGB" if image.shape[2] == 3 else "RGBA").save(tmp, format="PNG", compress_level=int(compress_level))

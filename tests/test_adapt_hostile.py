@@ -1,0 +1,146 @@
+"""`fae adapt` against inputs it cannot fit and fits no one should animate: each is one
+line naming the file or the measure, exit 2, no traceback, nothing written; reports stay
+valid JSON."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import trimesh
+
+from fae.adapt.synthetic import synthetic_scan
+from fae.cli import main
+from fae.commands.adapt_checks import implausible_fit
+
+
+@pytest.fixture(scope="module")
+def scan_files(tmp_path_factory):
+    """A synthetic face scan in millimetres (OBJ) and its feature points (JSON)."""
+    d = tmp_path_factory.mktemp("scan")
+    scan = synthetic_scan(0, subdivisions=4)
+    trimesh.Trimesh(scan.vertices, scan.faces, process=False).export(d / "face.obj")
+    (d / "points.json").write_text(json.dumps({n: list(map(float, p)) for n, p in scan.landmarks.items()}))
+    return d / "face.obj", d / "points.json", scan
+
+
+def adapt(capsys, *args: str) -> tuple[int, str]:
+    code = main(["adapt", *map(str, args), "--no-calibrate"])
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and "numpy" not in err and "matmul" not in err
+    return code, err
+
+
+def one_line(err: str) -> str:
+    lines = [line for line in err.splitlines() if line.startswith("fae adapt: ")]
+    assert len(lines) == 1, err
+    return lines[0]
+
+
+def test_an_output_that_is_an_input_is_refused_and_the_input_kept(scan_files, capsys, tmp_path, monkeypatch):
+    """Case: `-o` equal to the scan overwrote the scan with a glTF file."""
+    scan, points, _ = scan_files
+    before = scan.read_bytes()
+    monkeypatch.chdir(scan.parent)
+    for args in ((scan, "-o", "./face.obj"), (scan, "-o", tmp_path / "h.glb", "--report", points, "--landmarks", points)):
+        code, err = adapt(capsys, *args)
+        assert code == 2 and "expected a new file (inputs are never overwritten)" in one_line(err)
+    assert scan.read_bytes() == before and json.loads(points.read_text())
+
+
+@pytest.mark.parametrize("name, content, expected", [
+    ("one.obj", "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n", "1 of its 1 triangles have an area; expected a head scan"),
+    ("flat.obj", "v 0 0 0\nv 1 0 0\nv 2 0 0\nv 0 0 0\nf 1 2 3\nf 1 4 2\nf 1 1 2\n",
+     "0 of its 3 triangles have an area; expected a head scan"),
+    ("noise.obj", bytes(np.random.default_rng(3).integers(0, 256, 5000, dtype=np.uint8)),
+     "cannot read a mesh: expected a mesh file (OBJ, PLY, STL, OFF, GLB/glTF)"),
+    ("noise.ply", bytes(np.random.default_rng(4).integers(0, 256, 5000, dtype=np.uint8)),
+     "expected a mesh file (OBJ, PLY, STL, OFF, GLB/glTF)"),
+])
+def test_meshes_that_are_no_head_scan_are_one_line_naming_the_file(tmp_path, capsys, name, content, expected):
+    """Case: a one-triangle mesh and degenerate triangles failed in numpy's matmul, a
+    random-bytes mesh with "No module named 'charset_normalizer'"."""
+    path = tmp_path / name
+    path.write_bytes(content.encode() if isinstance(content, str) else content)
+    code, err = adapt(capsys, path, "-o", tmp_path / "h.glb")
+    assert code == 2 and one_line(err).startswith(f"fae adapt: {path}") and expected in err
+    assert not (tmp_path / "h.glb").exists()
+
+
+def test_many_degenerate_triangles_are_no_surface(tmp_path, capsys):
+    V = np.random.default_rng(1).normal(size=(500, 3))
+    F = np.array([[i, i, i + 1] for i in range(499)])
+    path = tmp_path / "slivers.obj"
+    path.write_text("".join(f"v {a} {b} {c}\n" for a, b, c in V) + "".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in F))
+    code, err = adapt(capsys, path, "-o", tmp_path / "h.glb")
+    assert code == 2 and "0 of its 499 triangles have an area" in one_line(err)
+
+
+@pytest.mark.parametrize("scale, unit", [(1e-3, "metres"), (0.1, "centimetres")])
+def test_feature_points_in_another_unit_than_the_scan_are_named(scan_files, tmp_path, capsys, scale, unit):
+    scan, _, synthetic = scan_files
+    points = tmp_path / f"{unit}.json"
+    points.write_text(json.dumps({n: list(map(float, p * scale)) for n, p in synthetic.landmarks.items()}))
+    code, err = adapt(capsys, scan, "--landmarks", points, "-o", tmp_path / "h.glb")
+    line = one_line(err)
+    assert code == 2 and line.startswith(f"fae adapt: {points}: the feature points lie ")
+    assert "expected points on the scan, in its unit and frame" in line
+
+
+def test_null_and_nan_feature_points_are_named_not_dropped(scan_files, tmp_path, capsys):
+    """Case: 34 of 68 null points were dropped silently and the fit went on (exit 0)."""
+    scan, _, _ = scan_files
+    points = [[float(i), 0.0, 0.0] for i in range(68)]
+    for i in range(0, 68, 2):
+        points[i] = [None, None, None]
+    ljson = tmp_path / "nulls.ljson"
+    ljson.write_text(json.dumps({"groups": {"dlib": {"landmarks": {"points": points}}}}))
+    code, err = adapt(capsys, scan, "--landmarks", ljson, "-o", tmp_path / "h.glb")
+    assert code == 2 and "iBUG points are null or not finite (0-based: 8, 22, 24" in one_line(err)
+    csv = tmp_path / "nan.csv"
+    csv.write_text("name,x,y,z\n9.3,nan,1,2\n")
+    code, err = adapt(capsys, scan, "--landmarks", csv, "-o", tmp_path / "h.glb")
+    assert code == 2 and one_line(err) == f"fae adapt: {csv}: line 2: x, y, z must be finite numbers, got nan, 1, 2"
+    named = tmp_path / "named.json"
+    named.write_text('{"9.3": [NaN, 1, 2]}')
+    code, err = adapt(capsys, scan, "--landmarks", named, "-o", tmp_path / "h.glb")
+    assert code == 2 and "field '9.3': expected [x, y, z] (3 finite numbers)" in one_line(err)
+
+
+def test_implausible_transfers_and_infinite_errors_are_reasons_to_refuse():
+    good = {"fapu_ratio": 1.05, "eye_scale": {"eye_l": 1.02, "eye_r": 1.04},
+            "errors": {"face_to_scan_rms_rel": 0.001}}
+    assert implausible_fit(good) == []
+    cases = {
+        "eye_scale 8492": ({"eye_scale": {"eye_l": 8492.0, "eye_r": 8492.0}}, "eye_l is scaled 8.49e+03"),
+        "one eye shrunk": ({"eye_scale": {"eye_l": 0.45, "eye_r": 1.0}}, "the eyeballs are scaled unlike each other"),
+        "tiny FAPU": ({"fapu_ratio": 0.1}, "the face's FAPU are 0.1 times the template's"),
+        "infinite error": ({"final": {"model_to_scan_rms": math.inf, "marker_error": 0.001}},
+                           "final error model_to_scan_rms not finite"),
+    }
+    for name, (change, expected) in cases.items():
+        reasons = implausible_fit({**good, **change})
+        assert any(expected in r for r in reasons), (name, reasons)
+
+
+@pytest.mark.slow
+def test_a_partial_scan_is_refused_and_its_report_is_valid_json(shared_data, tmp_path, capsys):
+    """Case: a scan with one face in twelve fitted with exit 0, model->scan RMS `inf`, and
+    a report holding `Infinity` (not JSON)."""
+    menpo = shared_data / "heads" / "menpo3d_template"
+    mesh = trimesh.load(menpo / "template.ply", process=False)
+    partial = tmp_path / "partial.ply"
+    trimesh.Trimesh(mesh.vertices, mesh.faces[::12], process=False).export(partial)
+    report = tmp_path / "r.json"
+    code, err = adapt(capsys, partial, "--method", "multilevel", "--landmarks", menpo / "template.ljson",
+                      "-o", tmp_path / "h.glb", "--report", report)
+    assert code == 2 and "not finite (part of the model found no scan)" in err
+    assert f"not writing {tmp_path / 'h.glb'}" in err and not (tmp_path / "h.glb").exists()
+
+    def no_constants(token):
+        raise AssertionError(f"report holds {token}")
+
+    data = json.loads(report.read_text(), parse_constant=no_constants)
+    assert data["verdict"] and data["final"]["model_to_scan_rms"] is None

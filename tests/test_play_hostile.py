@@ -1,0 +1,115 @@
+"""`fae play` against hostile streams and a hostile environment: a trillion-frame gap,
+SIGTERM/SIGINT/SIGKILL mid-run, an output folder that takes no files. Every wait is bounded."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from fae.cli import main
+from fae.io.atomic import atomic_path, sweep_stale
+
+REPO = Path(__file__).resolve().parents[1]
+LONG_STREAM = REPO / "fap_streams" / "all_faps_sweep.fap"  # 1,656 frames: long enough to interrupt
+SHORT_STREAM = REPO / "fap_streams" / "visemes.fap"
+
+
+def jaw_frame(number: int, value: int) -> str:
+    mask = ["0"] * 68
+    mask[2] = "1"
+    return " ".join(mask) + f"\n{number} {value}\n"
+
+
+def fae_play(*args: str) -> subprocess.Popen:
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    return subprocess.Popen([sys.executable, "-m", "fae", "play", *args, "--size", "64x48"], cwd=REPO, env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def hidden_files(folder: Path) -> list[str]:
+    return sorted(p.name for p in folder.iterdir() if p.name.startswith("."))
+
+
+def wait_for_temporary_video(folder: Path, proc: subprocess.Popen, seconds: float = 120) -> None:
+    deadline = time.monotonic() + seconds
+    while not hidden_files(folder):
+        assert proc.poll() is None, proc.communicate()
+        assert time.monotonic() < deadline, "fae play never started its video"
+        time.sleep(0.05)
+    time.sleep(0.5)  # frames are being encoded into it
+
+
+@pytest.mark.slow
+def test_a_trillion_frame_gap_is_held_for_max_hold_seconds_with_a_warning(tmp_path):
+    """Case: frames 0 and 10**12 used to play for ever. The gap is now held 60 s (the
+    default --max-hold), the video ends, and the user is told."""
+    stream = tmp_path / "gap.fap"
+    stream.write_text("2.1 gap 1 2\n" + jaw_frame(0, 100) + jaw_frame(10 ** 12, 900))
+    proc = fae_play(str(stream), "-o", str(tmp_path / "gap.mp4"))
+    _, err = proc.communicate(timeout=300)
+    assert proc.returncode == 0, err
+    assert (f"fae play: warning: {stream}: frames 1..999999999999 are missing (1e+12 s): frame 0 is held for 60 s "
+            "only, and the stream goes on from there") in err
+    assert "gap.mp4: 62 frames at 1 fps" in err  # frame 0, 60 held, the last
+    assert (tmp_path / "gap.mp4").stat().st_size > 0
+
+
+@pytest.mark.slow
+def test_sigterm_removes_the_half_written_video(tmp_path):
+    """Case: SIGTERM mid-run left a hidden partial .mp4 beside the output. (SIGINT takes the
+    same way out, as KeyboardInterrupt.)"""
+    out = tmp_path / "out.mp4"
+    proc = fae_play(str(LONG_STREAM), "-o", str(out))
+    wait_for_temporary_video(tmp_path, proc)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 143 and "fae: terminated" in err
+    assert list(tmp_path.iterdir()) == []  # no video, no temporary file
+
+
+@pytest.mark.slow
+def test_a_killed_runs_temporary_video_is_swept_by_the_next_run(tmp_path):
+    out = tmp_path / "out.mp4"
+    proc = fae_play(str(LONG_STREAM), "-o", str(out))
+    wait_for_temporary_video(tmp_path, proc)
+    proc.kill()  # SIGKILL: nothing can clean up
+    proc.communicate(timeout=60)
+    left = hidden_files(tmp_path)
+    assert len(left) == 1 and left[0].startswith(f".out.mp4.{proc.pid}.")
+    again = fae_play(str(SHORT_STREAM), "-o", str(out))
+    _, err = again.communicate(timeout=300)
+    assert again.returncode == 0, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.mp4"]
+
+
+def test_temporary_files_of_running_writers_and_of_other_outputs_are_not_swept(tmp_path):
+    target = tmp_path / "a.glb"
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    stale = tmp_path / f".a.glb.{int(dead.stdout)}.abcd1234.glb"
+    alive = tmp_path / f".a.glb.{os.getppid()}.abcd1234.glb"  # a running process
+    other = tmp_path / f".b.glb.{int(dead.stdout)}.abcd1234.glb"  # another output's
+    for p in (stale, alive, other):
+        p.write_bytes(b"partial")
+    with atomic_path(target) as tmp:
+        assert tmp.name.startswith(f".a.glb.{os.getpid()}.")
+        tmp.write_bytes(b"whole")
+    assert not stale.exists() and alive.exists() and other.exists() and target.read_bytes() == b"whole"
+    assert sweep_stale(tmp_path / "b.glb") == [other]
+
+
+def test_an_output_folder_that_takes_no_files_is_one_line_naming_it(capsys):
+    """Case: `-o /proc/x.mp4` gave a FileNotFoundError traceback (root may write anywhere
+    os.access can tell; /proc still takes no files)."""
+    if not Path("/proc").is_dir():
+        pytest.skip("no /proc")
+    assert main(["play", str(SHORT_STREAM), "-o", "/proc/x.mp4"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("fae play: /proc/x.mp4: output folder /proc ")
+    assert "Traceback" not in err
+
