@@ -50,7 +50,7 @@ import warp as wp
 from scipy.spatial import cKDTree
 
 from fae.io.facemodel import FaceModel
-from fae.sim.folds import CreaseVertex, GuardedTriangle, crease_vertices, guarded_triangles
+from fae.sim.folds import CreaseVertex, GuardedTriangle, LipPair, crease_vertices, guarded_triangles, lip_pairs
 from fae.sim.model import (BONE_COUNT, BONE_NAMES, LAYER_COUNT, MUSCLE_FIELD, MUSCLE_LINEAR, MUSCLE_SPHINCTER,
                            SkinModel)
 from fae.sim.sdf import sample_grid, signed_distance_grid
@@ -80,6 +80,7 @@ DEFAULTS = {
     "fold_min_area": 0.3,
     "fold_passes": 3,
     "crease_tolerance": 0.25,
+    "lip_reach": 0.003,
 }
 
 
@@ -432,6 +433,16 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
     # and the epidermis's rest shape among neighbours, against creases
     crease, crease_neighbours = crease_vertices(q, pid(0, sim_vertices), np.column_stack([pid(0, se[:, 0]), pid(0, se[:, 1])]),
                                                 particle_jaw, movable)
+    crease = crease[:nsv]  # the epidermis's particles come first
+    # and the lips' contact (both lips' epidermis where they face each other)
+    names = list(face.region_names)
+    region = np.asarray(face.skin_region)
+    lips = []
+    for name in ("lip_upper", "lip_lower"):
+        v = sim_vertices[region[sim_vertices] == names.index(name)] if name in names else np.zeros(0, dtype=np.int64)
+        lips.append(pid(0, v))
+    lip = lip_pairs(q, lips[0], lips[1], particle_jaw, float(p["lip_reach"]))
+    lip = lip[movable[lip["upper"]] | movable[lip["lower"]]]
 
     # Bone distance grids and which particles must stay outside them.
     sdf_values, sdf_origin, sdf_spacing = [], np.zeros((BONE_COUNT, 3)), np.ones(BONE_COUNT)
@@ -500,6 +511,8 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
         crease_vertex=wp.array(crease, dtype=CreaseVertex, device=device),
         crease_neighbours=arr(crease_neighbours, int),
         crease_tolerance=float(p["crease_tolerance"]),
+        lip_pair_count=len(lip),
+        lip_pair=wp.array(lip, dtype=LipPair, device=device),
         sdf_values=sdf_values,
         sdf_origin=sdf_origin,
         sdf_spacing=sdf_spacing,

@@ -15,9 +15,10 @@ only, by
 
 zero at the threshold, so that the guard sets in smoothly. A corner shared by several
 guarded triangles takes the mean of their moves; a move that reaches a bone ends on it, as
-a step does (fae.sim.collision). Up to `fold_passes` passes per substep; on the CPU the
-passes stop at the first that guards no triangle (`guarded_count`), so skin far from
-folding pays one look at its triangles per substep (the shadow's area, a triple product).
+a step does (fae.sim.collision). Up to `fold_passes` passes per substep; after the first,
+only triangles and particles next to what the previous pass moved are looked at, and on
+the CPU the passes stop at the first that guards nothing (`guarded_count`), so skin far
+from folding pays one look at its triangles per substep (the shadow's area, a triple product).
 The guard changes no equilibrium of skin that is not near a fold.
 
 Crease smoothing, in the same passes: a hinge fold shows as a dark line long before
@@ -26,6 +27,10 @@ its neighbours (its Laplacian coordinate, carried by its hold); where the offset
 more than `crease_tolerance` x its mean rest edge (a fold line, a spike), the particle is
 moved towards the place that restores it, by the excess over the tolerance (at most all of
 it). Both moves of a particle are averaged.
+
+Lip contact, in the same passes: the particles of the upper and lower lip that face each
+other at rest (within `lip_reach`) are kept in order along the head's up direction carried
+by their holds: the lips meet and press, but one does not pass through the other.
 
 The numpy twin is `fae.sim.reference.ReferenceSolver.guard_folds`.
 """
@@ -89,14 +94,19 @@ def _cross2(u: wp.vec2, v: wp.vec2):
 @wp.kernel
 def guard_folds(particle_q: wp.array(dtype=wp.vec3), triangles: wp.array(dtype=GuardedTriangle),
                 bone_rotation: wp.array(dtype=wp.mat33), min_area: float, triangle_count: int, chunk: int,
+                only_moved: int, particle_moved: wp.array(dtype=int),
                 particle_move: wp.array(dtype=wp.vec3), particle_moves: wp.array(dtype=float),
                 guarded_count: wp.array(dtype=int)):
-    """One pass over the triangles; guarded_count[0] counts those guarded."""
+    """One pass over the triangles (only_moved: those with a corner the previous pass
+    moved); guarded_count[0] counts those guarded."""
     start = wp.tid() * chunk
     R0 = bone_rotation[0]
     R1 = bone_rotation[1]
     for t in range(start, wp.min(start + chunk, triangle_count)):
         tri = triangles[t]
+        if only_moved != 0:
+            if particle_moved[tri.i] + particle_moved[tri.j] + particle_moved[tri.k] == 0:
+                continue
         n = R0 * tri.normal
         if tri.jaw > 0.0:
             n = wp.normalize(n * (1.0 - tri.jaw) + R1 * tri.normal * tri.jaw)
@@ -186,11 +196,13 @@ def crease_vertices(q: np.ndarray, particles: np.ndarray, edges: np.ndarray, jaw
 @wp.kernel
 def smooth_creases(particle_q: wp.array(dtype=wp.vec3), vertices: wp.array(dtype=CreaseVertex),
                    neighbours: wp.array(dtype=int), bone_rotation: wp.array(dtype=wp.mat33), tolerance: float,
-                   particle_count: int, chunk: int, particle_move: wp.array(dtype=wp.vec3),
-                   particle_moves: wp.array(dtype=float), guarded_count: wp.array(dtype=int)):
+                   particle_count: int, chunk: int, only_moved: int, particle_moved: wp.array(dtype=int),
+                   particle_move: wp.array(dtype=wp.vec3), particle_moves: wp.array(dtype=float),
+                   guarded_count: wp.array(dtype=int)):
     """Each epidermis particle whose offset from its neighbours' mean strays from its rest
     offset (carried by its hold) by more than `tolerance` x its mean rest edge is moved
-    towards the place that restores it (a fold line or a spike)."""
+    towards the place that restores it (a fold line or a spike); only_moved: only particles
+    that the previous pass moved, or next to one."""
     start = wp.tid() * chunk
     R0 = bone_rotation[0]
     R1 = bone_rotation[1]
@@ -198,6 +210,12 @@ def smooth_creases(particle_q: wp.array(dtype=wp.vec3), vertices: wp.array(dtype
         cv = vertices[i]
         if cv.end == cv.first:
             continue
+        if only_moved != 0:
+            moved = particle_moved[i]
+            for k in range(cv.first, cv.end):
+                moved = moved + particle_moved[neighbours[k]]
+            if moved == 0:
+                continue
         mean = wp.vec3(0.0, 0.0, 0.0)
         for k in range(cv.first, cv.end):
             mean = mean + particle_q[neighbours[k]]
@@ -212,6 +230,63 @@ def smooth_creases(particle_q: wp.array(dtype=wp.vec3), vertices: wp.array(dtype
         wp.atomic_add(guarded_count, 0, 1)
 
 
+@wp.struct
+class LipPair:
+    """A particle of the upper lip and the nearest of the lower lip at rest (epidermis), the
+    jaw weight of their holds (mean) and the least height (metres) of the upper over the
+    lower along the head's up direction carried by that hold: 0, or less where the upper lies
+    lower at rest."""
+
+    upper: int
+    lower: int
+    jaw: float
+    gap: float
+
+
+def lip_pairs(q: np.ndarray, upper: np.ndarray, lower: np.ndarray, jaw: np.ndarray, reach: float) -> np.ndarray:
+    """Structured array of `LipPair`: each particle of `upper` (ids) within `reach` metres of
+    one of `lower` at rest q (P, 3), with its nearest, and each of `lower` likewise."""
+    from scipy.spatial import cKDTree
+
+    out = []
+    if len(upper) and len(lower):
+        for a, b, flip in ((upper, lower, False), (lower, upper, True)):
+            d, j = cKDTree(q[b]).query(q[a])
+            near = d < reach
+            pu, pl = (b[j[near]], a[near]) if flip else (a[near], b[j[near]])
+            out.append(np.column_stack([pu, pl]))
+    pairs = np.unique(np.concatenate(out), axis=0) if out else np.zeros((0, 2), dtype=np.int64)
+    rec = np.zeros(len(pairs), dtype=LipPair.numpy_dtype())
+    rec["upper"], rec["lower"] = pairs[:, 0], pairs[:, 1]
+    rec["jaw"] = 0.5 * (jaw[pairs[:, 0]] + jaw[pairs[:, 1]])
+    rec["gap"] = np.minimum(0.0, q[pairs[:, 0], 1] - q[pairs[:, 1], 1])
+    return rec
+
+
+@wp.kernel
+def separate_lips(particle_q: wp.array(dtype=wp.vec3), pairs: wp.array(dtype=LipPair),
+                  bone_rotation: wp.array(dtype=wp.mat33), pair_count: int,
+                  particle_move: wp.array(dtype=wp.vec3), particle_moves: wp.array(dtype=float),
+                  guarded_count: wp.array(dtype=int)):
+    """Lips meet and press but do not pass: an upper-lip particle that has sunk below its
+    lower-lip partner (along the head's up direction carried by their holds) and the partner
+    are moved apart, half the overlap each."""
+    k = wp.tid()
+    if k >= pair_count:
+        return
+    pair = pairs[k]
+    y = wp.vec3(0.0, 1.0, 0.0)
+    up = wp.normalize(bone_rotation[0] * y * (1.0 - pair.jaw) + bone_rotation[1] * y * pair.jaw)
+    overlap = pair.gap - wp.dot(particle_q[pair.upper] - particle_q[pair.lower], up)
+    if overlap <= 0.0:
+        return
+    wp.atomic_add(particle_move, pair.upper, up * (0.5 * overlap))
+    wp.atomic_add(particle_move, pair.lower, up * (-0.5 * overlap))
+    wp.atomic_add(particle_moves, pair.upper, 1.0)
+    wp.atomic_add(particle_moves, pair.lower, 1.0)
+    wp.atomic_add(guarded_count, 0, 1)
+
+
 @wp.kernel
 def apply_guard(particle_static: wp.array(dtype=ParticleStatic), particle_move: wp.array(dtype=wp.vec3),
                 particle_moves: wp.array(dtype=float), bone_rotation: wp.array(dtype=wp.mat33),
@@ -219,10 +294,11 @@ def apply_guard(particle_static: wp.array(dtype=ParticleStatic), particle_move: 
                 head_sdf: wp.array3d(dtype=float), head_sdf_origin: wp.vec3, head_sdf_spacing: float,
                 jaw_sdf: wp.array3d(dtype=float), jaw_sdf_origin: wp.vec3, jaw_sdf_spacing: float,
                 contact_depth: float, particle_count: int, chunk: int,
-                particle_q: wp.array(dtype=wp.vec3), particle_qd: wp.array(dtype=wp.vec3)):
+                particle_q: wp.array(dtype=wp.vec3), particle_qd: wp.array(dtype=wp.vec3),
+                particle_moved: wp.array(dtype=int)):
     """Each guarded movable particle moves by the mean of its triangles' moves, and a move
     that reached a bone stops on it as a step does (fae.sim.collision); the move arrays are
-    cleared for the next pass."""
+    cleared for the next pass, and `particle_moved` says which particles moved."""
     start = wp.tid() * chunk
     R0 = bone_rotation[0]
     R1 = bone_rotation[1]
@@ -230,9 +306,11 @@ def apply_guard(particle_static: wp.array(dtype=ParticleStatic), particle_move: 
     t1 = bone_translation[1]
     for i in range(start, wp.min(start + chunk, particle_count)):
         m = particle_moves[i]
+        particle_moved[i] = 0
         if m > 0.0:
             ps = particle_static[i]
             if ps.inv_mass > 0.0:
+                particle_moved[i] = 1
                 x0 = particle_q[i]
                 x = x0 + particle_move[i] / m
                 if ps.collider != 0:

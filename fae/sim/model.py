@@ -56,11 +56,14 @@ class SkinModel:
     triangle_guard      (T,) fae.sim.folds.GuardedTriangle: particles, rest shape, rest normal
     fold_min_area       a guarded triangle below this fraction of its rest area is restored
     fold_passes         guard passes per substep
-    crease_vertex       (P,) fae.sim.folds.CreaseVertex: an epidermis particle's neighbours and
-                                   rest offset from their mean (no neighbours elsewhere)
+    crease_vertex       (P0,) fae.sim.folds.CreaseVertex, P0 the epidermis particles (the first
+                                   P0): neighbours and rest offset from their mean (none for
+                                   fixed ones)
     crease_neighbours   (N,) int   the neighbour lists
     crease_tolerance    a particle whose offset strays more than this x its mean rest edge is
                                    moved back (fae.sim.folds.smooth_creases)
+    lip_pair_count      pairs of upper- and lower-lip particles kept in order (lip contact)
+    lip_pair            (K,) fae.sim.folds.LipPair
     spring_indices      (S*2,) int particle pairs
     spring_rest_length  (S,) float metres
     spring_stiffness    (S,) float N/m
@@ -133,6 +136,8 @@ class SkinModel:
     crease_vertex: wp.array
     crease_neighbours: wp.array
     crease_tolerance: float
+    lip_pair_count: int
+    lip_pair: wp.array
     sdf_values: list
     sdf_origin: np.ndarray
     sdf_spacing: np.ndarray

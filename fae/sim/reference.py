@@ -189,12 +189,14 @@ class ReferenceSolver:
         qd[idx] -= n * np.minimum(vn, 0.0)[:, None]
 
     def guard_folds(self, q: np.ndarray, qd: np.ndarray, bone_rotation: np.ndarray, bone_translation: np.ndarray,
-                    hold: np.ndarray) -> int:
-        """Pull triangles near folding back towards their rest shape, stopping at the bones
-        (one pass, in place, as fae.sim.folds). Returns the number of triangles guarded."""
+                    hold: np.ndarray, moved: np.ndarray | None = None) -> tuple[int, np.ndarray]:
+        """One pass of fae.sim.folds (in place): triangles near folding pulled back towards
+        their rest shape, creases smoothed, lips kept apart, stopping at the bones; moved (P,)
+        bool: look only next to these particles (None: everywhere). Returns (how many
+        triangles, particles and lip pairs were guarded, (P,) bool the particles moved)."""
         tri = self.a["triangle_guard"]
         if len(tri) == 0:
-            return 0
+            return 0, np.zeros(self.model.particle_count, dtype=bool)
         P = self.model.particle_count
         ids = np.column_stack([tri["i"], tri["j"], tri["k"]]).astype(np.int64)
         w = tri["jaw"].astype(np.float64)[:, None]
@@ -222,6 +224,8 @@ class ReferenceSolver:
         ratio = np.sum(np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]) * n, axis=1) / tri["area2"]
         m = self.model.fold_min_area
         hit = ok & (ratio < m)
+        if moved is not None:
+            hit &= moved[ids].any(axis=1)
         beta = np.minimum(1.0, (m - ratio) / m)
         s = cross2(r, p).sum(axis=1)
         k = np.sum(r * p, axis=2).sum(axis=1)
@@ -231,29 +235,53 @@ class ReferenceSolver:
         g = np.stack([cs * r[..., 0] - sn * r[..., 1], sn * r[..., 0] + cs * r[..., 1]], axis=2) - p
         move = (a[:, None] * g[..., :1] + b[:, None] * g[..., 1:]) * beta[:, None, None]
         idx, move = ids[hit].reshape(-1), move[hit].reshape(-1, 3)
-        crease_idx, crease_move = self.crease_moves(q, bone_rotation)
-        idx = np.concatenate([idx, crease_idx])
-        move = np.concatenate([move, crease_move])
+        crease_idx, crease_move = self.crease_moves(q, bone_rotation, moved)
+        lip_idx, lip_move = self.lip_moves(q, bone_rotation)
+        idx = np.concatenate([idx, crease_idx, lip_idx])
+        move = np.concatenate([move, crease_move, lip_move])
         total = _accumulate(P, idx, move)
         count = np.bincount(idx, minlength=P)
         on = (count > 0) & (self.inv_mass > 0.0)
         q_prev = q.copy()
         q[on] += total[on] / count[on, None]
         self.collide(q, qd, q_prev, bone_rotation, bone_translation, hold, only=on)
-        return int(hit.sum()) + len(crease_idx)
+        return int(hit.sum()) + len(crease_idx) + len(lip_idx) // 2, on
 
-    def crease_moves(self, q: np.ndarray, bone_rotation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def lip_moves(self, q: np.ndarray, bone_rotation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(particles (2k,), moves (2k, 3) metres): lip pairs that overlap, moved apart (as
+        fae.sim.folds.separate_lips)."""
+        lp = self.a["lip_pair"]
+        if len(lp) == 0:
+            return np.zeros(0, dtype=np.int64), np.zeros((0, 3))
+        u, low = lp["upper"].astype(np.int64), lp["lower"].astype(np.int64)
+        w = lp["jaw"].astype(np.float64)[:, None]
+        y = np.array([0.0, 1.0, 0.0])
+        up = (bone_rotation[0] @ y)[None] * (1.0 - w) + (bone_rotation[1] @ y)[None] * w
+        up /= np.linalg.norm(up, axis=1, keepdims=True)
+        overlap = lp["gap"] - np.sum((q[u] - q[low]) * up, axis=1)
+        hit = overlap > 0.0
+        half = up[hit] * (0.5 * overlap[hit])[:, None]
+        return np.concatenate([u[hit], low[hit]]), np.concatenate([half, -half])
+
+    def crease_moves(self, q: np.ndarray, bone_rotation: np.ndarray,
+                     moved: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(particles (k,), moves (k, 3) metres): epidermis particles whose offset from their
         neighbours' mean strays from the rest offset, and the move restoring it (as
-        fae.sim.folds.smooth_creases)."""
+        fae.sim.folds.smooth_creases); moved: only particles that moved or touch one."""
         cv = self.a["crease_vertex"]
         nb = self.a["crease_neighbours"].astype(np.int64)
         count = (cv["end"] - cv["first"]).astype(np.int64)
         has = np.flatnonzero(count > 0)
+        if moved is not None:
+            owner = np.repeat(has, count[has])
+            near = moved[:len(cv)].copy()
+            np.logical_or.at(near, owner, moved[nb])
+            has = has[near[has]]
         if len(has) == 0:
             return np.zeros(0, dtype=np.int64), np.zeros((0, 3))
+        rows = np.concatenate([np.arange(cv["first"][i], cv["end"][i]) for i in has]) if len(has) else np.zeros(0, int)
         owner = np.repeat(has, count[has])
-        mean = _accumulate(self.model.particle_count, owner, q[nb])[has] / count[has, None]
+        mean = _accumulate(self.model.particle_count, owner, q[nb[rows]])[has] / count[has, None]
         delta = cv["delta"][has].astype(np.float64)
         w = cv["jaw"][has].astype(np.float64)[:, None]
         rest = delta @ bone_rotation[0].T * (1.0 - w) + delta @ bone_rotation[1].T * w
@@ -287,7 +315,9 @@ class ReferenceSolver:
             q[fixed] = hold[fixed]
             self.layer_order(q, qd, q_prev, R)
             self.collide(q, qd, q_prev, R, t, hold)
+            moved = None
             for _ in range(self.model.fold_passes):
-                if self.guard_folds(q, qd, R, t, hold) == 0:
+                guarded, moved = self.guard_folds(q, qd, R, t, hold, moved)
+                if guarded == 0:
                     break
         return q, qd

@@ -171,6 +171,7 @@ class SkinSolver:
         self.particle_move = wp.zeros(model.particle_count, dtype=wp.vec3, device=model.device)
         self.particle_moves = wp.zeros(model.particle_count, dtype=float, device=model.device)
         self.guarded_count = wp.zeros(1, dtype=int, device=model.device)
+        self.particle_moved = wp.zeros(model.particle_count, dtype=int, device=model.device)
         self._cpu = cpu
         self._scratch = (model.state(), model.state())
         no_grid = wp.full((2, 2, 2), 1.0, dtype=float, device=model.device)  # far outside everywhere
@@ -227,23 +228,32 @@ class SkinSolver:
                 outputs=[dst.particle_q, dst.particle_qd], record_cmd=True)
             guard = apply = None
             if m.triangle_count:
-                guard = wp.launch(_folds.guard_folds, dim=-(-m.triangle_count // self.particle_chunk), device=m.device,
-                                  inputs=[dst.particle_q, m.triangle_guard, control.bone_rotation,
-                                          float(m.fold_min_area), m.triangle_count, self.particle_chunk],
-                                  outputs=[self.particle_move, self.particle_moves, self.guarded_count],
-                                  record_cmd=True)
-                crease = wp.launch(_folds.smooth_creases, dim=-(-m.particle_count // self.particle_chunk),
+                guard = [wp.launch(_folds.guard_folds, dim=-(-m.triangle_count // self.particle_chunk),
                                    device=m.device,
-                                   inputs=[dst.particle_q, m.crease_vertex, m.crease_neighbours, control.bone_rotation,
-                                           float(m.crease_tolerance), m.particle_count, self.particle_chunk],
+                                   inputs=[dst.particle_q, m.triangle_guard, control.bone_rotation,
+                                           float(m.fold_min_area), m.triangle_count, self.particle_chunk,
+                                           later, self.particle_moved],
                                    outputs=[self.particle_move, self.particle_moves, self.guarded_count],
-                                   record_cmd=True)
-                guard = (guard, crease)
+                                   record_cmd=True) for later in (0, 1)]
+                n_crease = len(m.crease_vertex)
+                crease = [wp.launch(_folds.smooth_creases, dim=-(-n_crease // self.particle_chunk), device=m.device,
+                                    inputs=[dst.particle_q, m.crease_vertex, m.crease_neighbours, control.bone_rotation,
+                                            float(m.crease_tolerance), n_crease, self.particle_chunk, later,
+                                            self.particle_moved],
+                                    outputs=[self.particle_move, self.particle_moves, self.guarded_count],
+                                    record_cmd=True) for later in (0, 1)]
+                lips = None
+                if m.lip_pair_count:
+                    lips = wp.launch(_folds.separate_lips, dim=m.lip_pair_count, device=m.device,
+                                     inputs=[dst.particle_q, m.lip_pair, control.bone_rotation, m.lip_pair_count],
+                                     outputs=[self.particle_move, self.particle_moves, self.guarded_count],
+                                     record_cmd=True)
+                guard = (guard, crease, lips)
                 apply = wp.launch(_folds.apply_guard, dim=-(-m.particle_count // self.particle_chunk), device=m.device,
                                   inputs=[particle_static, self.particle_move, self.particle_moves,
                                           control.bone_rotation, control.bone_translation, *self._grids,
                                           float(m.contact_depth), m.particle_count, self.particle_chunk],
-                                  outputs=[dst.particle_q, dst.particle_qd], record_cmd=True)
+                                  outputs=[dst.particle_q, dst.particle_qd, self.particle_moved], record_cmd=True)
             return [springs, particles, guard, apply, h]
 
         entry = self._launches.get((src, dst, control), record)
@@ -276,10 +286,13 @@ class SkinSolver:
                 springs.launch()
             particles.launch()
             if guard is not None:
-                for _ in range(model.fold_passes):
+                for k in range(model.fold_passes):
                     self.guarded_count.zero_()
-                    guard[0].launch()
-                    guard[1].launch()
+                    later = min(k, 1)  # after the first pass: only next to what it moved
+                    guard[0][later].launch()
+                    guard[1][later].launch()
+                    if guard[2] is not None:
+                        guard[2].launch()
                     if self._cpu and self.guarded_count.numpy()[0] == 0:
                         break  # nothing near folding (on CUDA, reading this would stall the queue)
                     apply.launch()

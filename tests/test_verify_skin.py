@@ -1,0 +1,121 @@
+"""`fae verify-skin` and the skin check under it: folds, creases, strain and lips crossing."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fae.animate.faptables import FAP_LIMITS
+from fae.animate.skin_check import SkinCheck, check_stream, expression_sweep, fap_sweep
+from fae.data import shipped_head_path
+from fae.io.facemodel_gltf import read_facemodel
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED_FAP = ROOT.parent / "shared" / "data" / "fap"
+
+
+@pytest.fixture(scope="module")
+def face():
+    return read_facemodel(shipped_head_path())
+
+
+@pytest.fixture(scope="module")
+def check(face):
+    return SkinCheck(face)
+
+
+def _region_vertex(face, region: str, x: float = 0.0) -> int:
+    """The skin vertex of `region` nearest the mid-line plane x (metres)."""
+    V = np.asarray(face.skin_vertices)
+    ids = np.flatnonzero(np.asarray(face.skin_region) == list(face.region_names).index(region))
+    return int(ids[np.argmin(np.abs(V[ids, 0] - x) - 1e-3 * V[ids, 2])])
+
+
+def test_the_rest_pose_is_whole(face, check):
+    r = check.frame(np.asarray(face.skin_vertices, dtype=np.float64))
+    assert not r.folded.any()
+    assert r.stretch == pytest.approx(1.0) and r.compression == pytest.approx(1.0)
+    assert r.lip_crossings == 0
+
+
+def test_a_vertex_pushed_through_the_skin_shows_as_folded_and_stretched(face, check):
+    V = np.asarray(face.skin_vertices, dtype=np.float64).copy()
+    v = _region_vertex(face, "cheek_l", x=0.045)
+    normal = np.cross(*(V[face.skin_faces[np.any(face.skin_faces == v, axis=1)][0][1:]]
+                        - V[face.skin_faces[np.any(face.skin_faces == v, axis=1)][0][0]]))
+    V[v] -= 0.02 * normal / np.linalg.norm(normal)  # 2 cm into the head: its fan turns inside out
+    r = check.frame(V)
+    folded = np.flatnonzero(r.folded)
+    assert len(folded) >= 3
+    assert np.all(np.any(face.skin_faces[folded] == v, axis=1)
+                  | np.isin(face.skin_faces[folded], face.skin_faces[np.any(face.skin_faces == v, axis=1)]).any(axis=1))
+    assert r.stretch > 2.0
+
+
+def test_the_lower_lip_lifted_through_the_upper_lip_is_caught(face, check):
+    V = np.asarray(face.skin_vertices, dtype=np.float64).copy()
+    lower = np.asarray(face.skin_region) == list(face.region_names).index("lip_lower")
+    V[lower, 1] += 0.012  # 12 mm up, through the closed upper lip
+    assert check.frame(V).lip_crossings > 0
+
+
+def test_the_default_sweep_takes_every_fap_to_both_limits():
+    frames = np.array(fap_sweep())
+    for k in range(3, 69):
+        lo, hi = FAP_LIMITS[k - 1]
+        assert frames[:, k - 1].max() == pytest.approx(hi)
+        assert frames[:, k - 1].min() == pytest.approx(lo)
+    # one FAP at a time
+    assert np.all(np.count_nonzero(frames, axis=1) <= 1)
+    assert len(expression_sweep()) > 6
+
+
+def _verify_skin(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "fae", "verify-skin", *args], capture_output=True, text=True,
+                          timeout=900, cwd=ROOT)
+
+
+def test_verify_skin_refuses_what_it_cannot_read(tmp_path):
+    bad = tmp_path / "bad.fap"
+    bad.write_text("this is not a fap file\n")
+    r = _verify_skin(str(bad))
+    assert r.returncode == 2 and "bad.fap" in r.stderr and "Traceback" not in r.stderr
+    r = _verify_skin(str(tmp_path / "missing.glb"), str(ROOT / "fap_streams" / "visemes.fap"))
+    assert r.returncode == 2 and "missing.glb" in r.stderr
+
+
+@pytest.mark.slow
+def test_verify_skin_reports_each_stream_as_json_and_its_status(tmp_path):
+    r = _verify_skin(str(ROOT / "fap_streams" / "visemes.fap"), "--json")
+    assert r.returncode in (0, 1), r.stderr
+    report = json.loads(r.stdout)
+    (stream,) = report["streams"]
+    assert stream["frames"] == 48
+    assert r.returncode == (0 if report["ok"] else 1)
+    assert report["ok"] == (stream["triangles_folded"] == 0 and stream["max_stretch"] <= 2.0
+                            and stream["min_compression"] >= 0.3)
+
+
+XFACE = sorted(SHARED_FAP.glob("xface_*.fap")) if SHARED_FAP.is_dir() else []
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not XFACE, reason="../shared/data/fap is not here")
+@pytest.mark.parametrize("name", [p.name for p in XFACE] or ["none"])
+def test_real_streams_keep_the_lips_apart_and_the_folds_few(name):
+    """The xface streams on the shipped head: the lips never pass through each other, and
+    at most 320 visible triangles ever fold or crease (before the fold guard: 400-780 by this
+    count, with holes under the lower lip; the issue's goal, 0, is not reached yet)."""
+    from fae.animate.player import Player
+    from fae.io.fap import read_fap
+
+    player = Player(read_facemodel(shipped_head_path()))
+    r = check_stream(player, read_fap(SHARED_FAP / name), name)
+    assert r["frames_lips_crossed"] == 0
+    assert r["triangles_folded"] <= 320
+    assert r["max_stretch"] <= 12.0
