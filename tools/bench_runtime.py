@@ -9,12 +9,15 @@ pass is reported: a shared machine's other load makes single passes vary by 1.5x
 the same frames' controls are stepped by the numpy reference solver (fae.sim.reference,
 same scheme and substeps) and turned into skin positions, in the same run. Prints
 frames/s of both, by wall clock and by this process's CPU time (which the machine's other
-load does not stretch), their ratios, and the solver's substeps per frame.
+load does not stretch), their ratios, and the solver's substeps per frame. Last, the same
+frames on a Player whose skin has no fold guard (`fold_passes` 0: no fold guard, crease
+smoothing or lip contact, fae.sim.folds), for what the guard costs.
 """
 
 from __future__ import annotations
 
 import argparse
+import copy
 import os
 import sys
 import time
@@ -60,21 +63,29 @@ def main(argv=None) -> int:
     print(f"head: {args.head or shipped_head_path().name}, {player.sim.particle_count} particles, "
           f"{player.sim.spring_count} springs; Player ready in {time.perf_counter() - t0:.1f} s")
     ref = ReferenceSolver(player.sim)
+    bare = copy.copy(face)
+    bare.layer_params = {**(face.layer_params or {}), "fold_passes": 0}
+    unguarded = Player(bare)
+
+    def timed(p, frames, fps) -> tuple[list[float], list[float]]:
+        p.fps = fps
+        p.reset()
+        p.step(frames[0])  # warm-up: kernel load
+        walls, cpus = [], []
+        for _ in range(args.passes):
+            p.reset()
+            t0, c0 = time.perf_counter(), time.process_time()
+            for f in frames:
+                p.step(f, dt=1.0 / fps)
+            walls.append(len(frames) / (time.perf_counter() - t0))
+            cpus.append(len(frames) / max(time.process_time() - c0, 1e-9))
+        return walls, cpus
+
     for path in streams():
         stream = read_fap(path)
         fps = float(stream.header.fps)
         frames = [f for _, f in zip(range(args.frames), dense_frames(stream))]
-        player.fps = fps
-        player.reset()
-        player.step(frames[0])  # warm-up: kernel load
-        walls, cpus = [], []
-        for _ in range(args.passes):
-            player.reset()
-            t0, c0 = time.perf_counter(), time.process_time()
-            for f in frames:
-                player.step(f, dt=1.0 / fps)
-            walls.append(len(frames) / (time.perf_counter() - t0))
-            cpus.append(len(frames) / max(time.process_time() - c0, 1e-9))
+        walls, cpus = timed(player, frames, fps)
         warp_fps, warp_cpu = float(np.median(walls)), float(np.median(cpus))
 
         # numpy: the same controls, the same substeps, the same skin positions
@@ -95,6 +106,9 @@ def main(argv=None) -> int:
               f"warp {warp_fps:.1f} frames/s (median of {args.passes} passes, {min(walls):.0f}-{max(walls):.0f}; "
               f"CPU time {warp_cpu:.0f}), numpy {numpy_fps:.2f} (CPU time {numpy_cpu:.2f}), "
               f"ratio {warp_fps / numpy_fps:.1f}x (CPU time {warp_cpu / numpy_cpu:.1f}x)")
+        bare_walls, bare_cpus = timed(unguarded, frames, fps)
+        print(f"  without the fold guard: {np.median(bare_walls):.1f} frames/s (CPU time {np.median(bare_cpus):.0f}); "
+              f"the guard costs {100 * (1 - warp_cpu / np.median(bare_cpus)):.0f} % of the CPU frame rate")
     return 0
 
 
