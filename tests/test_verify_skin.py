@@ -119,3 +119,18 @@ def test_real_streams_keep_the_lips_apart_and_the_folds_few(name):
     assert r["frames_lips_crossed"] == 0
     assert r["triangles_folded"] <= 320
     assert r["max_stretch"] <= 12.0
+
+
+@pytest.mark.slow
+def test_lip_corners_and_eyelids_visibly_follow_their_faps(face):
+    """A face-landmark model looking at front renders: the mouth corner rises and the lid
+    gap closes in step with FAPs 12, 13, 19 and 20 (Pearson r >= 0.8 over six values from 0
+    to the upper limit)."""
+    pytest.importorskip("mediapipe")
+    sys.path.insert(0, str(ROOT / "tools"))
+    from check_readability import readability
+
+    report = readability(face, faps=[12, 13, 19, 20])
+    for k, r in report.items():
+        assert r["r"] >= 0.8, (k, r)
+        assert r["measures"][-1] > r["measures"][0], (k, r)
