@@ -36,7 +36,11 @@ Layer order: an epidermis particle stays at least `layer_min_height` 0.1 of its 
 height above its vertex in the middle layer (0.25, and the middle layer over the deepest
 too, held the lower lip's raise to 0.72 of its FAP) (fae.sim.integrate). Contact:
 penetrations of skin the bone moved onto deeper than `contact_depth` 4 mm are left to
-the springs (see fae.sim.collision).
+the springs (see fae.sim.collision). Folds (fae.sim.folds): triangles of the two upper
+layers below `fold_min_area` 0.3 of their rest area (in their rest plane) are restored,
+epidermis particles whose Laplacian offset strays more than `crease_tolerance` 0.25 x their
+mean edge are moved back, and lip particles facing each other within `lip_reach` 3 mm stay
+in order, in up to `fold_passes` 3 passes per substep.
 """
 
 from __future__ import annotations
