@@ -67,7 +67,7 @@ def run(args) -> int:
     if args.json:
         print(json.dumps({"head": str(path), "streams": reports, "ok": whole}, indent=1))
     else:
-        print(f"{path}: folded = visible skin triangles turned over (ever); stretch / compression = "
+        print(f"{path}: folded = visible skin triangles ever turned over or on a crease; stretch / compression = "
               f"extreme edge length over rest length; lips = frames where the lips pass through each other")
         print(f"{'stream':<44} {'frames':>6} {'folded':>7} {'(frames)':>8} {'stretch':>7} {'compr.':>6} "
               f"{'lips':>5}  worst regions")
