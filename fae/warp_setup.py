@@ -3,7 +3,7 @@
 fae runs its CPU kernels from several threads at once (a server's faces step on a pool of
 threads; Warp releases the interpreter lock during a launch). The first launches of the
 kernels that run per frame (the solver's and the skin's) are made alone
-(fae.sim.solver.call_first_alone): concurrent first launches, which also load their
+(fae.sim.launch.call_first_alone): concurrent first launches, which also load their
 module, crashed; the kernels used while a head is built run under the server's face
 factory lock (fae.net.faces.player_face_factory). And on
 x86-64, Warp's default (`config.enable_tiles_in_stack_memory` True) points one static

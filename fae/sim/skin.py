@@ -12,7 +12,7 @@ import numpy as np
 import warp as wp
 
 from fae.sim.model import Control, SkinModel, State
-from fae.sim.solver import LaunchCache, call_first_alone
+from fae.sim.launch import LaunchCache, call_first_alone
 
 # fast math and no adjoint code, as the solver's kernels (fae.sim.springs)
 wp.set_module_options({"fast_math": True, "enable_backward": False})
@@ -57,7 +57,7 @@ class SkinOutput:
         call_first_alone(("SkinOutput", str(wp.get_device(d))), self._first_positions)
 
     def _first_positions(self) -> None:
-        """The skin at rest once, to run the kernel once (see fae.sim.solver.call_first_alone)."""
+        """The skin at rest once, to run the kernel once (see fae.sim.launch.call_first_alone)."""
         self.positions(self.model.state(), self.model.control())
         self._launches = LaunchCache(size=4)
 

@@ -48,8 +48,6 @@ frame in C on one core, more than the whole explicit frame.
 from __future__ import annotations
 
 import math
-import threading
-from collections import OrderedDict
 
 import numpy as np
 import warp as wp
@@ -58,12 +56,12 @@ import fae.sim.folds as _folds
 import fae.sim.integrate as _integrate
 import fae.sim.muscles as _muscles
 import fae.sim.springs as _springs
+from fae.sim.launch import LaunchCache, call_first_alone
 from fae.sim.model import Control, SkinModel, State
 
 # consecutive springs / particles per Warp thread on the CPU (see fae.sim.springs)
 CPU_SPRING_CHUNK = 16  # rows of springs (about seven springs each on the shipped head)
 CPU_PARTICLE_CHUNK = 64
-_LAUNCH_CACHE_SIZE = 16
 
 
 def substep_count(model: SkinModel, dt: float) -> int:
@@ -82,49 +80,6 @@ def stable_substep(spring_rate: float, anchor_rate: float, damping: float, cfl: 
     if a <= 0.0:
         return 1.0
     return min(1.0, (b + math.sqrt(b * b + 4.0 * cfl * cfl * a)) / a)
-
-
-_first_calls_lock = threading.Lock()
-_first_calls_done: set = set()
-
-
-def call_first_alone(key, fn) -> None:
-    """Run fn() unless a call for `key` already finished in this process; no two such
-    first calls run at once, and later ones wait for the first to finish.
-
-    Warp's CPU backend crashed (a segfault inside the kernel) when threads entered a kernel
-    for the first time at once: ten faces of `fae serve` stepping their first frames
-    together crashed the server in 4 of 6 runs. Once each kernel has run, faces step in
-    several threads safely. Solvers and skin outputs run their kernels once through this
-    when made (fae.sim.skin)."""
-    if key in _first_calls_done:
-        return
-    with _first_calls_lock:
-        if key not in _first_calls_done:
-            fn()
-            _first_calls_done.add(key)
-
-
-class LaunchCache:
-    """Recorded launches (or tuples of them) by the objects whose arrays they were recorded
-    with, the `size` most recently used. An entry keeps those objects alive, so that the ids
-    in its key cannot be reused by others while it is cached."""
-
-    def __init__(self, size: int = _LAUNCH_CACHE_SIZE):
-        self.size = size
-        self._entries: OrderedDict[tuple, tuple] = OrderedDict()
-
-    def get(self, owners: tuple, record):
-        """The entry for `owners` (a tuple of objects), made by `record()` if new."""
-        key = tuple(id(o) for o in owners)
-        entry = self._entries.get(key)
-        if entry is None:
-            entry = self._entries[key] = (record(), owners)
-            while len(self._entries) > self.size:
-                self._entries.popitem(last=False)
-        else:
-            self._entries.move_to_end(key)
-        return entry[0]
 
 
 def packed_arrays(model: SkinModel) -> tuple[wp.array, wp.array, wp.array]:
