@@ -133,7 +133,7 @@ def test_the_clamp_warning_names_the_range_the_face_plays():
     state.update(frame(4, {3: 5000}))
     low, high = FAP_LIMITS[2]
     assert (low, high) == (0, 1080)  # open_jaw: what the Player clamps to
-    assert state.warnings == [f"s.fap: frame 4: FAP 3 open_jaw = 5000 MNS is outside [0, 1080], the range the face "
+    assert state.warnings == ["s.fap: frame 4: FAP 3 open_jaw = 5000 MNS is outside [0, 1080], the range the face "
                               "plays; played as 1080 here and cut to that range wherever else it is outside"]
     state.update(frame(5, {3: -5}))  # a unidirectional FAP a little below 0, as real streams send
     quiet = FrameState()

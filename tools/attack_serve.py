@@ -31,13 +31,12 @@ import os
 import subprocess
 import sys
 import threading
-import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from fae.net.client import send_fap, split_fap_text  # noqa: E402
+from fae.net.client import send_fap  # noqa: E402
 
 FAP = next(p for p in (ROOT.parent / "shared" / "data" / "fap" / "xface_anger.fap",
                        ROOT / "fap_streams" / "expressions.fap") if p.is_file())

@@ -134,13 +134,14 @@ def smooth_push(V: np.ndarray, push: np.ndarray, at: np.ndarray, radius: float) 
     `radius` metres away."""
     V = np.asarray(V, dtype=np.float64)
     D = np.zeros_like(V)
+    total = np.zeros(len(V))
     for a in range(0, len(at), 256):  # (n, 256) weights at a time
         src = V[at[a:a + 256]]
         d2 = np.sum(V * V, 1)[:, None] + np.sum(src * src, 1)[None, :] - 2.0 * V @ src.T
         w = wendland_c2(np.sqrt(np.maximum(d2, 0.0)) / radius)
         D += w @ push[a:a + 256]
-        total = w.sum(axis=1) if a == 0 else total + w.sum(axis=1)
-    return D / np.maximum(total, 1.0)[:, None] if len(at) else D
+        total += w.sum(axis=1)
+    return D / np.maximum(total, 1.0)[:, None]
 
 
 def push_under_skin(model: FaceModel, part: str, min_depth: float = MIN_BONE_DEPTH, rounds: int = 10,

@@ -18,13 +18,13 @@ import numpy as np
 from fae import __version__
 from fae.anatomy import template_shapes as S
 from fae.anatomy.geometry import (
-    closest_surface_points,
     decimate,
     largest_component,
     mesh_from_sdf,
     mirror_half,
     ray_hits,
 )
+from fae.anatomy.surface_points import vertex_point
 from fae.anatomy.template_muscles import template_muscles
 from fae.anatomy.template_regions import REGION_NAMES, skin_regions
 from fae.io.facemodel import FaceModel, Part, SurfacePoint
@@ -107,20 +107,6 @@ def _part(name: str, V: np.ndarray, F: np.ndarray, vertex_colors=None) -> Part:
 
 
 # --- surface points --------------------------------------------------------------------------
-
-def vertex_point(part: str, F: np.ndarray, vertex: int) -> SurfacePoint:
-    """SurfacePoint exactly at `vertex`, on the lowest-numbered face that uses it."""
-    tri = int(np.flatnonzero((F == vertex).any(axis=1))[0])
-    bary = (F[tri] == vertex).astype(np.float64)
-    return SurfacePoint(part=part, triangle=tri, bary=bary)
-
-
-def closest_point(part: str, V: np.ndarray, F: np.ndarray, target) -> SurfacePoint:
-    """SurfacePoint closest to `target` (3,) on mesh (V, F) (same unit as V)."""
-    _, tri, bary = closest_surface_points(V, F, np.asarray(target, dtype=np.float64)[None])
-    b = np.clip(bary[0], 0.0, None)
-    return SurfacePoint(part=part, triangle=int(tri[0]), bary=b / b.sum())
-
 
 def _nearest(V: np.ndarray, candidates: np.ndarray, target) -> int:
     """Index (into V) of the candidate vertex nearest to target; ties go to the lower index."""

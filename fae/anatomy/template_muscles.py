@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from fae.anatomy import template_shapes as S
+from fae.anatomy.surface_points import closest_point, vertex_point
 from fae.io.facemodel import Muscle
 
 MM = 1e-3
@@ -45,8 +47,6 @@ def _sided(regions: list[str], side: str) -> list[str]:
 
 def template_muscles(V: np.ndarray, F: np.ndarray, region: np.ndarray, parts_mm: dict) -> list[Muscle]:
     """The template's muscles (positions from the skin `V (n, 3)` mm, faces F, and the parts in mm)."""
-    from fae.anatomy.template import closest_point
-    from fae.anatomy import template_shapes as S
 
     muscles: list[Muscle] = []
     flip = np.array([-1.0, 1.0, 1.0])
@@ -67,8 +67,6 @@ def template_muscles(V: np.ndarray, F: np.ndarray, region: np.ndarray, parts_mm:
     mid = np.flatnonzero(V[:, 0] == 0.0)
     lips = mid[np.abs(V[mid, 1] - S.STOMION_Y) < 2.0]
     centre = int(lips[np.argmax(V[lips, 2])])
-    from fae.anatomy.template import vertex_point
-
     muscles.append(Muscle(
         name="orbicularis_oris", kind="sphincter", attachment=vertex_point("skin", F, centre), insertion=None,
         regions=["lip_upper", "lip_lower"], semi_axes=np.array([31.0, 17.0]) * MM, axes=axes.copy()))

@@ -46,7 +46,8 @@ from scipy.optimize import lsq_linear
 from scipy.sparse.csgraph import dijkstra
 from scipy.sparse.linalg import splu
 
-from fae.animate.ears import EAR_FAPS
+from fae.animate.controls import FapControls
+from fae.animate.mapping import FORMAT_VERSION, JAW_CONTROLS, field_faps
 from fae.animate.faptables import (FAP_DIRECTION, FAP_FEATURE_POINT, FAP_LIMITS, JAW_FAPS,
                                    SKIN_TRANSLATION_FAPS, fap_unit_scale, fapu_of)
 from fae.mpeg4.faps import FAP_COUNT
@@ -54,11 +55,6 @@ from fae.mpeg4.fdps import mirror_point
 from fae.sim.build import PullField, mesh_edges, skin_model, skin_positions
 from fae.sim.reference import ReferenceSolver
 
-# 3: the skin solver with the fold guard and crease smoothing (fae.sim.folds) and pull fields
-# preferred to muscles; 2: implicit anchors, blended holds and derived ear tables. A mapping
-# calibrated for another solver moves the feature points by other amounts
-FORMAT_VERSION = 3
-JAW_CONTROLS = 3
 FIELD_ONLY_FAPS = (19, 20, 21, 22)
 # pull-field radius per FAP, in units of ES0
 _FIELD_RADIUS_ES = {**{k: 0.16 for k in (4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 16, 17)},
@@ -78,14 +74,6 @@ MIRROR_NEAR = 0.4
 MIRROR_FAR = 0.7
 FIELD_COST = 0.05
 CONTROL_SCALE = 0.01  # metres
-
-
-def field_faps(face) -> list[int]:
-    """FAPs that get a pull field on this head: skin-bound translations except the jaw's and
-    the ears' (fae.animate.ears)."""
-    return [k for k in SKIN_TRANSLATION_FAPS
-            if k not in JAW_FAPS and k not in EAR_FAPS and FAP_FEATURE_POINT[k - 1] in face.feature_points
-            and face.feature_points[FAP_FEATURE_POINT[k - 1]].part == "skin"]
 
 
 def edge_length_graph(face) -> sp.csr_matrix:
@@ -217,7 +205,6 @@ def _solve(J: np.ndarray, target: np.ndarray, cost: np.ndarray, lower: np.ndarra
 
 def calibrate(face, device: str = "cpu", passes: int = 3, settle_frames: int = 30):
     """A copy of FaceModel `face` with `fap_mapping` filled (see module docstring)."""
-    from fae.animate.controls import FapControls  # controls read the mapping this builds
     from fae.animate.rigid import RigidRig
     from fae.sim.solver import SkinSolver
 

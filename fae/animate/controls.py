@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from fae.animate.calibrate import FORMAT_VERSION, JAW_CONTROLS, field_faps
+from fae.animate.mapping import FORMAT_VERSION, JAW_CONTROLS, field_faps
 from fae.mpeg4.faps import FAP_COUNT
 
 ACTIVATION_LIMIT = 50.0

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-import tempfile
 from pathlib import Path
 
 from fae.commands.common import add_view_arguments, fail, load_head, output_problem, video_size_problem
