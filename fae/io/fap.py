@@ -177,6 +177,29 @@ class FapParser:
         self._last_number: int | None = None
         self._warned: set[str] = set()
 
+    @classmethod
+    def after_header(cls, source_name: str, header: "FapHeader", warned: Iterable[str] = (),
+                     warnings: list[str] | None = None, max_line: int = MAX_LINE_BYTES) -> "FapParser":
+        """A parser that resumes a stream whose header was read already (by another parser):
+        it expects frame lines. warned: the keys of the warnings given once already (see
+        `warned_keys`), so that they are not repeated; warnings: the list to append to."""
+        parser = cls(source_name, max_line=max_line)
+        parser.header = header
+        parser._warned = set(warned)
+        if warnings is not None:
+            parser.warnings = warnings
+        return parser
+
+    @property
+    def warned_keys(self) -> frozenset[str]:
+        """Keys of the warnings given once so far (for `after_header`)."""
+        return frozenset(self._warned)
+
+    def warn_once(self, key: str, message: str) -> None:
+        """Add `message` (prefixed with the source's name) to `warnings` unless a warning with
+        the same `key` was given already."""
+        self._warn_once(key, message)
+
     # -- helpers -----------------------------------------------------------------
     def _error(self, line: int, token: str | None, expected: str) -> FapFormatError:
         return FapFormatError(self.source_name, line, token, expected)
@@ -394,7 +417,7 @@ class FapStream:
         self._body_offset, self._body_line = self._scan_header(parser)
         self.header: FapHeader = parser.header
         self._header_warnings = list(parser.warnings)
-        self._header_warned = set(parser._warned)
+        self._header_warned = parser.warned_keys
         self.warnings: list[str] = list(parser.warnings)
 
     def _open(self):
@@ -419,7 +442,7 @@ class FapStream:
             text, utf8 = _decode(raw)
             if not utf8 and not warned:
                 warned = True
-                parser._warn_once("latin1", f"line {number}: not UTF-8; read as Latin-1")
+                parser.warn_once("latin1", f"line {number}: not UTF-8; read as Latin-1")
             yield text, number
             number += 1
 
@@ -434,11 +457,8 @@ class FapStream:
         raise AssertionError("unreachable")  # pragma: no cover
 
     def __iter__(self) -> Iterator[FapFrame]:
-        parser = FapParser(self.source_name)
-        parser.header = self.header
-        parser._warned = set(self._header_warned)
         self.warnings = list(self._header_warnings)
-        parser.warnings = self.warnings
+        parser = FapParser.after_header(self.source_name, self.header, self._header_warned, self.warnings)
         with self._open() as handle:
             handle.seek(self._body_offset)
             for text, line_number in self._lines(handle, parser, self._body_line):
