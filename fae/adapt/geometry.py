@@ -1,8 +1,9 @@
 """Mesh quantities the fitting needs: normals, boundary, cotangent Laplacian, mean curvature.
 
 libigl-style: arrays in, arrays out. V (n, 3) float64 metres, F (m, 3) int. The per-face
-sums (vertex normals, cotangent Laplacian, vertex areas) run as float64 Warp kernels on the
-CPU: a scan has 100k+ faces, and numpy's gathers and bincounts cost 10-20x as much.
+sums of the cotangent Laplacian and vertex areas run as float64 Warp kernels on the CPU: a
+scan has 100k+ faces, and numpy's gathers cost 10-20x as much. Edges, adjacency, normals
+and boundaries come from fae.mesh (one rule for every layer).
 """
 
 from __future__ import annotations
@@ -12,6 +13,9 @@ import scipy.sparse as sp
 from fae.warp_setup import wp
 
 from fae.adapt.query import init_warp
+# the mesh basics live in fae.mesh; the fitting's modules import them from here by these names
+from fae.mesh import adjacency as adjacency_matrix, boundary_vertices  # noqa: F401
+from fae.mesh import triangle_normals as face_normal_vectors, vertex_normals as per_vertex_normals  # noqa: F401
 
 # nothing here is differentiated: no adjoint code to compile
 wp.set_module_options({"enable_backward": False})
@@ -69,18 +73,6 @@ def _face_sums(V: np.ndarray, F: np.ndarray, cotangents: bool) -> tuple[np.ndarr
     return normal.numpy(), laplacian.numpy(), area.numpy()
 
 
-def face_normal_vectors(V: np.ndarray, F: np.ndarray) -> np.ndarray:
-    """(m, 3) cross products (V1 - V0) x (V2 - V0) of faces F (m, 3): normal times twice the area."""
-    V = np.asarray(V, dtype=np.float64)
-    V0 = V[F[:, 0]]
-    return np.cross(V[F[:, 1]] - V0, V[F[:, 2]] - V0)
-
-
-def per_vertex_normals(V: np.ndarray, F: np.ndarray) -> np.ndarray:
-    """(n, 3) unit area-weighted vertex normals (zero for unreferenced vertices)."""
-    return _unit_rows(_face_sums(V, F, cotangents=False)[0])
-
-
 def per_face_normals(V: np.ndarray, F: np.ndarray) -> np.ndarray:
     """(m, 3) unit face normals."""
     return _unit_rows(face_normal_vectors(V, F))
@@ -119,31 +111,6 @@ def within(X: np.ndarray, Y: np.ndarray, radius: float) -> np.ndarray:
         y = Y[a:a + 256]
         out |= np.min(xx + np.sum(y * y, axis=1)[None, :] - 2.0 * X @ y.T, axis=1) <= radius * radius
     return out
-
-
-def boundary_vertices(F: np.ndarray, n: int) -> np.ndarray:
-    """(n,) bool: vertices on a boundary edge (an edge used by one face only)."""
-    F = np.asarray(F, dtype=np.int64)
-    E = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
-    key = np.sort(np.minimum(E[:, 0], E[:, 1]) * n + np.maximum(E[:, 0], E[:, 1]))
-    repeated = np.zeros(len(key), dtype=bool)
-    same = key[1:] == key[:-1]
-    repeated[1:] |= same
-    repeated[:-1] |= same
-    b = key[~repeated]
-    out = np.zeros(n, dtype=bool)
-    out[b // n] = True
-    out[b % n] = True
-    return out
-
-
-def adjacency_matrix(F: np.ndarray, n: int) -> sp.csr_matrix:
-    """(n, n) symmetric 0/1 vertex adjacency."""
-    E = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
-    A = sp.coo_matrix((np.ones(len(E)), (E[:, 0], E[:, 1])), shape=(n, n)).tocsr()
-    A = A + A.T
-    A.data[:] = 1.0
-    return A
 
 
 def cotangent_laplacian_of(V: np.ndarray, F: np.ndarray) -> np.ndarray:

@@ -27,18 +27,10 @@ import numpy as np
 
 from fae.adapt.geometry import adjacency_matrix, per_face_normals, within
 from fae.adapt.query import MeshQuery
+from fae.mesh import edges as mesh_edges
 
 _END_GAP = 1e-3  # of the edge length, kept off both ends (Warp works in float32)
 FOLD_ANGLE = np.pi / 2  # radians two neighbouring faces may turn further against each other than on the reference
-
-
-def mesh_edges(F: np.ndarray) -> np.ndarray:
-    """(e, 2) unique undirected edges of faces F (m, 3), smaller index first."""
-    F = np.asarray(F, dtype=np.int64)
-    E = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
-    n = int(F.max(initial=0)) + 1
-    key = np.unique(np.minimum(E[:, 0], E[:, 1]) * n + np.maximum(E[:, 0], E[:, 1]))
-    return np.column_stack([key // n, key % n])
 
 
 def edge_crossings(V: np.ndarray, F: np.ndarray, edges: np.ndarray | None = None,

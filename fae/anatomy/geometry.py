@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from fae.mesh import boundary_edges
+
 
 # ---------------------------------------------------------------------------------------
 # signed distance primitives (approximate where exact is costly; all 1-Lipschitz-ish)
@@ -180,14 +182,6 @@ def largest_component(V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndar
     face_label = labels[F[:, 0]]
     keep = face_label == np.bincount(face_label).argmax()
     return remove_unreferenced(V, F[keep])
-
-
-def boundary_edges(F: np.ndarray) -> np.ndarray:
-    """(b, 2) directed edges used by exactly one face."""
-    E = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
-    key = np.sort(E, axis=1)
-    _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-    return E[counts[inverse.ravel()] == 1]
 
 
 def decimate(V: np.ndarray, F: np.ndarray, target_faces: int) -> tuple[np.ndarray, np.ndarray]:

@@ -52,6 +52,7 @@ from fae.animate.faptables import (FAP_DIRECTION, FAP_FEATURE_POINT, FAP_LIMITS,
                                    SKIN_TRANSLATION_FAPS, fap_unit_scale, fapu_of)
 from fae.mpeg4.faps import FAP_COUNT
 from fae.mpeg4.fdps import mirror_point
+from fae.mesh import adjacency
 from fae.sim.build import PullField, mesh_edges, skin_model, skin_positions
 from fae.sim.reference import ReferenceSolver
 
@@ -300,10 +301,9 @@ def calibrate(face, device: str = "cpu", passes: int = 3, settle_frames: int = 3
 
 def _disjoint_batches(face, model, faps, responses, gain_pos, gain_neg, unit) -> list[list[int]]:
     """FAPs grouped so that no two in a group move the same skin (footprint + 2 rings)."""
-    from fae.sim.build import adjacency, dilate
+    from fae.sim.build import dilate
 
-    V = len(face.skin_vertices)
-    A = adjacency(V, mesh_edges(np.asarray(face.skin_faces)))
+    A = adjacency(np.asarray(face.skin_faces), len(face.skin_vertices))
     footprint = {}
     for k in faps:
         g = (np.abs(gain_pos[k - 1]) + np.abs(gain_neg[k - 1])) / np.maximum(unit[k - 1], 1e-12)

@@ -23,6 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from fae.mesh import triangle_normals
+
 FOLD_COS = 0.0  # cos 90 degrees: a normal turned further than this is folded
 # a crease: two neighbours at most 45 degrees apart at rest, more than 90 degrees apart now
 CREASE_REST_COS = np.cos(np.radians(45.0))
@@ -47,11 +49,6 @@ class FrameCheck:
     stretch: float
     compression: float
     lip_crossings: int
-
-
-def triangle_normals(V: np.ndarray, F: np.ndarray) -> np.ndarray:
-    """(T, 3) unnormalised triangle normals (twice the area) of V (n, 3) metres, F (T, 3)."""
-    return np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
 
 
 def segments_through_triangles(a: np.ndarray, b: np.ndarray, T: np.ndarray) -> np.ndarray:

@@ -24,9 +24,9 @@ from pathlib import Path
 
 import numpy as np
 import pygltflib
-import trimesh
 
 from fae.io.atomic import atomic_path
+from fae.mesh import vertex_normals
 from fae.io.facemodel import PART_BONES, FaceDefTable, FaceModel, Muscle, Part, SurfacePoint
 from fae.mpeg4 import FEATURE_POINTS, fapu0_from_positions, fapu_from_fapu0
 
@@ -538,30 +538,6 @@ class _Writer:
             "semi_axes": None if mu.semi_axes is None else _float_list(mu.semi_axes),
             "axes": None if mu.axes is None else [_float_list(a) for a in np.asarray(mu.axes)],
         }
-
-
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """(n, 3) float64 unit vertex normals: area-weighted mean of the adjacent face normals.
-
-    Vertices on no (or only degenerate) triangles get the direction from the mesh's
-    centroid, or +Z, so that every normal has unit length as glTF requires.
-    """
-    vertices = np.asarray(vertices, dtype=np.float64)
-    faces = np.asarray(faces, dtype=np.int64)
-    crosses = trimesh.triangles.cross(vertices[faces])  # (m, 3), length = 2 * area
-    summed = np.zeros_like(vertices)
-    for corner in range(3):
-        for axis in range(3):
-            summed[:, axis] += np.bincount(faces[:, corner], weights=crosses[:, axis], minlength=len(vertices))
-    length = np.linalg.norm(summed, axis=1)
-    flat = length <= 1e-300
-    if np.any(flat):
-        radial = vertices[flat] - vertices.mean(axis=0)
-        radial_length = np.linalg.norm(radial, axis=1)
-        radial[radial_length <= 1e-300] = (0.0, 0.0, 1.0)
-        summed[flat] = radial
-        length = np.linalg.norm(summed, axis=1)
-    return summed / length[:, None]
 
 
 def _float_list(values, dtype=np.float64) -> list[float]:

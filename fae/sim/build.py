@@ -54,6 +54,8 @@ import warp as wp
 from scipy.spatial import cKDTree
 
 from fae.io.facemodel import FaceModel
+from fae.mesh import adjacency_from_edges, vertex_areas, vertex_normals
+from fae.mesh import edges as mesh_edges
 from fae.sim.folds import CreaseVertex, GuardedTriangle, LipPair, crease_vertices, guarded_triangles, lip_pairs
 from fae.sim.model import (BONE_COUNT, BONE_NAMES, LAYER_COUNT, MUSCLE_FIELD, MUSCLE_LINEAR, MUSCLE_SPHINCTER,
                            SkinModel)
@@ -100,35 +102,6 @@ class PullField:
     name: str
     direction: np.ndarray
     skin_weight: np.ndarray
-
-
-def mesh_edges(F: np.ndarray) -> np.ndarray:
-    """(E, 2) int64 unique undirected edges (i < j) of triangles F (m, 3)."""
-    e = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]).astype(np.int64)
-    e.sort(axis=1)
-    return np.unique(e, axis=0)
-
-
-def vertex_normals(V: np.ndarray, F: np.ndarray) -> np.ndarray:
-    """(n, 3) unit area-weighted vertex normals of (V, F)."""
-    fn = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
-    n = np.zeros_like(V)
-    for k in range(3):
-        n += np.column_stack([np.bincount(F[:, k], weights=fn[:, c], minlength=len(V)) for c in range(3)])
-    length = np.linalg.norm(n, axis=1, keepdims=True)
-    return n / np.maximum(length, 1e-12)
-
-
-def vertex_areas(V: np.ndarray, F: np.ndarray) -> np.ndarray:
-    """(n,) m^2: a third of the area of the triangles around each vertex."""
-    a = 0.5 * np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]), axis=1)
-    return np.bincount(F.reshape(-1), weights=np.repeat(a / 3.0, 3), minlength=len(V))
-
-
-def adjacency(n: int, edges: np.ndarray) -> sp.csr_matrix:
-    """(n, n) boolean symmetric vertex adjacency of `edges` (E, 2)."""
-    A = sp.coo_matrix((np.ones(len(edges), dtype=bool), (edges[:, 0], edges[:, 1])), shape=(n, n)).tocsr()
-    return (A + A.T).tocsr()
 
 
 def dilate(mask: np.ndarray, A: sp.csr_matrix, rings: int) -> np.ndarray:
@@ -325,7 +298,7 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
     normals = vertex_normals(V, F)
     layers = [V - normals * (thickness * fr[k])[:, None] for k in range(LAYER_COUNT)]
     edges = mesh_edges(F)
-    A = adjacency(nv, edges)
+    A = adjacency_from_edges(nv, edges)
 
     # How much each skin vertex's hold follows the jaw (0: skull, 1: mandible).
     jaw = jaw_weights(face, layers[-1], A, p)

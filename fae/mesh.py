@@ -1,0 +1,100 @@
+"""Triangle-mesh basics shared by every layer: edges, adjacency, normals, areas, boundaries.
+
+Meshes are `V (n, 3) float` (any unit; metres inside the engine) and `F (m, 3) int`,
+counter-clockwise seen from outside. Functions are pure: inputs are never modified.
+
+    edges(F)                      (E, 2) unique undirected edges, smaller index first
+    adjacency(F, n)               (n, n) symmetric 0/1 vertex adjacency (scipy CSR)
+    adjacency_from_edges(n, E)    the same from an edge list
+    triangle_normals(V, F)        (m, 3) unnormalised (length = twice the area)
+    vertex_normals(V, F)          (n, 3) unit, area-weighted (see its rule for degenerate vertices)
+    vertex_areas(V, F)            (n,) a third of the area of the triangles around each vertex
+    boundary_edges(F)             (b, 2) directed edges used by one triangle only
+    boundary_vertices(F, n)       (n,) bool, vertices on such an edge
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+
+def edges(F: np.ndarray) -> np.ndarray:
+    """(E, 2) int64 unique undirected edges (i < j) of triangles F (m, 3), sorted."""
+    F = np.asarray(F, dtype=np.int64)
+    e = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
+    e.sort(axis=1)
+    return np.unique(e, axis=0)
+
+
+def adjacency_from_edges(n: int, E: np.ndarray) -> sp.csr_matrix:
+    """(n, n) float symmetric vertex adjacency (1.0 where an edge of E (k, 2) joins two vertices)."""
+    E = np.asarray(E, dtype=np.int64).reshape(-1, 2)
+    A = sp.coo_matrix((np.ones(len(E)), (E[:, 0], E[:, 1])), shape=(n, n)).tocsr()
+    A = (A + A.T).tocsr()
+    A.data[:] = 1.0
+    return A
+
+
+def adjacency(F: np.ndarray, n: int) -> sp.csr_matrix:
+    """(n, n) float symmetric 0/1 vertex adjacency of triangles F (m, 3) over n vertices."""
+    return adjacency_from_edges(n, edges(F))
+
+
+def triangle_normals(V: np.ndarray, F: np.ndarray) -> np.ndarray:
+    """(m, 3) float64 unnormalised triangle normals (length = twice the area)."""
+    V = np.asarray(V, dtype=np.float64)
+    F = np.asarray(F, dtype=np.int64)
+    a = V[F[:, 0]]
+    return np.cross(V[F[:, 1]] - a, V[F[:, 2]] - a)
+
+
+def vertex_normals(V: np.ndarray, F: np.ndarray, corner_index: np.ndarray | None = None) -> np.ndarray:
+    """(n, 3) float64 unit vertex normals: the area-weighted mean of the adjacent triangles'.
+
+    One rule for a vertex on no triangle, or only on degenerate ones: the direction from the
+    mesh's centroid to it, or +Z where that is zero too (every normal has unit length, as
+    glTF requires and the renderer's lighting assumes). corner_index: `F.ravel()` as int64,
+    precomputed by callers that run this every frame. Sums with `np.bincount` (a scatter-add
+    about 2.5x faster than np.add.at).
+    """
+    V = np.asarray(V, dtype=np.float64)
+    F = np.asarray(F)
+    if corner_index is None:
+        corner_index = F.ravel().astype(np.int64)
+    face_n = triangle_normals(V, F)
+    n = V.shape[0]
+    N = np.empty((n, 3))
+    for k in range(3):
+        N[:, k] = np.bincount(corner_index, weights=np.repeat(face_n[:, k], 3), minlength=n)
+    length = np.sqrt(np.einsum("ij,ij->i", N, N))
+    flat = length <= 1e-30
+    if np.any(flat):
+        radial = V[flat] - V.mean(axis=0)
+        radial_length = np.linalg.norm(radial, axis=1)
+        radial[radial_length <= 1e-30] = (0.0, 0.0, 1.0)
+        radial_length[radial_length <= 1e-30] = 1.0
+        N[flat] = radial / radial_length[:, None]
+        length[flat] = 1.0
+    return N / length[:, None]
+
+
+def vertex_areas(V: np.ndarray, F: np.ndarray) -> np.ndarray:
+    """(n,) a third of the area of the triangles around each vertex (V's unit squared)."""
+    a = 0.5 * np.linalg.norm(triangle_normals(V, F), axis=1)
+    return np.bincount(np.asarray(F, dtype=np.int64).reshape(-1), weights=np.repeat(a / 3.0, 3), minlength=len(V))
+
+
+def boundary_edges(F: np.ndarray) -> np.ndarray:
+    """(b, 2) directed edges (as their triangle lists them) used by exactly one triangle."""
+    F = np.asarray(F, dtype=np.int64)
+    E = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
+    _, inverse, counts = np.unique(np.sort(E, axis=1), axis=0, return_inverse=True, return_counts=True)
+    return E[counts[inverse.ravel()] == 1]
+
+
+def boundary_vertices(F: np.ndarray, n: int) -> np.ndarray:
+    """(n,) bool: vertices on a boundary edge (an edge used by one triangle only)."""
+    out = np.zeros(n, dtype=bool)
+    out[boundary_edges(F).ravel()] = True
+    return out
