@@ -79,7 +79,9 @@ def _reason(exc: BaseException) -> str:
     """One line for the manifest: why a try failed."""
     kind = type(exc).__name__
     if kind == "KilledWorker":
-        return f"worker lost while rendering ({exc})"
+        last = getattr(exc, "last_worker", None)
+        address = getattr(last, "address", last)
+        return f"worker {address} lost while rendering" if address else "a worker was lost while rendering"
     if kind in ("CancelledError", "FutureCancelledError"):
         return f"cancelled: the worker or its data was lost ({exc})" if str(exc) else "cancelled: the worker was lost"
     text = " ".join(str(exc).split())

@@ -102,10 +102,6 @@ def render_job(spec: dict, stream_bytes: bytes, head_bytes: bytes) -> dict:
     from fae.render.video import VideoError
 
     t0 = time.perf_counter()
-    setup, reused = _head_setup(spec["head_sha256"], head_bytes, spec["head"])
-    size = (int(spec["size"][0]), int(spec["size"][1]))
-    renderer = setup.renderer(size, spec["view"])
-    setup_seconds = time.perf_counter() - t0
     stream_name = str(spec["stream"])
     with tempfile.TemporaryDirectory(prefix="fae-batch-") as folder:
         stream_path = Path(folder) / Path(stream_name).name
@@ -117,6 +113,15 @@ def render_job(spec: dict, stream_bytes: bytes, head_bytes: bytes) -> dict:
 
         try:
             stream = read_fap(stream_path)
+            for _ in stream:  # a bad stream fails here, before paying for a head's set-up
+                pass
+        except FapFormatError as exc:
+            raise JobFailed(named(str(exc))) from None
+        setup, reused = _head_setup(spec["head_sha256"], head_bytes, spec["head"])
+        size = (int(spec["size"][0]), int(spec["size"][1]))
+        renderer = setup.renderer(size, spec["view"])
+        setup_seconds = time.perf_counter() - t0
+        try:
             fps = float(spec["fps"]) if spec.get("fps") else float(stream.header.fps)
             player = setup.player
             player.reset()
