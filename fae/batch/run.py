@@ -61,7 +61,9 @@ def usable_cores() -> int:
 
 def _render_on_worker(spec: dict, stream_bytes: bytes, head_bytes: bytes) -> dict:
     """The task a worker runs: one job, plus which worker ran it."""
-    for name, value in ONE_THREAD_ENV.items():  # a user's `dask worker` may not set them
+    # A user's `dask worker` may not set them; only the rasterizer's is read late enough
+    # (when the first renderer is made) for this to count, the others help child processes.
+    for name, value in ONE_THREAD_ENV.items():
         os.environ.setdefault(name, value)
     from distributed import get_worker
 
