@@ -58,3 +58,19 @@ def test_embedded_cluster_sets_each_head_up_once_and_renders_like_play(tmp_path)
     batch_frames, play_frames = decoded(tmp_path / "out" / "two-tinted.mp4"), decoded(tmp_path / "play.mp4")
     assert len(batch_frames) == len(play_frames) == 9
     assert all(np.array_equal(a, b) for a, b in zip(batch_frames, play_frames))
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(120)
+def test_a_head_that_is_not_a_facemodel_fails_its_job_with_the_reason(tmp_path):
+    short_stream(tmp_path / "talk.fap", 4)
+    (tmp_path / "broken.glb").write_bytes(b"glTF but not really")
+    (tmp_path / "jobs.json").write_text(json.dumps([{"stream": "talk.fap", "head": "broken.glb", "size": "64x48"}]))
+    result = subprocess.run([sys.executable, "-m", "fae", "batch", "jobs.json", "-o", "out", "--workers", "1",
+                             "--retries", "1"], cwd=tmp_path, capture_output=True, text=True, timeout=110)
+    assert result.returncode == 1, result.stderr
+    (entry,) = json.loads((tmp_path / "out" / "manifest.json").read_text())["jobs"]
+    assert entry["status"] == "failed" and entry["attempts"] == 2
+    assert "broken.glb" in entry["error"] and "Traceback" not in result.stderr
+    assert "talk.mp4 (jobs.json job 1): " in result.stderr
+    assert not (tmp_path / "out" / "talk.mp4").exists()

@@ -12,6 +12,7 @@ run leaves an accurate one. A job's entry:
     attempts       how many times it was tried in this run; errors: each failed try's reason
     error          the last reason, for a failed job
     output_sha256  checksum of the video written
+    head_reused    the worker had the head set up already (from an earlier job)
 
 A rerun keeps (skips) an output whose earlier entry was done or skipped with the same
 input checksums and settings and whose file still has the recorded checksum.

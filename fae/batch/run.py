@@ -18,6 +18,7 @@ manifest (fae.batch.manifest) is rewritten after every job.
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import os
 import sys
@@ -165,7 +166,10 @@ def run_batch(jobs: list[Job], out_dir: str | os.PathLike, scheduler: str | None
             future = heads.get(job.head_sha256)
             if future is None or future.status != "finished":  # first use, or lost with its workers
                 if job.head_sha256 not in head_bytes:
-                    head_bytes[job.head_sha256] = job.head.read_bytes()
+                    data = job.head.read_bytes()
+                    if hashlib.sha256(data).hexdigest() != job.head_sha256:
+                        raise OSError(f"{job.head}: changed since the job list was read")
+                    head_bytes[job.head_sha256] = data
                 future = client.scatter(head_bytes[job.head_sha256], broadcast=True, hash=False)
                 heads[job.head_sha256] = future
             return future
@@ -178,11 +182,13 @@ def run_batch(jobs: list[Job], out_dir: str | os.PathLike, scheduler: str | None
             entries[index]["attempts"] += 1
             try:
                 stream_bytes = job.stream.read_bytes()
+                if hashlib.sha256(stream_bytes).hexdigest() != job.stream_sha256:
+                    raise OSError(f"{job.stream}: changed since the job list was read")
+                head = head_future(job)
             except OSError as exc:
-                return None, f"{job.stream}: cannot read it ({exc.strerror or exc})"
+                return None, str(exc) if exc.filename is None else f"{exc.filename}: cannot read it ({exc.strerror})"
             key = f"fae-batch-{run_token}-{index}-{entries[index]['attempts']}"
-            future = client.submit(_render_on_worker, _spec(job), stream_bytes, head_future(job), key=key,
-                                   pure=False, retries=0)
+            future = client.submit(_render_on_worker, _spec(job), stream_bytes, head, key=key, pure=False, retries=0)
             owner[future.key] = index
             return future, None
 
@@ -193,22 +199,28 @@ def run_batch(jobs: list[Job], out_dir: str | os.PathLike, scheduler: str | None
         pending = as_completed()
         failures = 0
 
-        def finish_failed(index: int, reason: str) -> None:
+        def advance_bar() -> None:
+            rate = frames_done / max(time.perf_counter() - started, 1e-9)
+            done = sum(1 for e in entries if e["status"] == "done")
+            bar.set_postfix_str(f"done {done}, failed {failures}, {rate:.0f} frames/s", refresh=False)
+            bar.update(1)
+
+        def finish_failed(index: int, reason: str, retry: bool = True) -> None:
             nonlocal failures
             entry = entries[index]
             entry["errors"].append(reason)
-            if entry["attempts"] <= retries:
+            if retry and entry["attempts"] <= retries:
                 future, problem = submit(index)
                 if future is not None:
                     pending.add(future)
                     return
-                entry["errors"].append(problem)
+                entry["errors"].append(problem)  # the input itself is unreadable now: no more tries
             entry["status"] = "failed"
             entry["error"] = entry["errors"][-1]
             failures += 1
             save()
             if bar is not None:
-                bar.update(1)
+                advance_bar()
             else:
                 say(f"{entry['output']}: failed after {entry['attempts']} "
                     f"{'try' if entry['attempts'] == 1 else 'tries'}: {entry['error']}")
@@ -216,7 +228,7 @@ def run_batch(jobs: list[Job], out_dir: str | os.PathLike, scheduler: str | None
         for index in todo:
             future, problem = submit(index)
             if future is None:
-                finish_failed(index, problem)
+                finish_failed(index, problem, retry=False)
             else:
                 pending.add(future)
         for future in pending:
@@ -239,19 +251,16 @@ def run_batch(jobs: list[Job], out_dir: str | os.PathLike, scheduler: str | None
                 with atomic_path(target) as tmp:
                     tmp.write_bytes(result["video"])
             except OSError as exc:
-                entry["attempts"] = retries + 1  # the output folder, not the job: do not retry
-                finish_failed(index, f"{target}: cannot write the video ({exc.strerror or exc})")
+                # the output folder, not the job: another try would fail the same way
+                finish_failed(index, f"{target}: cannot write the video ({exc.strerror or exc})", retry=False)
                 continue
             entry.update(status="done", frames=result["frames"], seconds=round(result["seconds"], 3),
                          worker=result["worker"], error=None, output_sha256=file_sha256(target),
                          warnings=result["warnings"], head_reused=result["head_reused"])
             frames_done += result["frames"]
             save()
-            rate = frames_done / max(time.perf_counter() - started, 1e-9)
             if bar is not None:
-                bar.set_postfix_str(f"done {sum(1 for e in entries if e['status'] == 'done')}, failed {failures}, "
-                                    f"{rate:.0f} frames/s")
-                bar.update(1)
+                advance_bar()
             else:
                 say(f"{job.output}: {result['frames']} frames in {result['seconds']:.1f} s on {result['worker']}")
     finally:
