@@ -24,6 +24,7 @@ COMMANDS = (
     "send",
     "render",
     "play",
+    "batch",
     "template",
     "verify_faps",
     "verify_skin",
