@@ -24,6 +24,8 @@ COMMANDS = (
     "send",
     "render",
     "play",
+    "bake",
+    "export",
     "template",
     "verify_faps",
     "verify_skin",
