@@ -49,7 +49,6 @@ DEFAULT_FPS = 25.0
 MAX_STEP_SECONDS = 1.0
 SETTLED_MOTION = 1e-8  # metres: a frame moving no particle more than this has settled
 ENGINES = ("physics", "fdt")  # the skin simulated, or moved by FaceDefTables baked from the simulation
-_IDENTITY = np.eye(4)
 
 
 @dataclass
@@ -118,6 +117,7 @@ class Player:
         other = copy.copy(self)
         other.rig = RigidRig(self.face, self.fapu)
         other._R, other._t = self._R.copy(), self._t.copy()
+        other.facedef = self.facedef.spawn()
         if self.sim is not None:
             other.solver = SkinSolver(self.sim)
             other.skin = SkinOutput(self.sim)
@@ -200,11 +200,7 @@ class Player:
         """The "fdt" engine's frame: rest skin + FaceDefTable offsets, carried by the head pose."""
         _, jaw = self.controls.controls(v)
         bones = self.rig.poses(v, self.rig.jaw(*jaw))
-        skin = self._rest_skin.copy()
-        self.facedef.add_offsets(v, skin)
-        H = bones["head"]
-        if not np.array_equal(H, _IDENTITY):
-            skin = skin @ H[:3, :3].T + H[:3, 3]
+        skin = self.facedef.displaced(v, self._rest_skin, bones["head"])
         self.bone_transforms = bones
         self.pupil_scale = self.rig.pupil_scale(v)
         self.values = v
