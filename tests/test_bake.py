@@ -221,3 +221,23 @@ def test_fae_play_with_the_fdt_engine_writes_a_video(tmp_path, baked):
     assert run_command("play", [str(short_stream(tmp_path, frames=10)), "--head", str(head), "--engine", "fdt",
                                 "-o", str(out), "--size", "160x120"]) == 0
     assert out.stat().st_size > 0
+
+
+@pytest.mark.slow
+def test_on_the_shipped_head_one_fap_at_its_borders_plays_as_the_physics(tmp_path):
+    """The shipped head, FAPs 3 (the jaw's skin) and 12 (a lip corner) baked: at each border,
+    FDT playback is the settled physics to within the vertices left out; the baked head
+    round-trips through its .glb."""
+    from fae.data import shipped_head_path
+
+    physics = Player(read_facemodel(shipped_head_path()))
+    path = tmp_path / "baked.glb"
+    write_facemodel(baked_model(physics.face, bake_tables(physics, (3, 12), intervals_per_side=2)), path)
+    fdt = Player(read_facemodel(path), engine="fdt")
+    assert sorted(t.fap for t in fdt.tables if t.source == "physics") == [3, 12]
+    for fap in (3, 12):
+        for b in table_borders(fap, 2):
+            if b != 0.0:
+                fdt.reset()
+                error = np.linalg.norm(fdt.step(one_fap(fap, b)) - settled_skin(physics, one_fap(fap, b)), axis=1)
+                assert error.max() <= THRESHOLD * 1.01, (fap, b)
