@@ -17,6 +17,7 @@ import numpy as np
 import warp as wp
 
 import fae.warp_setup  # noqa: F401  (Warp's configuration before any kernel is built)
+from fae.sim.solver import call_first_alone
 
 wp.set_module_options({"enable_backward": False})
 
@@ -130,6 +131,12 @@ class FaceDefOffsets:
         # numpy views of the same memory (CPU arrays), made once
         self._interval_np, self._fraction_np = self._interval.numpy(), self._fraction.numpy()
         self._out_np, self._rest_np, self._pose_np = self._out.numpy(), self._rest.numpy(), self._pose.numpy()
+        # each kernel's first run alone, as the solver's (fae.sim.solver.call_first_alone):
+        # with nothing active the tables add nothing, and the pose writes this instance's buffer
+        self._interval_np[:] = -1
+        for key, launch in (("add_table_offsets", self._add), ("posed", self._posed)):
+            if launch is not None:
+                call_first_alone(("FaceDefOffsets", key), launch.launch)
 
     def spawn(self) -> "FaceDefOffsets":
         """Another instance sharing the tables (static arrays) with buffers of its own: players
