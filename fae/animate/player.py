@@ -72,7 +72,12 @@ class PlayedFrame:
 
 
 class Player:
-    """Plays FAP frames on a FaceModel (see module docstring)."""
+    """Plays FAP frames on a FaceModel (see module docstring).
+
+    engine  "physics" or "fdt"
+    tables  the FaceDefTables this engine adds to the skin: authored and ear tables
+            ("physics"), the baked ones and those of FAPs not baked ("fdt")
+    """
 
     def __init__(self, model, device: str = "cpu", engine: str = "physics"):
         if engine not in ENGINES:
@@ -87,7 +92,6 @@ class Player:
             face = baked_model(face, bake_tables(Player(face, device=device)))
         self.face = face
         self.fapu = fapu_of(face)
-        # self.tables: the FaceDefTables this engine adds to the skin (baked ones in "fdt")
         graph = edge_length_graph(face)
         self.rig = RigidRig(face, self.fapu)
         authored = [t for t in face.face_def_tables if t.source == "authored"] + ear_tables(face, self.fapu, graph)
