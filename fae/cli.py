@@ -25,6 +25,8 @@ COMMANDS = (
     "render",
     "play",
     "batch",
+    "bake",
+    "export",
     "template",
     "verify_faps",
     "verify_skin",

@@ -11,7 +11,11 @@ same scheme and substeps) and turned into skin positions, in the same run. Print
 frames/s of both, by wall clock and by this process's CPU time (which the machine's other
 load does not stretch), their ratios, and the solver's substeps per frame. Last, the same
 frames on a Player whose skin has no fold guard (`fold_passes` 0: no fold guard, crease
-smoothing or lip contact, fae.sim.folds), for what the guard costs.
+smoothing or lip contact, fae.sim.folds), for what the guard costs; and on the Player's
+"fdt" engine (FaceDefTables baked from the physics, fae.animate.bake: a multiply-add per
+frame, no solver), whose error against the physics tools/bench_fdt.py measures. A head
+without baked tables (the shipped one) is baked first (about a minute; `fae bake` stores
+them, `--head BAKED.glb` uses them).
 """
 
 from __future__ import annotations
@@ -66,6 +70,10 @@ def main(argv=None) -> int:
     bare = copy.copy(face)
     bare.layer_params = {**(face.layer_params or {}), "fold_passes": 0}
     unguarded = Player(bare)
+    t0 = time.perf_counter()
+    fdt = Player(face, engine="fdt")
+    print(f"fdt Player ready in {time.perf_counter() - t0:.1f} s ({len(fdt.tables)} FaceDefTables, "
+          f"{fdt.facedef.entry_count} vertex entries)")
 
     def timed(p, frames, fps) -> tuple[list[float], list[float]]:
         p.fps = fps
@@ -109,6 +117,10 @@ def main(argv=None) -> int:
         bare_walls, bare_cpus = timed(unguarded, frames, fps)
         print(f"  without the fold guard: {np.median(bare_walls):.1f} frames/s (CPU time {np.median(bare_cpus):.0f}); "
               f"the guard costs {100 * (1 - warp_cpu / np.median(bare_cpus)):.0f} % of the CPU frame rate")
+        fdt_walls, fdt_cpus = timed(fdt, frames, fps)
+        print(f"  fdt engine (baked FaceDefTables, no solver): {np.median(fdt_walls):.0f} frames/s "
+              f"({min(fdt_walls):.0f}-{max(fdt_walls):.0f}; CPU time {np.median(fdt_cpus):.0f}), "
+              f"{np.median(fdt_walls) / warp_fps:.1f}x the physics (CPU time {np.median(fdt_cpus) / warp_cpu:.1f}x)")
     return 0
 
 

@@ -415,6 +415,8 @@ def personalize(template: FaceModel, skin: np.ndarray, T: np.ndarray, unit: str,
         m.fall_end *= s
     moved_muscles = keep_muscles_inside(model, skin.query)
     fapu_ratio = _fapu_ratio(fdp_old, model.feature_point_positions())  # eyes, teeth placed
+    # tables baked from the template's physics do not describe the new head's (bake it again)
+    model.face_def_tables = [t for t in model.face_def_tables if t.source == "authored"]
     for t in model.face_def_tables:
         t.displacements = np.asarray(t.displacements) * fapu_ratio
     model.fap_mapping = {}

@@ -10,7 +10,8 @@ The ear is the skin region of the feature point's triangle when that region's na
 "ear" (the generic head and every head adapted from it); around it the weight falls with
 geodesic distance as Wendland's (1 - r)^4 (4 r + 1) over `FADE_ES` x ES0. On a head
 without such a region the ear is the geodesic disc of `DISC_ES` x ES0 around the point.
-A head's own FaceDefTable for an ear FAP takes precedence (the standard's Predictable case).
+A head's own (authored) FaceDefTable for an ear FAP takes precedence (the standard's
+Predictable case); a table baked from the physics (fae.animate.bake) is this one's copy.
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ DISC_ES = 0.5
 def ear_tables(face, fapu: dict[str, float], graph) -> list[FaceDefTable]:
     """FaceDefTables (part "skin") of the ear FAPs of `face`; `graph` is the skin's (V, V)
     edge-length matrix (fae.animate.calibrate.edge_length_graph)."""
-    own = {t.fap for t in face.face_def_tables}
+    own = {t.fap for t in face.face_def_tables if t.source == "authored"}  # a baked table is the physics' copy of these
     unit = fap_unit_scale(face)
     es0 = fapu["ES"] * 1024.0
     faces = np.asarray(face.skin_faces)

@@ -8,7 +8,13 @@ settled skips the solver); then the head pose (rotation about 7.1) carries
 skin and parts. On load, a head without a calibrated `fap_mapping` is calibrated
 (fae.animate.calibrate, tens of seconds); shipped heads carry theirs.
 
-    player = Player(model, device="cpu")
+The "fdt" engine (`Player(model, engine="fdt")`) moves the skin through the head's
+FaceDefTables baked from this physics (fae.animate.bake; a head without them is baked on
+load, minutes) and nothing else: per frame one multiply-add per non-zero FAP's table, no
+solver, no settling; the rigid poses are the same. It is exact for one FAP alone at a
+table's borders, settled, and adds FAPs up where the physics does not (docs/architecture.md).
+
+    player = Player(model, device="cpu", engine="physics")   # or engine="fdt"
     positions = player.step(values_or_denseframe, dt=None)   # (V, 3) float64 metres
     for f in player.play(stream, fps=None): f.index, f.time, f.skin_vertices, f.bone_transforms
     player.reset()
@@ -22,6 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from fae.animate.bake import bake_tables, baked_model, has_baked_tables
 from fae.animate.calibrate import calibrate, edge_length_graph, pull_fields
 from fae.animate.ears import ear_tables
 from fae.animate.controls import FapControls, MappingMismatch
@@ -41,6 +48,7 @@ DEFAULT_FPS = 25.0
 # MAX_STEP_SECONDS / dt_max substeps (50) whatever its dt.
 MAX_STEP_SECONDS = 1.0
 SETTLED_MOTION = 1e-8  # metres: a frame moving no particle more than this has settled
+ENGINES = ("physics", "fdt")  # the skin simulated, or moved by FaceDefTables baked from the simulation
 
 
 @dataclass
@@ -64,24 +72,43 @@ class PlayedFrame:
 
 
 class Player:
-    """Plays FAP frames on a FaceModel (see module docstring)."""
+    """Plays FAP frames on a FaceModel (see module docstring).
 
-    def __init__(self, model, device: str = "cpu"):
+    engine  "physics" or "fdt"
+    tables  the FaceDefTables this engine adds to the skin: authored and ear tables
+            ("physics"), the baked ones and those of FAPs not baked ("fdt")
+    """
+
+    def __init__(self, model, device: str = "cpu", engine: str = "physics"):
+        if engine not in ENGINES:
+            raise ValueError(f"engine: expected one of {', '.join(ENGINES)}, got {engine!r}")
+        self.engine = engine
         face = model
         try:
             FapControls(face)
         except MappingMismatch:
             face = calibrate(face, device=device)
+        if engine == "fdt" and not has_baked_tables(face):
+            face = baked_model(face, bake_tables(Player(face, device=device)))
         self.face = face
         self.fapu = fapu_of(face)
         graph = edge_length_graph(face)
-        self.sim = skin_model(face, device=device, fields=pull_fields(face, self.fapu, graph))
-        self.controls = FapControls(face, self.sim)
         self.rig = RigidRig(face, self.fapu)
-        tables = list(face.face_def_tables) + ear_tables(face, self.fapu, graph)
-        self.facedef = FaceDefOffsets(tables, face.skin_vertex_count)
-        self.solver = SkinSolver(self.sim)
-        self.skin = SkinOutput(self.sim)
+        authored = [t for t in face.face_def_tables if t.source == "authored"] + ear_tables(face, self.fapu, graph)
+        if engine == "fdt":
+            baked = [t for t in face.face_def_tables if t.source == "physics"]
+            covered = {(t.fap, t.part) for t in baked}
+            self.tables = baked + [t for t in authored if (t.fap, t.part) not in covered]
+            self.sim = None
+            self.controls = FapControls(face)
+            self._rest_skin = np.asarray(face.skin_vertices, dtype=np.float64)
+        else:
+            self.sim = skin_model(face, device=device, fields=pull_fields(face, self.fapu, graph))
+            self.controls = FapControls(face, self.sim)
+            self.tables = authored
+            self.solver = SkinSolver(self.sim)
+            self.skin = SkinOutput(self.sim)
+        self.facedef = FaceDefOffsets(self.tables, face.skin_vertex_count)
         self._R = np.tile(np.eye(3), (2, 1, 1))
         self._t = np.zeros((2, 3))
         self.fps = DEFAULT_FPS
@@ -94,9 +121,11 @@ class Player:
         other = copy.copy(self)
         other.rig = RigidRig(self.face, self.fapu)
         other._R, other._t = self._R.copy(), self._t.copy()
-        other.solver = SkinSolver(self.sim)
-        other.skin = SkinOutput(self.sim)
-        del other.state, other.control, other._rest
+        other.facedef = self.facedef.spawn()
+        if self.sim is not None:
+            other.solver = SkinSolver(self.sim)
+            other.skin = SkinOutput(self.sim)
+            del other.state, other.control, other._rest
         other.reset()
         return other
 
@@ -107,16 +136,17 @@ class Player:
 
     def reset(self) -> None:
         """Back to the neutral face at rest (in place: the solver's recorded launches stay valid)."""
-        if not hasattr(self, "state"):
-            self.state, self.control, self._rest = self.sim.state(), self.sim.control(), self.sim.state()
-        self.state.assign(self._rest)
-        self.control.set(muscle_activation=np.zeros(self.sim.muscle_count), bone_rotation=np.tile(np.eye(3), (2, 1, 1)),
-                         bone_translation=np.zeros((2, 3)))
+        if self.sim is not None:
+            if not hasattr(self, "state"):
+                self.state, self.control, self._rest = self.sim.state(), self.sim.control(), self.sim.state()
+            self.state.assign(self._rest)
+            self.control.set(muscle_activation=np.zeros(self.sim.muscle_count),
+                             bone_rotation=np.tile(np.eye(3), (2, 1, 1)), bone_translation=np.zeros((2, 3)))
+            self._q = self.sim.particle_q.numpy().copy()
         self.bone_transforms = {b: np.eye(4) for b in ("head", "jaw", "eye_l", "eye_r", "tongue")}
         self.pupil_scale = {"eye_l": 1.0, "eye_r": 1.0}
         self.values = np.zeros(FAP_COUNT)
         self.frame_index = 0
-        self._q = self.sim.particle_q.numpy().copy()
         self._settled = True
         self._last_dt = None
 
@@ -145,6 +175,8 @@ class Player:
         if not dt > 0.0:  # NaN fails this too
             raise ValueError(f"step: dt must be a positive number of seconds, got {dt!r}")
         dt = min(dt, MAX_STEP_SECONDS)
+        if self.sim is None:
+            return self._table_step(v)
         activation, jaw = self.controls.controls(v)
         J = self.rig.jaw(*jaw)
         self._R[1], self._t[1] = J[:3, :3], J[:3, 3]
@@ -162,6 +194,17 @@ class Player:
         offsets = self.facedef.offsets(v)
         if offsets is not None:
             skin += offsets @ H[:3, :3].T
+        self.bone_transforms = bones
+        self.pupil_scale = self.rig.pupil_scale(v)
+        self.values = v
+        self.frame_index += 1
+        return skin
+
+    def _table_step(self, v: np.ndarray) -> np.ndarray:
+        """The "fdt" engine's frame: rest skin + FaceDefTable offsets, carried by the head pose."""
+        _, jaw = self.controls.controls(v)
+        bones = self.rig.poses(v, self.rig.jaw(*jaw))
+        skin = self.facedef.displaced(v, self._rest_skin, bones["head"])
         self.bone_transforms = bones
         self.pupil_scale = self.rig.pupil_scale(v)
         self.values = v

@@ -1,6 +1,7 @@
 """`fae play STREAM.fap [--head HEAD.glb] -o OUT.mp4`: animate a head and encode the video.
 
-The shipped generic head is used when --head is absent. The video has the stream's frame
+The shipped generic head is used when --head is absent; `--engine fdt` moves the skin by
+the head's FaceDefTables baked from its physics (`fae bake`) instead of simulating it. The video has the stream's frame
 rate (or --fps, resampled by the player) and appears only when complete: a stream that
 turns out malformed part-way leaves no partial file. Exit status 0 on success, 2 for bad
 input (stream, head, output path, size), 1 when encoding fails.
@@ -29,6 +30,9 @@ def register(subparsers) -> None:
     parser.add_argument("--max-hold", type=float, default=MAX_HOLD_SECONDS, metavar="SECONDS",
                         help=f"longest a gap in the frame numbers is held (default {MAX_HOLD_SECONDS:g}); a longer "
                         "gap is cut to it, with a warning, so that no stream plays for ever")
+    parser.add_argument("--engine", choices=("physics", "fdt"), default="physics",
+                        help="physics: simulate the skin (default); fdt: move it by the head's FaceDefTables baked "
+                        "from the physics (`fae bake`; a head without them is baked first, minutes)")
     parser.add_argument("--frames-dir", metavar="DIR", help="also write each frame as DIR/frame_00000.png, ...")
     parser.set_defaults(func=run)
 
@@ -77,7 +81,13 @@ def run(args: argparse.Namespace) -> int:
     try:
         with FaceRenderer(model, size=(width, height), view=args.view, supersample=args.supersample,
                           show_bones=args.show_bones) as renderer:
-            player = Player(model, device="cpu")
+            if args.engine == "fdt":
+                from fae.animate.bake import has_baked_tables
+
+                if not has_baked_tables(model):
+                    print("fae play: the head has no baked FaceDefTables; baking them first (minutes; "
+                          "`fae bake` stores them)", file=sys.stderr)
+            player = Player(model, device="cpu", engine=args.engine)
             frames = dense_frames(stream, fps=args.fps, max_hold=args.max_hold)
             timings = render_video(player.play(frames, fps=fps), renderer, args.output, fps,
                                    frames_dir=frames_dir,

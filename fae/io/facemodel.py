@@ -94,6 +94,9 @@ class FaceDefTable:
     vertices      (k,) int32 vertex indices in that mesh
     borders       (m + 1,) float64 FAP-value interval borders, increasing, containing 0
     displacements (m, k, 3) float64 metres per FAP unit within each interval
+    source        "authored": a motion of its own, added to whatever else moves the mesh;
+                  "physics": baked from this head's simulation (fae.animate.bake), the
+                  motion the simulation itself gives, so the simulating player leaves it out
     """
 
     fap: int
@@ -101,6 +104,10 @@ class FaceDefTable:
     vertices: np.ndarray
     borders: np.ndarray
     displacements: np.ndarray
+    source: str = "authored"
+
+
+FACE_DEF_TABLE_SOURCES = ("authored", "physics")
 
 
 @dataclass

@@ -26,8 +26,8 @@ import numpy as np
 import pygltflib
 
 from fae.io.atomic import atomic_path
+from fae.io.facemodel import FACE_DEF_TABLE_SOURCES, PART_BONES, FaceDefTable, FaceModel, Muscle, Part, SurfacePoint
 from fae.mesh import vertex_normals
-from fae.io.facemodel import PART_BONES, FaceDefTable, FaceModel, Muscle, Part, SurfacePoint
 from fae.mpeg4 import FEATURE_POINTS, fapu0_from_positions, fapu_from_fapu0
 
 EXTENSION = "FAE_face_model"
@@ -333,6 +333,8 @@ def _check_face_def_table(add, field: str, table, mesh_sizes) -> None:
         else:
             m = b - 1
     _check_array(add, f"{field}.displacements", table.displacements, np.float64, (m, k, 3))
+    if table.source not in FACE_DEF_TABLE_SOURCES:
+        add(f"{field}.source: expected one of {', '.join(FACE_DEF_TABLE_SOURCES)}, got {table.source!r}")
 
 
 def _check_plain_json(add, field: str, value, require_dict: bool = False) -> None:
@@ -499,6 +501,7 @@ class _Writer:
                     "vertices": self.array(f"face_def_tables[{i}].vertices", t.vertices),
                     "borders": self.array(f"face_def_tables[{i}].borders", t.borders),
                     "displacements": self.array(f"face_def_tables[{i}].displacements", t.displacements),
+                    **({} if t.source == "authored" else {"source": t.source}),  # older files stay byte-identical
                 }
                 for i, t in enumerate(m.face_def_tables)
             ],
@@ -774,6 +777,7 @@ class _Reader:
                     vertices=self.array(self.get(t, "vertices", f"{f}.vertices", dict), f"{f}.vertices"),
                     borders=self.array(self.get(t, "borders", f"{f}.borders", dict), f"{f}.borders"),
                     displacements=self.array(self.get(t, "displacements", f"{f}.displacements", dict), f"{f}.displacements"),
+                    source=self.get(t, "source", f"{f}.source", str) if "source" in t else "authored",
                 )
             )
 

@@ -1,0 +1,100 @@
+"""`fae export HEAD.glb [STREAM.fap] -o OUT.glb`: the head as a plain glTF 2.0 scene.
+
+The scene opens in any glTF viewer: the skin (with the head's colours) and the eyes, teeth
+and tongue as meshes; the head, jaw, eyes and tongue as nodes that move; the head's
+FaceDefTables baked from its physics as named morph targets of the skin, one per table
+interval (baked first when the head has none: minutes; `fae bake` stores them). With a
+stream, one animation at the stream's rate (or --fps): the morph weights and the nodes'
+poses of every frame, as `fae play --engine fdt` plays it (fae.io.export_gltf). The input
+head is never modified; the output appears only when complete. Exit status 0 on success,
+2 for a bad head, stream or output path.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import sys
+from pathlib import Path
+
+from fae.commands.common import fail, load_head, output_problem
+from fae.io.frames import MAX_HOLD_SECONDS
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser("export", help="export a head (and a stream's animation) as a standard glTF scene",
+                                   description=__doc__.split("\n\n", 1)[1] if __doc__ else None)
+    parser.add_argument("head", metavar="HEAD.glb", help="FaceModel .glb")
+    parser.add_argument("stream", nargs="?", default=None, metavar="STREAM.fap", help="a FAP stream to animate")
+    parser.add_argument("-o", "--output", required=True, metavar="OUT.glb", help="the glTF scene to write")
+    parser.add_argument("--fps", type=float, default=None, help="resample the stream to this frame rate "
+                        "(default: its own)")
+    parser.add_argument("--max-hold", type=float, default=MAX_HOLD_SECONDS, metavar="SECONDS",
+                        help=f"longest a gap in the frame numbers is held (default {MAX_HOLD_SECONDS:g})")
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from fae.io.facemodel_gltf import FaceModelError
+    from fae.io.fap import FapFormatError, read_fap
+
+    if args.fps is not None and not (0 < args.fps <= 1000):
+        return fail("export", f"--fps {args.fps:g}: expected a frame rate in (0, 1000]")
+    if not 0 <= args.max_hold <= 1e6:
+        return fail("export", f"--max-hold {args.max_hold:g}: expected seconds in [0, 1e6]")
+    problem = output_problem(args.output, ".glb")
+    if problem:
+        return fail("export", problem)
+    try:
+        model, head = load_head(args.head)
+        stream = read_fap(args.stream) if args.stream else None
+    except (FapFormatError, FaceModelError) as exc:
+        return fail("export", str(exc))
+    if Path(args.output).resolve() in {head.resolve(), *([Path(args.stream).resolve()] if args.stream else [])}:
+        return fail("export", f"{args.output}: is an input file; expected another file name (inputs are never modified)")
+
+    from fae.animate.bake import has_baked_tables
+    from fae.io.export_gltf import write_scene
+    from fae.io.frames import dense_frames
+
+    if not has_baked_tables(model):
+        print(f"fae export: {head.name} has no baked FaceDefTables; baking them first (minutes; "
+              "`fae bake` stores them)", file=sys.stderr)
+    with contextlib.redirect_stdout(sys.stderr):  # Warp's banner and kernel-load lines
+        from fae.animate.morphs import keyframes, morph_targets
+        from fae.animate.player import Player
+
+        player = Player(model, engine="fdt")
+        targets = morph_targets(player.tables)
+        frames = None
+        fps = None
+        try:
+            if stream is not None:
+                fps = float(args.fps) if args.fps else float(stream.header.fps)
+                frames = dense_frames(stream, fps=args.fps, max_hold=args.max_hold)
+                animation = keyframes(player, targets, frames, fps)
+            else:
+                animation = None
+        except FapFormatError as exc:
+            return fail("export", f"{exc} (nothing written)")
+    try:
+        write_scene(args.output, player.face, targets=targets, skin_colors=_skin_colors(player.face),
+                    keyframes=animation, name=head.stem)
+    except OSError as exc:
+        return fail("export", str(exc) if exc.filename is None else f"{exc.filename}: {exc.strerror}")
+    if frames is not None:
+        for warning in frames.warnings:
+            print(f"fae export: warning: {warning}", file=sys.stderr)
+    what = f"{len(animation.times)} frames at {fps:g} fps" if animation is not None else "no animation"
+    print(f"{args.output}: glTF scene of {head.name}, {len(targets)} morph targets, {what}", file=sys.stderr)
+    return 0
+
+
+def _skin_colors(model):
+    """(V, 3) linear RGB of the skin as fae draws it (the mouth's lining darker), or None
+    when the renderer's module cannot be loaded (no OpenGL): the skin's own colour then."""
+    try:
+        from fae.render.renderer import skin_colors
+    except Exception:  # an OpenGL stack that fails to import: the colours are a nicety
+        return None
+    return skin_colors(model)
