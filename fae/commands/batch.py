@@ -19,7 +19,7 @@ def register(subparsers) -> None:
     parser = subparsers.add_parser(
         "batch", help="render many .fap streams to videos on a Dask cluster (embedded unless --scheduler)",
         description="Render every job of JOBS, like `fae play` each, on Dask workers: an embedded cluster of "
-        "one worker process per core, or the cluster of --scheduler. JOBS is a .csv or .json job list "
+        "one worker process per two cores, or the cluster of --scheduler. JOBS is a .csv or .json job list "
         "(columns/keys stream, head, view, size, fps, output; stream required) or a glob of .fap files, "
         "each played on every --head. Outputs whose inputs have not changed since an earlier run are kept.")
     parser.add_argument("jobs", metavar="JOBS", help="jobs.csv, jobs.json, or a quoted glob such as 'corpus/*.fap'")
@@ -32,7 +32,8 @@ def register(subparsers) -> None:
                         help="a running Dask scheduler, e.g. tcp://10.0.0.5:8786 (default: an embedded "
                         "cluster on this machine)")
     parser.add_argument("--workers", type=int, metavar="N",
-                        help="worker processes of the embedded cluster (default: one per core)")
+                        help="worker processes of the embedded cluster (default: one per two cores; "
+                        "one job's simulation, rendering and encoding keep about two busy)")
     parser.add_argument("--retries", type=int, default=2, metavar="K",
                         help="tries after the first for a job that fails (default 2)")
     parser.add_argument("--size", type=parse_size, default=parse_size("640x480"), metavar="WxH",
