@@ -25,13 +25,12 @@ from collections.abc import Callable
 import numpy as np
 
 from fae.animate.faptables import FAP_LIMITS, SKIN_TRANSLATION_FAPS
+from fae.animate.verify import settled_skin  # the settled pose, as verify-faps holds a FAP
 from fae.io.facemodel import FaceDefTable
 from fae.mpeg4.faps import FAP_COUNT
 
 INTERVALS_PER_SIDE = 3
 THRESHOLD = 1e-5  # metres (0.01 mm): a vertex moving less at every border is left out
-SETTLED = 5e-6  # metres per frame: the skin has settled (verify-faps' criterion)
-MAX_FRAMES = 60  # frames of 1/25 s at most per border value
 
 
 def table_borders(fap: int, intervals_per_side: int = INTERVALS_PER_SIDE) -> np.ndarray:
@@ -39,20 +38,6 @@ def table_borders(fap: int, intervals_per_side: int = INTERVALS_PER_SIDE) -> np.
     lo, hi = FAP_LIMITS[fap - 1]
     steps = np.arange(1, intervals_per_side + 1) / intervals_per_side
     return np.concatenate([lo * steps[::-1] if lo < 0 else [], [0.0], hi * steps if hi > 0 else []])
-
-
-def settled_skin(player, values: np.ndarray, fps: float = 25.0, settled: float = SETTLED,
-                 max_frames: int = MAX_FRAMES) -> np.ndarray:
-    """(V, 3) metres: the skin once FAP `values` (68,) held from the neutral face has settled."""
-    player.reset()
-    previous = None
-    for _ in range(max_frames):
-        skin = player.step(values, dt=1.0 / fps)
-        if previous is not None and np.abs(skin - previous).max() < settled:
-            break
-        previous = skin
-    player.reset()
-    return skin
 
 
 def bake_table(player, fap: int, intervals_per_side: int = INTERVALS_PER_SIDE, threshold: float = THRESHOLD,

@@ -19,6 +19,22 @@ from fae.mpeg4.faps import FAP_COUNT
 TOLERANCE = 0.15
 
 
+def settled_skin(player, values: np.ndarray, fps: float = 25.0, settled: float = 5e-6,
+                 max_frames: int = 60) -> np.ndarray:
+    """(V, 3) metres: the skin once FAP `values` (68,) held from the neutral face has settled
+    (no vertex moving more than `settled` metres in a frame of 1/fps s, or `max_frames`
+    frames); the player is left at rest."""
+    player.reset()
+    previous = None
+    for _ in range(max_frames):
+        skin = player.step(values, dt=1.0 / fps)
+        if previous is not None and np.abs(skin - previous).max() < settled:
+            break
+        previous = skin
+    player.reset()
+    return skin
+
+
 def verify_faps(player, faps=None, tolerance: float = TOLERANCE, frames: int = 60, fps: float = 25.0,
                 settled: float = 5e-6) -> list[dict]:
     """Per FAP: {"fap", "name", "feature_point", "value", "expected_m", "measured_m", "ratio", "ok"}.
@@ -47,20 +63,13 @@ def verify_faps(player, faps=None, tolerance: float = TOLERANCE, frames: int = 6
         value = FAP_LIMITS[k - 1, 1] / 2.0
         values = np.zeros(FAP_COUNT)
         values[k - 1] = value
-        player.reset()
-        prev = None
-        for _ in range(frames):
-            skin = player.step(values, dt=1.0 / fps)
-            if prev is not None and np.abs(skin - prev).max() < settled:
-                break
-            prev = skin
+        skin = settled_skin(player, values, fps=fps, settled=settled, max_frames=frames)
         expected = FAP_DIRECTION[k - 1] * value * unit[k - 1]
         measured = face.surface_point_position(face.feature_points[fdp], skin) - rest[fdp]
         ratio = float(measured @ FAP_DIRECTION[k - 1]) / float(value * unit[k - 1])
         out.append({"fap": int(k), "name": FAP_NAME[k - 1], "feature_point": fdp, "value": float(value),
                     "expected_m": [float(x) for x in expected], "measured_m": [float(x) for x in measured],
                     "ratio": ratio, "ok": bool(abs(ratio - 1.0) <= tolerance)})
-    player.reset()
     return out
 
 
