@@ -3,8 +3,9 @@
 Each bone's grid is sampled in the bone's rest frame (the mandible's grid therefore moves
 with the jaw). Contact is a position projection, which stays stable for any contact
 (penalty springs on contact blew up with explicit integration), and the particle loses its
-inward normal velocity. The solver's particle pass calls `bone_contact` for each bone
-(fae.sim.integrate) with the particle's positions before and after its step:
+inward normal velocity. The solver's particle pass (fae.sim.integrate) and the fold guard's
+moves (fae.sim.folds) call `bone_contact` for the skull and then the mandible
+(`skull_then_jaw_contact`) with the particle's positions before and after the move:
 
 A particle that was outside (or on the surface, where contact left it) before the step and
 whose path reached the bone (it ends
@@ -210,3 +211,18 @@ def bone_contact(x_prev: wp.vec3, x: wp.vec3, v: wp.vec3, rest: wp.vec3, hold: w
     if vn < 0.0:
         v = v - n * vn
     return R * local + t, v
+
+
+@wp.func
+def skull_then_jaw_contact(x_prev: wp.vec3, x: wp.vec3, v: wp.vec3, rest: wp.vec3, hold: wp.vec3,
+                           clearance: wp.vec2,
+                           head_sdf: wp.array3d(dtype=float), head_sdf_origin: wp.vec3, head_sdf_spacing: float,
+                           R0: wp.mat33, t0: wp.vec3,
+                           jaw_sdf: wp.array3d(dtype=float), jaw_sdf_origin: wp.vec3, jaw_sdf_spacing: float,
+                           R1: wp.mat33, t1: wp.vec3, contact_depth: float):
+    """`bone_contact` with the skull, then with the mandible (the later one wins where a
+    particle is wedged between them); clearance: the particle's per bone."""
+    x, v = bone_contact(x_prev, x, v, rest, hold, clearance[0], head_sdf, head_sdf_origin, head_sdf_spacing, R0,
+                        t0, contact_depth)
+    return bone_contact(x_prev, x, v, rest, hold, clearance[1], jaw_sdf, jaw_sdf_origin, jaw_sdf_spacing, R1, t1,
+                        contact_depth)

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from fae.sim.collision import bone_contact
+from fae.sim.collision import skull_then_jaw_contact
 from fae.sim.muscles import muscle_direction
 
 # fast math: about 1.5x faster kernels on the CPU; the numpy reference still agrees to 1e-5.
@@ -118,10 +118,8 @@ def step_particles(particle_q: wp.array(dtype=wp.vec3), particle_qd: wp.array(dt
                 if vn < 0.0:
                     v = v - n * vn
         if ps.collider != 0:
-            clear = ps.clearance
-            x, v = bone_contact(x0, x, v, rest, target, clear[0], head_sdf, head_sdf_origin, head_sdf_spacing, R0,
-                                t0, contact_depth)
-            x, v = bone_contact(x0, x, v, rest, target, clear[1], jaw_sdf, jaw_sdf_origin, jaw_sdf_spacing, R1,
-                                t1, contact_depth)
+            x, v = skull_then_jaw_contact(x0, x, v, rest, target, ps.clearance, head_sdf, head_sdf_origin,
+                                          head_sdf_spacing, R0, t0, jaw_sdf, jaw_sdf_origin, jaw_sdf_spacing, R1, t1,
+                                          contact_depth)
         particle_qd_out[tid] = v
         particle_q_out[tid] = x
