@@ -12,7 +12,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from fae.commands.common import fail, parse_size
+from fae.commands.common import fail, parse_size, timing_problem
 
 
 def register(subparsers) -> None:
@@ -65,8 +65,9 @@ def run(args: argparse.Namespace) -> int:
     width, height = args.size
     if width % 2 or height % 2:
         return fail("batch", f"--size {width}x{height}: H.264 video needs an even width and height")
-    if args.fps is not None and not (0 < args.fps <= 1000):
-        return fail("batch", f"--fps {args.fps:g}: expected a frame rate in (0, 1000]")
+    problem = timing_problem(args.fps)
+    if problem:
+        return fail("batch", problem)
     if args.scheduler and "://" not in args.scheduler:
         return fail("batch", f"--scheduler {args.scheduler!r}: expected an address such as tcp://HOST:8786")
     out_dir = Path(args.output_dir)

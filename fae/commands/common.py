@@ -4,6 +4,7 @@
     parse_size("640x480") -> (640, 480)           argparse type for --size (parse_supersample: --supersample)
     output_problem(path, ".mp4") -> str | None   why an output file cannot be written there
     video_size_problem((w, h)) -> str | None     why frames of that size cannot be encoded
+    timing_problem(fps, max_hold) -> str | None  why --fps or --max-hold cannot be used
     load_head(path | None) -> (FaceModel, Path)  --head, or the shipped generic head
     add_view_arguments(parser, "640x480")        --size, --view, --supersample, --show-bones
 """
@@ -62,6 +63,15 @@ def output_problem(path: str, suffix: str | None = None) -> str | None:
             pass
     except OSError as exc:
         return f"{path}: output folder {folder} cannot take a file ({exc.strerror or exc})"
+    return None
+
+
+def timing_problem(fps: float | None, max_hold: float | None = None) -> str | None:
+    """Why --fps (frames/s, None: the stream's own) or --max-hold (seconds) cannot be used."""
+    if fps is not None and not (0 < fps <= 1000):
+        return f"--fps {fps:g}: expected a frame rate in (0, 1000]"
+    if max_hold is not None and not 0 <= max_hold <= 1e6:
+        return f"--max-hold {max_hold:g}: expected seconds in [0, 1e6]"
     return None
 
 

@@ -17,7 +17,7 @@ import contextlib
 import sys
 from pathlib import Path
 
-from fae.commands.common import fail, load_head, output_problem
+from fae.commands.common import fail, load_head, output_problem, timing_problem
 from fae.io.frames import MAX_HOLD_SECONDS
 
 
@@ -38,10 +38,9 @@ def run(args: argparse.Namespace) -> int:
     from fae.io.facemodel_gltf import FaceModelError
     from fae.io.fap import FapFormatError, read_fap
 
-    if args.fps is not None and not (0 < args.fps <= 1000):
-        return fail("export", f"--fps {args.fps:g}: expected a frame rate in (0, 1000]")
-    if not 0 <= args.max_hold <= 1e6:
-        return fail("export", f"--max-hold {args.max_hold:g}: expected seconds in [0, 1e6]")
+    problem = timing_problem(args.fps, args.max_hold)
+    if problem:
+        return fail("export", problem)
     problem = output_problem(args.output, ".glb")
     if problem:
         return fail("export", problem)

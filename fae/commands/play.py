@@ -13,7 +13,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from fae.commands.common import add_view_arguments, fail, load_head, output_problem, video_size_problem
+from fae.commands.common import (add_view_arguments, fail, load_head, output_problem, timing_problem,
+                                 video_size_problem)
 from fae.io.frames import MAX_HOLD_SECONDS
 
 
@@ -45,10 +46,9 @@ def run(args: argparse.Namespace) -> int:
     problem = video_size_problem(args.size)
     if problem:
         return fail("play", problem)
-    if args.fps is not None and not (0 < args.fps <= 1000):
-        return fail("play", f"--fps {args.fps:g}: expected a frame rate in (0, 1000]")
-    if not 0 <= args.max_hold <= 1e6:
-        return fail("play", f"--max-hold {args.max_hold:g}: expected seconds in [0, 1e6]")
+    problem = timing_problem(args.fps, args.max_hold)
+    if problem:
+        return fail("play", problem)
     problem = output_problem(args.output, ".mp4")
     if problem:
         return fail("play", problem)
