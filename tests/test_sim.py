@@ -59,17 +59,24 @@ def test_substeps_follow_the_stability_bound(model):
         substep_count(model, 0.0)
 
 
-def test_warp_step_matches_numpy_reference(model):
-    rng = np.random.default_rng(3)
-    activation = rng.uniform(0.0, 1.0, model.muscle_count)
-    rot, tr = _jaw_pose(0.15, model.jaw_pivot)
+def _twin_steps(model, activation, rot, tr, frames: int):
+    """(Warp State, numpy q, numpy qd, the ReferenceSolver) after `frames` steps of 1/25 s
+    from rest by both solvers under the same controls."""
     solver, state, control = SkinSolver(model), model.state(), model.control()
     control.set(muscle_activation=activation, bone_rotation=rot, bone_translation=tr)
     ref = ReferenceSolver(model)
     q, qd = state.particle_q.numpy().astype(np.float64), state.particle_qd.numpy().astype(np.float64)
-    for _ in range(3):
+    for _ in range(frames):
         state = solver.step(model, state, control, 1 / 25)
         q, qd = ref.step(q, qd, activation, rot, tr, 1 / 25)
+    return state, q, qd, ref
+
+
+def test_warp_step_matches_numpy_reference(model):
+    rng = np.random.default_rng(3)
+    activation = rng.uniform(0.0, 1.0, model.muscle_count)
+    rot, tr = _jaw_pose(0.15, model.jaw_pivot)
+    state, q, qd, _ = _twin_steps(model, activation, rot, tr, frames=3)
     moved = np.abs(q - model.particle_q.numpy()).max()
     assert moved > 1e-3  # the comparison is about real motion
     assert np.abs(state.particle_q.numpy() - q).max() < 1e-5 * max(1.0, moved / 1e-3)
@@ -240,13 +247,7 @@ def test_warp_fold_guard_matches_numpy_reference(model):
     a few frames: float32 and float64 drift apart later where the guard and the bones meet)."""
     activation = np.full(model.muscle_count, 3.0)
     rot, tr = _jaw_pose(0.1, model.jaw_pivot)
-    solver, state, control = SkinSolver(model), model.state(), model.control()
-    control.set(muscle_activation=activation, bone_rotation=rot, bone_translation=tr)
-    ref = ReferenceSolver(model)
-    q, qd = state.particle_q.numpy().astype(np.float64), state.particle_qd.numpy().astype(np.float64)
-    for _ in range(3):
-        state = solver.step(model, state, control, 1 / 25)
-        q, qd = ref.step(q, qd, activation, rot, tr, 1 / 25)
+    state, q, qd, ref = _twin_steps(model, activation, rot, tr, frames=3)
     guarded = q.copy()
     ref.guard_folds(guarded, qd.copy(), rot, tr, ref.holds(rot, tr))
     assert np.abs(guarded - q).max() > 1e-6  # the guard is at work in this pose
