@@ -94,7 +94,8 @@ def test_the_skin_lies_on_the_true_surface(adapted, template):
     _, _, d, ok = compatible_closest_points(Y, per_vertex_normals(Y, F), surface(scan.truth_vertices, scan.truth_faces),
                                             0.01)
     seen = visible_skin(template) & ok
-    assert seen.mean() > 0.4
+    neck = np.asarray(template.region_names)[template.skin_region] == "neck"  # the scan ends below the chin
+    assert seen[~neck].mean() > 0.4
     assert np.sqrt(np.mean(d[seen] ** 2)) < 0.4e-3
     # what the template's global fit alone would give is several times worse
     assert report["levels"][0]["distance_error"] > 2 * report["final"]["distance_error"]

@@ -57,6 +57,39 @@ def test_every_part_is_closed_and_rides_on_its_bone(head):
         assert np.all(counts == 2), name
 
 
+def test_neck_has_no_long_slivers(head):
+    """Decimation leaves 45 mm slivers on the neck's straight sides; fitted to a scan they
+    show as vertical ridges."""
+    from fae.anatomy.template import MAX_EDGE, NECK_REFINE_BELOW
+
+    V, F = head.skin_vertices, head.skin_faces.astype(np.int64)
+    below = V[F].mean(axis=1)[:, 1] < NECK_REFINE_BELOW * MM - 0.005
+    e = np.concatenate([F[below][:, [0, 1]], F[below][:, [1, 2]], F[below][:, [2, 0]]])
+    assert below.sum() > 1000
+    assert np.linalg.norm(V[e[:, 0]] - V[e[:, 1]], axis=1).max() <= MAX_EDGE * MM * 1.001
+
+
+def test_refining_long_triangles_keeps_the_surface_closed_and_oriented():
+    import trimesh
+
+    from fae.anatomy.geometry import refine_long_triangles
+
+    # a capsule whose straight part is 12 columns of 80 mm slivers: what decimation makes of a neck
+    cyl = trimesh.creation.capsule(radius=30.0, height=80.0, count=[12, 12])
+    V, F = np.asarray(cyl.vertices, float), np.asarray(cyl.faces, np.int64)
+    allowed = np.ones(len(F), bool)
+    V2, F2 = refine_long_triangles(V, F, 10.0, allowed)
+    e = np.concatenate([F2[:, [0, 1]], F2[:, [1, 2]], F2[:, [2, 0]]])
+    assert np.linalg.norm(V2[e[:, 0]] - V2[e[:, 1]], axis=1).max() <= 10.0 * 1.001
+    assert len(V2) > 5 * len(V)
+    _, counts, same_direction = edge_counts(F2)
+    assert np.all(counts == 2) and not np.any(same_direction)  # still closed and consistently oriented
+    from fae.adapt.query import MeshQuery
+
+    on_input = MeshQuery(V, F).closest_points(V2, 1.0)[1]
+    assert np.all(on_input < 1e-4)  # every vertex lies on the input surface (float32 queries)
+
+
 def test_skin_is_mirror_symmetric(head):
     V = head.skin_vertices
     reflected = V[head.skin_mirror] * np.array([-1.0, 1.0, 1.0])

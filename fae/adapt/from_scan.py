@@ -30,9 +30,11 @@ from fae.adapt.nonrigid import fit_to_scan, folded_triangles
 from fae.adapt.transfer import personalize, visible_skin
 from fae.io.facemodel import FaceModel
 
-# Smoothness multiplier per skin region: thin, creased skin bends as a piece.
+# Smoothness multiplier per skin region: thin, creased skin bends as a piece; the neck
+# follows its scan's shape, not every undercut beneath a bust's jaw (pulled into one, the
+# skin under the chin crosses the mandible).
 REGION_STIFFNESS = {"eyelid_upper_l": 3.0, "eyelid_upper_r": 3.0, "eyelid_lower_l": 3.0, "eyelid_lower_r": 3.0,
-                    "ear_l": 2.0, "ear_r": 2.0, "lip_upper": 1.5, "lip_lower": 1.5, "mouth_cavity": 2.0}
+                    "ear_l": 2.0, "ear_r": 2.0, "lip_upper": 1.5, "lip_lower": 1.5, "mouth_cavity": 2.0, "neck": 2.0}
 EYE_RIM = 0.0025  # m: skin this close to an eyeball follows its neighbours, not the scan
 MAX_FACE_RMS_REL = 0.004  # face skin -> scan RMS / head diagonal beyond which the fit failed
 MIN_FACE_COVERAGE = 0.8  # share of the face skin within reach of the scan below which it failed

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from fae.mesh import boundary_edges
+from fae.mesh import boundary_edges, vertex_normals
 
 
 # ---------------------------------------------------------------------------------------
@@ -255,3 +255,149 @@ def ray_hits(V: np.ndarray, F: np.ndarray, origins: np.ndarray, directions: np.n
             best[r] = d
             out[r] = loc
     return out
+
+
+# ---------------------------------------------------------------------------------------
+# mesh quality: quadric decimation leaves long slivers where a surface is flat along one
+# direction (a neck's straight sides); they crease when fitted or simulated
+
+def _edge_faces(F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unique undirected edges (e, 2) of F (m, 3) and their faces (e, 2) (-1: border)."""
+    directed = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
+    face = np.tile(np.arange(len(F)), 3)
+    key = np.sort(directed, axis=1)
+    E, inverse = np.unique(key, axis=0, return_inverse=True)
+    inverse = inverse.ravel()
+    order = np.argsort(inverse, kind="stable")
+    faces = np.full((len(E), 2), -1, dtype=np.int64)
+    first = np.ones(len(order), dtype=bool)
+    first[1:] = inverse[order][1:] != inverse[order][:-1]
+    faces[inverse[order][first], 0] = face[order][first]
+    faces[inverse[order][~first], 1] = face[order][~first]
+    return E, faces
+
+
+def _independent(edge_faces: np.ndarray, candidates: np.ndarray, face_count: int) -> np.ndarray:
+    """Candidates (in order) whose faces no earlier chosen candidate touches."""
+    taken = np.zeros(face_count + 1, dtype=bool)  # the last slot stands for "no face"
+    chosen = []
+    for e in candidates:
+        f = edge_faces[e]
+        if taken[f[f >= 0]].any():
+            continue
+        taken[f[f >= 0]] = True
+        chosen.append(e)
+    return np.array(chosen, dtype=np.int64)
+
+
+def split_long_edges(V: np.ndarray, F: np.ndarray, max_edge: float, allowed: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(V', F', allowed') with every edge of an allowed face (m,) bool longer than `max_edge`
+    split at its midpoint, longest first; each face beside a split edge becomes two.
+    New vertices are appended to V (n, 3), new faces to F (m, 3), orientation kept."""
+    V = np.asarray(V, dtype=np.float64)
+    F = np.asarray(F, dtype=np.int64)
+    allowed = np.asarray(allowed, dtype=bool)
+    while True:
+        E, EF = _edge_faces(F)
+        length = np.linalg.norm(V[E[:, 0]] - V[E[:, 1]], axis=1)
+        in_zone = allowed[EF[:, 0]] & np.where(EF[:, 1] >= 0, allowed[np.maximum(EF[:, 1], 0)], True)
+        long = np.flatnonzero(in_zone & (length > max_edge))
+        if len(long) == 0:
+            return V, F, allowed
+        chosen = _independent(EF, long[np.argsort(-length[long])], len(F))
+        mid = len(V) + np.arange(len(chosen))
+        V = np.vstack([V, 0.5 * (V[E[chosen, 0]] + V[E[chosen, 1]])])
+        new_faces, new_allowed = [], []
+        F = F.copy()
+        for e, m in zip(chosen, mid):
+            a, b = E[e]
+            for f in EF[e][EF[e] >= 0]:
+                tri = F[f]
+                k = next(k for k in range(3) if {tri[k], tri[(k + 1) % 3]} == {a, b})
+                u, w, c = tri[k], tri[(k + 1) % 3], tri[(k + 2) % 3]
+                F[f] = (u, m, c)
+                new_faces.append((m, w, c))
+                new_allowed.append(allowed[f])
+        F = np.vstack([F, np.array(new_faces, dtype=np.int64).reshape(-1, 3)])
+        allowed = np.concatenate([allowed, np.array(new_allowed, dtype=bool)])
+
+
+def _corner_angle(V: np.ndarray, apex: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    u, w = V[a] - V[apex], V[b] - V[apex]
+    c = np.sum(u * w, axis=1) / np.maximum(np.linalg.norm(u, axis=1) * np.linalg.norm(w, axis=1), 1e-300)
+    return np.arccos(np.clip(c, -1.0, 1.0))
+
+
+def flip_to_delaunay(V: np.ndarray, F: np.ndarray, allowed: np.ndarray, max_dihedral: float = 35.0,
+                     rounds: int = 30) -> np.ndarray:
+    """F' (m, 3): interior edges between two allowed faces flipped while the angles facing
+    them sum to more than 180 degrees (the Delaunay condition), where the two faces are
+    within `max_dihedral` degrees of flat (a flip there does not change the shape)."""
+    F = np.asarray(F, dtype=np.int64).copy()
+    allowed = np.asarray(allowed, dtype=bool)
+    cos_max = np.cos(np.radians(max_dihedral))
+    for _ in range(rounds):
+        E, EF = _edge_faces(F)
+        inner = (EF[:, 1] >= 0) & allowed[EF[:, 0]] & allowed[np.maximum(EF[:, 1], 0)]
+        idx = np.flatnonzero(inner)
+        f0, f1 = F[EF[idx, 0]], F[EF[idx, 1]]
+        a, b = E[idx, 0], E[idx, 1]
+        c = f0.sum(axis=1) - a - b  # the corner of each face opposite the edge
+        d = f1.sum(axis=1) - a - b
+        want = _corner_angle(V, c, a, b) + _corner_angle(V, d, a, b) > np.pi + 1e-6
+        n0 = np.cross(V[f0[:, 1]] - V[f0[:, 0]], V[f0[:, 2]] - V[f0[:, 0]])
+        n1 = np.cross(V[f1[:, 1]] - V[f1[:, 0]], V[f1[:, 2]] - V[f1[:, 0]])
+        flat = np.sum(n0 * n1, axis=1) >= cos_max * np.linalg.norm(n0, axis=1) * np.linalg.norm(n1, axis=1)
+        existing = set(map(tuple, E))
+        candidates = [i for i in np.flatnonzero(want & flat)
+                      if (min(c[i], d[i]), max(c[i], d[i])) not in existing]
+        chosen = _independent(EF[idx], np.array(candidates, dtype=np.int64), len(F))
+        if len(chosen) == 0:
+            break
+        for i in chosen:
+            g0, g1 = EF[idx[i]]
+            tri = F[g0]
+            k = next(k for k in range(3) if {tri[k], tri[(k + 1) % 3]} == {a[i], b[i]})
+            u, w = tri[k], tri[(k + 1) % 3]  # face g0 runs u -> w; face g1 runs w -> u
+            F[g0] = (u, d[i], c[i])
+            F[g1] = (w, c[i], d[i])
+    return F
+
+
+def refine_long_triangles(V: np.ndarray, F: np.ndarray, max_edge: float, allowed: np.ndarray,
+                          cycles: int = 3, relax: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """(V', F'): the allowed faces (m,) bool of mesh V (n, 3), F (m, 3) without edges longer
+    than `max_edge`: long edges split (split_long_edges), then `cycles` times Delaunay
+    flips and `relax` rounds of tangential smoothing of the vertices inside the allowed
+    faces, each put back onto the input surface. Vertices keep their indices (new ones are
+    appended); vertices on the open border (a half mesh's plane x = 0) do not move."""
+    from scipy.sparse import coo_matrix
+
+    V = np.asarray(V, dtype=np.float64)
+    F = np.asarray(F, dtype=np.int64)
+    V2, F2, allowed2 = split_long_edges(V, F, max_edge, allowed)
+    if len(V2) == len(V):
+        return V2, F2
+    free = np.ones(len(V2), dtype=bool)
+    free[F2[~allowed2].ravel()] = False
+    free[boundary_edges(F2).ravel()] = False
+    free = np.flatnonzero(free)
+    for _ in range(cycles):
+        F2 = flip_to_delaunay(V2, F2, allowed2)
+        rows = np.concatenate([F2[:, 0], F2[:, 1], F2[:, 2]])
+        cols = np.concatenate([F2[:, 1], F2[:, 2], F2[:, 0]])
+        A = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(len(V2), len(V2))).tocsr()
+        A = ((A + A.T) > 0).astype(np.float64)
+        degree = np.asarray(A.sum(axis=1)).ravel()
+        for _ in range(relax):
+            step = (A @ V2)[free] / degree[free, None] - V2[free]
+            N = vertex_normals(V2, F2)[free]
+            step -= np.sum(step * N, axis=1, keepdims=True) * N
+            V2[free] = closest_surface_points(V, F, V2[free] + step)[0]
+    # relaxing can stretch an edge a little past the limit again: split, onto the surface
+    n2 = len(V2)
+    V2, F2, _ = split_long_edges(V2, F2, max_edge, allowed2)
+    if len(V2) > n2:
+        V2[n2:] = closest_surface_points(V, F, V2[n2:])[0]
+    return V2, F2

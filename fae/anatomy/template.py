@@ -23,6 +23,7 @@ from fae.anatomy.geometry import (
     mesh_from_sdf,
     mirror_half,
     ray_hits,
+    refine_long_triangles,
 )
 from fae.anatomy.surface_points import vertex_point
 from fae.anatomy.template_muscles import template_muscles
@@ -33,7 +34,12 @@ from fae.mpeg4 import FEATURE_POINTS
 MM = 1e-3  # the shape fields are in millimetres
 
 SKIN_STEP = 1.0  # mm, marching-cubes grid of the skin
-SKIN_HALF_FACES = 9000  # about 9,000 skin vertices in all
+SKIN_HALF_FACES = 9000  # about 9,000 skin vertices in all before the neck is refined
+# The neck's straight sides decimate into slivers 45 mm long; fitted to a scan they move
+# column by column and show as vertical ridges. Below NECK_REFINE_BELOW (mm, under the chin)
+# no edge is longer than MAX_EDGE (mm).
+NECK_REFINE_BELOW = -125.0
+MAX_EDGE = 10.0
 THICKNESS_CAP = 0.025  # m, soft-tissue depth reported where no bone lies below
 LAYER_DEPTH_FRACTIONS = [0.0, 0.35, 1.0]
 SKIN_COLOR = np.array([0.745, 0.42, 0.31, 1.0], dtype=np.float32)  # linear RGB of a light skin tone
@@ -63,11 +69,17 @@ PUPIL_COLOR = np.array([0.005, 0.005, 0.005, 1.0], dtype=np.float32)
 
 # --- meshes ----------------------------------------------------------------------------------
 
-def symmetric_mesh(sdf, lo, hi, step: float, half_faces: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Mirror-symmetric closed mesh of `sdf < 0` (mm): (V (n, 3) mm, F (m, 3), mirror (n,))."""
+def symmetric_mesh(sdf, lo, hi, step: float, half_faces: int, refine_below: float | None = None
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Mirror-symmetric closed mesh of `sdf < 0` (mm): (V (n, 3) mm, F (m, 3), mirror (n,)).
+
+    refine_below: faces whose centre lies below this height (mm) get no edge longer than
+    MAX_EDGE (the decimation leaves centimetre-long slivers where the surface is straight)."""
     V, F = mesh_from_sdf(sdf, lo, hi, step, pad=False)
     V, F = largest_component(V, F)
     V, F = decimate(V, F, half_faces)
+    if refine_below is not None:
+        V, F = refine_long_triangles(V, F, MAX_EDGE, V[F].mean(axis=1)[:, 1] < refine_below)
     return mirror_half(V, F, tol=1e-9)
 
 
@@ -284,7 +296,8 @@ def skin_thickness(V: np.ndarray, bones: list[tuple[np.ndarray, np.ndarray]], ca
 
 def build_template() -> FaceModel:
     """Build the generic head (about 15 s on one core). Deterministic."""
-    V, F, mirror = symmetric_mesh(S.skin_sdf, (0.0, -240.0, -125.0), (100.0, 130.0, 130.0), SKIN_STEP, SKIN_HALF_FACES)
+    V, F, mirror = symmetric_mesh(S.skin_sdf, (0.0, -240.0, -125.0), (100.0, 130.0, 130.0), SKIN_STEP, SKIN_HALF_FACES,
+                                  refine_below=NECK_REFINE_BELOW)
     region = skin_regions(V, F)
     parts_mm: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     for name, (sdf, lo, hi, step, half_faces) in _PART_SPECS.items():
