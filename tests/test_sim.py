@@ -32,13 +32,16 @@ def _jaw_pose(angle: float, pivot: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return rot, tr
 
 
-def test_signed_distance_grid_of_a_sphere_is_exact_to_a_cell():
+def test_signed_distance_grid_of_a_sphere_is_exact_near_it_and_a_lower_bound_far_from_it():
     sphere = trimesh.creation.icosphere(subdivisions=4, radius=0.05)
     values, origin, spacing = signed_distance_grid(sphere.vertices, sphere.faces, cell=0.004)
     pts = np.random.default_rng(1).uniform(-0.06, 0.06, (500, 3))
     phi, grad = sample_grid(values, origin, spacing, pts)
     exact = np.linalg.norm(pts, axis=1) - 0.05
-    assert np.max(np.abs(phi - exact)) < 0.002
+    near = np.abs(exact) < 2 * spacing  # the samples around them are within NEAR_BAND cells
+    assert near.sum() > 100 and np.max(np.abs(phi[near] - exact[near])) < 0.002
+    assert np.all(np.sign(phi[~near]) == np.sign(exact[~near]))
+    assert np.all(np.abs(phi[~near]) <= np.abs(exact[~near]) + 0.002)  # a particle's clearance may rely on it
     far = np.linalg.norm(pts, axis=1) > 0.01
     cosine = np.sum(grad[far] * pts[far], axis=1) / (np.linalg.norm(grad[far], axis=1) * np.linalg.norm(pts[far], axis=1))
     assert np.min(cosine) > 0.95

@@ -22,6 +22,28 @@ wp.set_module_options({"enable_backward": False})
 _GRID_CACHE: OrderedDict[bytes, tuple[np.ndarray, np.ndarray, float]] = OrderedDict()
 _GRID_CACHE_SIZE = 8
 GRID_PADDING = 0.01  # metres between a mesh's bounding box and its grid's
+# samples within this many cells of the surface get its exact distance; farther ones the
+# coarse grid's, interpolated (the coarse cell's diagonal is 3.5 cells: its sign holds there)
+NEAR_BAND = 4.0
+FAR_MARGIN = 1.5
+
+
+@wp.kernel
+def _grid_near_signed_distance(mesh: wp.uint64, origin: wp.vec3, spacing: float, ny: int, nz: int,
+                               band: float, out: wp.array(dtype=float)):
+    # within `band` of the surface: exact distance, signed by the normal there; farther
+    # samples are left as they are (filled from the coarse grid)
+    tid = wp.tid()
+    i = tid // (ny * nz)
+    j = (tid // nz) % ny
+    k = tid % nz
+    p = origin + wp.vec3(float(i), float(j), float(k)) * spacing
+    query = wp.mesh_query_point_sign_normal(mesh, p, band, 1.0e-6)
+    if query.result:
+        cp = wp.mesh_eval_position(mesh, query.face, query.u, query.v)
+        d = wp.length(p - cp)
+        if d < band:
+            out[tid] = d * query.sign
 
 
 @wp.kernel
@@ -68,10 +90,26 @@ def signed_distance_grid(V: np.ndarray, F: np.ndarray, cell: float = 0.003, max_
     mesh = wp.Mesh(points=wp.array(V.astype(np.float32), dtype=wp.vec3, device=device),
                    indices=wp.array(F.reshape(-1), dtype=wp.int32, device=device),
                    support_winding_number=True)
-    out = wp.zeros(int(np.prod(dims)), dtype=float, device=device)
     max_dist = float(np.linalg.norm(hi - lo))
-    wp.launch(_grid_signed_distance, dim=out.shape[0], device=device,
-              inputs=[mesh.id, wp.vec3(*lo.astype(np.float32)), float(spacing), int(dims[1]), int(dims[2]), max_dist, out])
+    # The winding number (robust where the mesh has holes) on every other sample only, the
+    # exact distance near the surface on all: a third of the time of the winding number on all
+    coarse_dims = (dims + 1) // 2
+    coarse = wp.zeros(int(np.prod(coarse_dims)), dtype=float, device=device)
+    wp.launch(_grid_signed_distance, dim=coarse.shape[0], device=device,
+              inputs=[mesh.id, wp.vec3(*lo.astype(np.float32)), float(2.0 * spacing), int(coarse_dims[1]),
+                      int(coarse_dims[2]), max_dist, coarse])
+    far = _upsampled(coarse.numpy().reshape(tuple(coarse_dims)), dims)
+    # interpolation overshoots by up to about a cell where the distance bends (the medial
+    # axis, deep inside or far out): far samples are lowered so that they stay lower bounds
+    # (a particle's clearance), by nothing at the band's edge rising to FAR_MARGIN cells one
+    # band further (the field keeps growing outwards: a push still points out of the bone)
+    band = NEAR_BAND * spacing
+    depth = np.abs(far)
+    far = np.sign(far) * (depth - FAR_MARGIN * spacing * np.clip((depth - band) / band, 0.0, 1.0))
+    out = wp.array(far.astype(np.float32).ravel(), dtype=float, device=device)
+    wp.launch(_grid_near_signed_distance, dim=out.shape[0], device=device,
+              inputs=[mesh.id, wp.vec3(*lo.astype(np.float32)), float(spacing), int(dims[1]), int(dims[2]),
+                      float(band), out])
     values = out.numpy().reshape(tuple(dims)).copy()
     values.setflags(write=False)  # shared by every caller through the cache
     lo.setflags(write=False)
@@ -79,6 +117,20 @@ def signed_distance_grid(V: np.ndarray, F: np.ndarray, cell: float = 0.003, max_
     while len(_GRID_CACHE) > _GRID_CACHE_SIZE:
         _GRID_CACHE.popitem(last=False)
     return _GRID_CACHE[key]
+
+
+def _upsampled(coarse: np.ndarray, dims: np.ndarray) -> np.ndarray:
+    """(dims) float32: a grid sampled on every other node, trilinearly interpolated."""
+    out = np.asarray(coarse, dtype=np.float32)
+    for axis, n in enumerate(dims):
+        idx = np.arange(n) / 2.0
+        i0 = np.minimum(np.floor(idx).astype(int), out.shape[axis] - 1)
+        i1 = np.minimum(i0 + 1, out.shape[axis] - 1)
+        f = (idx - i0).astype(np.float32)
+        shape = [1] * out.ndim
+        shape[axis] = n
+        out = np.take(out, i0, axis=axis) * (1 - f).reshape(shape) + np.take(out, i1, axis=axis) * f.reshape(shape)
+    return out
 
 
 def sample_grid(values: np.ndarray, origin: np.ndarray, spacing: float, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
