@@ -279,7 +279,7 @@ def eye_in_socket(template: FaceModel, model: FaceModel, name: str) -> tuple[np.
 
 
 EYE_MIN_SHARE = 0.9  # of the ratio of the outer eye corners' distance: no eyeball is scaled below this
-EYE_SINK_STEP = 0.0005  # m: an eyeball that crosses its lids moves back by this much at a time
+EYE_SINK_STEP = 0.0005  # m: an eyeball that crosses the skin moves away from it by this much at a time
 EYE_MAX_SINK_STEPS = 12
 
 MUSCLE_SEARCH_RADIUS = 0.035  # m: how far a linear muscle's attachment may move on its bone
@@ -382,12 +382,16 @@ def personalize(template: FaceModel, skin: np.ndarray, T: np.ndarray, unit: str,
             c, s = eye_in_socket(template, model, name)
             rel = template.parts[name].vertices - template.eye_centers[name]
             # a socket the scan closed (sculpted or shut eyes) would shrink the eye: it keeps
-            # at least EYE_MIN_SHARE of the eye's width ratio and sits deeper instead
+            # at least EYE_MIN_SHARE of the eye's width ratio and moves instead, away from the
+            # tissue it crosses (back from the lids, or forward from a shallow orbit)
             s = max(s, EYE_MIN_SHARE * (_ratio(fdp_old, fdp_new, "3.7", "3.8") or rigid_scale[name]))
+            direction = rel / np.linalg.norm(rel, axis=1, keepdims=True)
             for _ in range(EYE_MAX_SINK_STEPS):
-                if not skin.query.inside(rel * s + c).any():
+                crossing = skin.query.inside(rel * s + c)
+                if not crossing.any():
                     break
-                c = c - np.array([0.0, 0.0, EYE_SINK_STEP])
+                away = -direction[crossing].mean(axis=0)
+                c = c + EYE_SINK_STEP * away / max(float(np.linalg.norm(away)), 1e-9)
             for _ in range(20):  # the socket fit is least squares: make sure no eyelid is crossed
                 if not skin.query.inside(rel * s + c).any():
                     break
