@@ -98,3 +98,19 @@ def test_infinite_values_clamp_like_the_largest_finite_ones(player):
     top = player.frame_values(np.full(68, np.inf))
     assert np.array_equal(top[2:], FAP_LIMITS[2:, 1])
     assert np.array_equal(player.frame_values(np.full(68, np.nan))[2:], np.zeros(66))
+
+
+def test_only_a_mapping_for_this_solver_starts_a_calibration():
+    """A personalized head's calibration starts from its template's table scales (one pass
+    instead of three) only when they were measured with the same solver and layout."""
+    from fae.animate.calibrate import warm_start_usable
+    from fae.animate.mapping import FORMAT_VERSION
+
+    good = {"layout": np.array([27, 40, 3, FORMAT_VERSION]), "table_scale": np.full((68, 5), 1.2)}
+    assert warm_start_usable(good)
+    assert not warm_start_usable(None) and not warm_start_usable({})
+    assert not warm_start_usable({**good, "layout": np.array([27, 40, 3, FORMAT_VERSION - 1])})
+    assert not warm_start_usable({**good, "table_scale": np.full((60, 5), 1.2)})
+    bad = good["table_scale"].copy()
+    bad[3, 1] = np.nan
+    assert not warm_start_usable({**good, "table_scale": bad})

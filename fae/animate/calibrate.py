@@ -75,6 +75,9 @@ MIRROR_NEAR = 0.4
 MIRROR_FAR = 0.7
 FIELD_COST = 0.05
 CONTROL_SCALE = 0.01  # metres
+# passes of the nonlinear correction from neutral table scales, and from another head's
+COLD_PASSES = 3
+WARM_PASSES = 1
 
 
 def edge_length_graph(face) -> sp.csr_matrix:
@@ -204,8 +207,12 @@ def _solve(J: np.ndarray, target: np.ndarray, cost: np.ndarray, lower: np.ndarra
     return out
 
 
-def calibrate(face, device: str = "cpu", passes: int = 3, settle_frames: int = 30):
-    """A copy of FaceModel `face` with `fap_mapping` filled (see module docstring)."""
+def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frames: int = 30, start: dict | None = None):
+    """A copy of FaceModel `face` with `fap_mapping` filled (see module docstring).
+
+    start: the mapping of a similar head (the template a personalized head was adapted
+    from): its table scales, the solver's nonlinearity measured there, start the
+    correction, which then needs WARM_PASSES passes instead of `passes` (default 3)."""
     from fae.animate.rigid import RigidRig
     from fae.sim.solver import SkinSolver
 
@@ -257,6 +264,10 @@ def calibrate(face, device: str = "cpu", passes: int = 3, settle_frames: int = 3
     half = FAP_LIMITS[:, 1] / 2.0
     table_values = np.column_stack([-2 * half, -half, np.zeros(FAP_COUNT), half, 2 * half])
     table_scale = np.ones((FAP_COUNT, 5))
+    if warm_start_usable(start):
+        table_scale = np.asarray(start["table_scale"], dtype=np.float64).copy()
+        passes = WARM_PASSES if passes is None else passes
+    passes = COLD_PASSES if passes is None else passes
     mapping = {
         "layout": np.array([nm, nf, JAW_CONTROLS, FORMAT_VERSION], dtype=np.int64),
         "field_faps": np.array(field_faps(face), dtype=np.int64),
@@ -298,6 +309,16 @@ def calibrate(face, device: str = "cpu", passes: int = 3, settle_frames: int = 3
     out = copy.copy(face)
     out.fap_mapping = mapping
     return out
+
+
+def warm_start_usable(mapping: dict | None) -> bool:
+    """Whether `mapping`'s table scales can start a calibration: made for this solver
+    (FORMAT_VERSION) with the standard's 68 FAPs at the same table values."""
+    if not mapping or "table_scale" not in mapping or "layout" not in mapping:
+        return False
+    scale = np.asarray(mapping["table_scale"])
+    return (int(np.asarray(mapping["layout"])[3]) == FORMAT_VERSION and scale.shape == (FAP_COUNT, 5)
+            and bool(np.all(np.isfinite(scale))) and bool(np.all(scale > 0)))
 
 
 def _disjoint_batches(face, model, faps, responses, gain_pos, gain_neg, unit) -> list[list[int]]:

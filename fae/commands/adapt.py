@@ -219,7 +219,7 @@ def _run_surface(args, template, V, F, landmarks) -> int:
     report["feature_points_on_scan"] = {n: (S[:3, :3] @ p + S[:3, 3]).tolist()
                                         for n, p in model.feature_point_positions().items()
                                         if model.feature_points[n].part == "skin"}
-    return _finish(args, model, report, V, F, head.keep, started)
+    return _finish(args, model, report, V, F, head.keep, started, template.fap_mapping)
 
 
 def _eye_distance(template) -> float:
@@ -230,7 +230,7 @@ def _eye_distance(template) -> float:
     return float(np.linalg.norm(fdp["3.5"] - fdp["3.6"])) if "3.5" in fdp and "3.6" in fdp else 0.065
 
 
-def _finish(args, model, report, V, F, keep, started) -> int:
+def _finish(args, model, report, V, F, keep, started, start_mapping=None) -> int:
     from fae.io.atomic import atomic_open, atomic_path
     from fae.io.facemodel_gltf import write_facemodel
 
@@ -246,7 +246,7 @@ def _finish(args, model, report, V, F, keep, started) -> int:
             with atomic_open(args.report, "w") as fh:
                 json.dump(_json_safe(report), fh, indent=1, allow_nan=False)
         return 2
-    model = _calibrated(args, model, report)
+    model = _calibrated(args, model, report, start_mapping)
     picture = None
     if args.compare:  # drawn before anything is written: a failure here leaves nothing behind
         from fae.render.compare import comparison_image
@@ -275,16 +275,18 @@ def _finish(args, model, report, V, F, keep, started) -> int:
     return 0
 
 
-def _calibrated(args, model, report: dict):
+def _calibrated(args, model, report: dict, start_mapping: dict | None = None):
     """The model with its FAP mapping derived (unless --no-calibrate); the seconds go into
-    the report. Setup work belongs here, once per head: the player then loads it at once."""
+    the report. Setup work belongs here, once per head: the player then loads it at once.
+    start_mapping: the template's, whose table scales start the calibration (one pass
+    instead of three; see fae.animate.calibrate)."""
     if args.no_calibrate:
         return model
     from fae.animate.calibrate import calibrate
 
     _say("deriving the FAP mapping of the new head (once per head)")
     started = time.perf_counter()
-    model = calibrate(model)
+    model = calibrate(model, start=start_mapping)
     report["calibration_seconds"] = time.perf_counter() - started
     return model
 
@@ -349,7 +351,7 @@ def _run_paper(args, template, V, F, landmarks) -> int:
             with atomic_open(args.report, "w") as fh:
                 json.dump(_json_safe(report), fh, indent=1, allow_nan=False)
         return 2
-    model = _calibrated(args, model, report)
+    model = _calibrated(args, model, report, template.fap_mapping)
     write_facemodel(model, args.output)
     if args.report:
         with atomic_open(args.report, "w") as fh:
