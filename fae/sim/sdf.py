@@ -28,16 +28,22 @@ NEAR_BAND = 4.0
 FAR_MARGIN = 1.5
 
 
+@wp.func
+def _grid_point(tid: int, origin: wp.vec3, spacing: float, ny: int, nz: int):
+    # sample `tid` of a grid stored x-major: (i, j, k) -> i * ny * nz + j * nz + k
+    i = tid // (ny * nz)
+    j = (tid // nz) % ny
+    k = tid % nz
+    return origin + wp.vec3(float(i), float(j), float(k)) * spacing
+
+
 @wp.kernel
 def _grid_near_signed_distance(mesh: wp.uint64, origin: wp.vec3, spacing: float, ny: int, nz: int,
                                band: float, out: wp.array(dtype=float)):
     # within `band` of the surface: exact distance, signed by the normal there; farther
     # samples are left as they are (filled from the coarse grid)
     tid = wp.tid()
-    i = tid // (ny * nz)
-    j = (tid // nz) % ny
-    k = tid % nz
-    p = origin + wp.vec3(float(i), float(j), float(k)) * spacing
+    p = _grid_point(tid, origin, spacing, ny, nz)
     query = wp.mesh_query_point_sign_normal(mesh, p, band, 1.0e-6)
     if query.result:
         cp = wp.mesh_eval_position(mesh, query.face, query.u, query.v)
@@ -50,10 +56,7 @@ def _grid_near_signed_distance(mesh: wp.uint64, origin: wp.vec3, spacing: float,
 def _grid_signed_distance(mesh: wp.uint64, origin: wp.vec3, spacing: float, ny: int, nz: int,
                           max_dist: float, out: wp.array(dtype=float)):
     tid = wp.tid()
-    i = tid // (ny * nz)
-    j = (tid // nz) % ny
-    k = tid % nz
-    p = origin + wp.vec3(float(i), float(j), float(k)) * spacing
+    p = _grid_point(tid, origin, spacing, ny, nz)
     query = wp.mesh_query_point_sign_winding_number(mesh, p, max_dist, 2.0, 0.5)
     if query.result:
         cp = wp.mesh_eval_position(mesh, query.face, query.u, query.v)
