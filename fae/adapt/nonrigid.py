@@ -50,9 +50,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
-from scipy.sparse.linalg import splu
 
 from fae.adapt.calibration import apply_transform
+from fae.linalg import symmetric_splu
 from fae.adapt.errors import Surface
 from fae.adapt.query import MeshQuery
 from fae.adapt.untangle import mesh_edges, untangle
@@ -240,7 +240,7 @@ def harmonic_displacement(L: sp.csr_matrix, D: np.ndarray, known: np.ndarray) ->
     L = sp.csr_matrix(L)
     A = L[u][:, u].tocsc()
     rhs = -(L[u][:, k] @ out[k])
-    out[u] = splu(A).solve(np.asarray(rhs))
+    out[u] = symmetric_splu(A).solve(np.asarray(rhs))
     return out
 
 
@@ -328,7 +328,7 @@ def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray
                 M = a * a * LtL + sp.diags((matched & ~quiet).astype(np.float64))
                 if B is not None:
                     M = M + fade * BtB
-                solve = splu(M.tocsc()).solve
+                solve = symmetric_splu(M).solve
             keep = ~quiet[idx_all]
             idx, Q = idx_all[keep], Q_all[keep]
             rhs = np.zeros((n, 3))

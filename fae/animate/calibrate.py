@@ -44,7 +44,6 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.optimize import lsq_linear
 from scipy.sparse.csgraph import dijkstra
-from scipy.sparse.linalg import splu
 
 from fae.animate.controls import FapControls
 from fae.animate.mapping import FORMAT_VERSION, JAW_CONTROLS, field_faps
@@ -52,6 +51,7 @@ from fae.animate.faptables import (FAP_DIRECTION, FAP_FEATURE_POINT, FAP_LIMITS,
                                    SKIN_TRANSLATION_FAPS, fap_unit_scale, fapu_of)
 from fae.mpeg4.faps import FAP_COUNT
 from fae.mpeg4.fdps import mirror_point
+from fae.linalg import symmetric_splu
 from fae.mesh import adjacency
 from fae.sim.build import PullField, mesh_edges, skin_model, skin_positions
 from fae.sim.reference import ReferenceSolver
@@ -155,7 +155,7 @@ class _Probe:
         self.face, self.model = face, model
         self.ref = ReferenceSolver(model)
         K, self.free = _stiffness(self.ref)
-        self.lu = splu(K)
+        self.lu = symmetric_splu(K)
         self.q0 = self.ref.a["particle_q"].astype(np.float64)
         self.fixed = self.ref.inv_mass == 0.0
         self.eye = np.tile(np.eye(3), (2, 1, 1))
