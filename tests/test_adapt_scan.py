@@ -206,6 +206,8 @@ def test_a_scanned_bust_becomes_a_head(shared_data, name, tmp_path):
     part = report["head_part"]
     assert part["head_vertices"] < 0.9 * part["scan_vertices"]  # the plinth and shoulders are left out
     assert facemodel_problems(read_facemodel(out)) == []
+    # sculpted eyes leave shallow sockets: the orbit deepens, the eyeballs keep their size (0.6 once)
+    assert min(report["eye_scale"].values()) > 0.75, report["eye_scale"]
 
 
 @needs_mediapipe

@@ -16,7 +16,11 @@
   uniformly by the mouth-width ratio |8.3-8.4|, no rotation (the scan is already
   calibrated into the face frame);
 - eyes: fitted into the adapted socket (eye_in_socket: centre and scale by least squares
-  on the socket's template gaps, capped so the eyelids are never crossed);
+  on the socket's template gaps, capped so the eyelids are never crossed), no smaller than
+  EYE_MIN_SHARE of the eye width's ratio: an eye that would cross its lids moves back, and
+  the orbit's hidden skin behind it is pushed back to make room (orbit_yields; a bust's
+  sculpted eyes otherwise leave sockets too shallow, and eyeballs shrunk to 0.6 looked lost
+  in their openings);
 - linear muscles whose line would leave the soft tissue get a nearby bone attachment from
   which it does not (keep_muscles_inside);
 - jaw pivot: through interior_field; jaw axis unchanged;
@@ -278,6 +282,44 @@ def eye_in_socket(template: FaceModel, model: FaceModel, name: str) -> tuple[np.
     return c, float(min(R / r0, limit))
 
 
+def orbit_yields(template: FaceModel, model: FaceModel, name: str, c: np.ndarray, s: float,
+                 rounds: int = 8) -> bool:
+    """Deepen the orbit of eyeball `name` (centre c (3,) metres, scale s) where the eyeball
+    crosses it: the socket skin behind the eye's equator (the template skin within
+    EYE_SOCKET_REACH of the eyeball, facing it from behind; no scanner sees it) is pushed
+    away from the centre until it keeps EYE_MIN_GAP_SHARE of its template gap, spread
+    over ORBIT_PUSH_RADIUS (smooth_push). A scan whose lids lie on a sculpted or shut eye
+    leaves a socket too shallow for the eyeball; shrinking the eye instead shows it lost in
+    its opening. Changes model.skin_vertices in place; returns whether any moved."""
+    from scipy.spatial import cKDTree
+
+    c0 = np.asarray(template.eye_centers[name], dtype=np.float64)
+    EV = template.parts[name].vertices
+    r_eye = np.linalg.norm(EV - c0, axis=1)
+    X0 = template.skin_vertices
+    gap = np.linalg.norm(X0 - c0, axis=1) - float(np.median(r_eye))
+    behind = (X0 - c0)[:, 2] < 0.0
+    socket = np.flatnonzero((gap > 0) & (gap < EYE_SOCKET_REACH) & behind)
+    if len(socket) == 0:
+        return False
+    directions = cKDTree((EV - c0) / r_eye[:, None])
+    X = model.skin_vertices
+    moved = False
+    for _ in range(rounds):
+        d = X[socket] - c
+        room = np.linalg.norm(d, axis=1)
+        u = d / np.maximum(room, 1e-12)[:, None]
+        need = s * r_eye[directions.query(u)[1]] + EYE_MIN_GAP_SHARE * gap[socket] - room
+        at = need > 1e-5
+        if not at.any():
+            break
+        X = X + smooth_push(X, u[at] * need[at, None], socket[at], ORBIT_PUSH_RADIUS)
+        moved = True
+    model.skin_vertices = X
+    return moved
+
+
+ORBIT_PUSH_RADIUS = 0.004  # m over which a push deepening an orbit takes the skin around along
 EYE_MIN_SHARE = 0.9  # of the ratio of the outer eye corners' distance: no eyeball is scaled below this
 EYE_SINK_STEP = 0.0005  # m: an eyeball that crosses the skin moves away from it by this much at a time
 EYE_MAX_SINK_STEPS = 12
@@ -376,7 +418,8 @@ def personalize(template: FaceModel, skin: np.ndarray, T: np.ndarray, unit: str,
             part.vertices = carry_bone(field, part.vertices, part.faces)
     model.eye_centers = {k: carried(field, np.asarray(v)[None])[0] for k, v in template.eye_centers.items()}
     eye_scale = {}
-    skin = surface(model.skin_vertices, model.skin_faces)  # the skin is final from here on
+    orbits_deepened = []
+    skin = surface(model.skin_vertices, model.skin_faces)  # final from here on, but for orbits deepened
     for name in ("eye_l", "eye_r"):
         if name in model.parts and name in template.eye_centers:
             c, s = eye_in_socket(template, model, name)
@@ -386,6 +429,16 @@ def personalize(template: FaceModel, skin: np.ndarray, T: np.ndarray, unit: str,
             # tissue it crosses (back from the lids, or forward from a shallow orbit)
             s = max(s, EYE_MIN_SHARE * (_ratio(fdp_old, fdp_new, "3.7", "3.8") or rigid_scale[name]))
             direction = rel / np.linalg.norm(rel, axis=1, keepdims=True)
+            # the front of the eye clears the lids the scan gave (its back may cross the orbit's
+            # skin, which no one sees: that yields below)
+            front = direction[:, 2] > 0.0  # the eye looks along +z in the face frame
+            for _ in range(EYE_MAX_SINK_STEPS):
+                if not (skin.query.inside(rel * s + c) & front).any():
+                    break
+                c = c - np.array([0.0, 0.0, EYE_SINK_STEP])
+            if orbit_yields(template, model, name, c, s):
+                skin = surface(model.skin_vertices, model.skin_faces, skin.query)
+                orbits_deepened.append(name)
             for _ in range(EYE_MAX_SINK_STEPS):
                 crossing = skin.query.inside(rel * s + c)
                 if not crossing.any():
@@ -428,7 +481,8 @@ def personalize(template: FaceModel, skin: np.ndarray, T: np.ndarray, unit: str,
     model.meta = dict(template.meta)
     model.meta.update({"generator": "fae adapt", "adapt_method": method, "scan_unit": unit, "symmetric": False})
     report = {"method": method, "scan_unit": unit, "bone_vertices_pushed_under_skin": pushed,
-              "fapu_ratio": fapu_ratio, "eye_scale": eye_scale, "muscle_attachments_moved": moved_muscles}
+              "fapu_ratio": fapu_ratio, "eye_scale": eye_scale, "orbits_deepened": orbits_deepened,
+              "muscle_attachments_moved": moved_muscles}
     return model, report
 
 
