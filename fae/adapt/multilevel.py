@@ -31,6 +31,7 @@ from typing import Callable
 
 import numpy as np
 
+from fae.adapt import PAPER_METHODS
 from fae.adapt.correspondence import (closest_pairs, curvature_features, feature_mesh, feature_mesh_samples,
                                      grid_sample, ray_pairs)
 from fae.adapt.csrbf import CSRBF, csrbf_interpolant, csrbf_weights
@@ -43,7 +44,7 @@ from fae.adapt.query import MeshQuery
 from fae.adapt.rbf import RBF, rbf_interpolant, rbf_weights
 from fae.adapt.untangle import edge_crossings, mesh_edges, untangle
 
-METHODS = ("multilevel", "rbf", "wendland", "multiquadric")
+METHODS = PAPER_METHODS
 GLOBAL_LIMIT = 500  # paper 000 §4.3: global RBF below this many pairs, CSRBF above
 CSRBF_RHO = 1e-2  # diagonal regularization of each CSRBF level (Phi's diagonal is 1)
 CSRBF_TOL = 1e-3  # relative CG residual: finer detail is the local step's job

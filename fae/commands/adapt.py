@@ -24,10 +24,10 @@ import os
 import sys
 import time
 
-from fae.adapt.multilevel import METHODS
+from fae.adapt import PAPER_METHODS
 from fae.data import shipped_head_path
 
-ADAPT_METHODS = ("surface",) + METHODS
+ADAPT_METHODS = ("surface",) + PAPER_METHODS
 # A face found on the scan is trusted with at least this many point pairs, whose RMS
 # distance from their best similarity is at most this share of the eye distance (the
 # busts: 0.08-0.10; a face mistaken elsewhere on a scan: far above).
