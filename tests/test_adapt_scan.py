@@ -304,3 +304,26 @@ def test_the_head_is_found_in_a_bust_lying_upside_down(template, bust):
     R_found = head.template_to_scan[:3, :3] / np.cbrt(np.linalg.det(head.template_to_scan[:3, :3]))
     angle = np.degrees(np.arccos(np.clip((np.trace(R_true.T @ R_found) - 1) / 2, -1, 1)))
     assert angle < 5.0
+
+
+def test_an_ear_is_found_where_the_scan_has_it(template):
+    """Ears are found by their shape: the template's left ear moved 15 mm down and 10 mm
+    back on the 'scan' gives pairs that carry the template's ear there."""
+    from fae.adapt.ears import ear_pairs
+    from fae.adapt.errors import surface
+
+    V = np.asarray(template.skin_vertices, float).copy()
+    F = np.asarray(template.skin_faces, np.int64)
+    ear = np.asarray(template.skin_region) == template.region_names.index("ear_l")
+    shift = np.array([0.0, -0.015, -0.010])
+    V[ear] += shift
+    pairs, report = ear_pairs(template, surface(V, F))
+    assert report["ear_l"]["found"], report
+    assert abs(report["ear_l"]["moved_m"] - np.linalg.norm(shift)) < 0.005
+    assert report["ear_r"]["found"] and report["ear_r"]["moved_m"] < 0.002  # the right ear stays
+    faces, bary, points = pairs
+    on_template = np.einsum("kj,kjd->kd", bary, np.asarray(template.skin_vertices)[F[faces]])
+    left = on_template[:, 0] > 0
+    assert left.sum() >= 10
+    error = np.linalg.norm(points[left] - on_template[left] - shift, axis=1)
+    assert np.median(error) < 0.002 and np.quantile(error, 0.9) < 0.004, np.sort(error)

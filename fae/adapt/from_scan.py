@@ -6,7 +6,8 @@ head part without folds, the anatomy carried over, and the result measured hones
 `head` (fae.adapt.head_pose.HeadInScan) says where the head is and which part of the scan
 is head; `pairs` are corresponding points found by looking at both faces
 (fae.render.landmarks.landmark_pairs, in the face frame); `landmarks` are MPEG-4 feature
-points the user gave (scan frame). The skin is fitted by fae.adapt.nonrigid.fit_to_scan,
+points the user gave (scan frame); the ears, which no face-landmark model sees, are found
+by their shape (fae.adapt.ears) and join them. The skin is fitted by fae.adapt.nonrigid.fit_to_scan,
 the anatomy carried by fae.adapt.transfer.personalize, and the errors measured in the
 scan's own frame through the head's scan_transform (fae.adapt.errors.scan_fit_errors),
 over the face regions' skin that a scanner sees, less the eyelids' rims within EYE_RIM of
@@ -24,6 +25,7 @@ import time
 import numpy as np
 
 from fae.adapt.calibration import apply_transform
+from fae.adapt.ears import ear_pairs
 from fae.adapt.errors import FACE_REGIONS, scan_fit_errors, surface
 from fae.adapt.head_pose import HeadInScan, kept_part
 from fae.adapt.nonrigid import fit_to_scan, folded_triangles
@@ -88,6 +90,11 @@ def adapt_to_scan(template: FaceModel, scan_V: np.ndarray, scan_F: np.ndarray, h
         bary.append(np.asarray(fp.bary, np.float64)[None])
         points.append(apply_transform(T, np.asarray(q, np.float64)[None]))
         used_landmarks.append(name)
+    ears, ear_report = ear_pairs(template, scan)  # no face-landmark model sees ears
+    if ears is not None:
+        faces.append(ears[0])
+        bary.append(ears[1])
+        points.append(ears[2])
     lm = (np.concatenate(faces), np.vstack(bary), np.vstack(points)) if faces else None
     stiffness = np.ones(len(P))
     for region, k in REGION_STIFFNESS.items():
@@ -116,6 +123,7 @@ def adapt_to_scan(template: FaceModel, scan_V: np.ndarray, scan_F: np.ndarray, h
         "head_part": head.report(scan_V),
         "feature_pairs": 0 if lm is None else int(len(lm[0])),
         "landmarks_used": used_landmarks,
+        "ears": ear_report,
         "errors": errors,
         "folded_triangles": {"visible": int(folded[visible_faces].sum()), "all": int(folded.sum())},
         "fit_stages": fit.stages,
