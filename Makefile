@@ -7,12 +7,13 @@ SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 STAMP := $(VENV)/.fae-installed
 export PYOPENGL_PLATFORM ?= osmesa
 
-.PHONY: all install system-deps demo test test-fast clean
+.PHONY: all install system-deps browser demo test test-fast clean
 
 all: install
 
 # Debian packages: OSMesa for headless OpenGL; libGL and GLib, which OpenCV (under
 # MediaPipe, the face-landmark model of `fae adapt`) loads at import. Installed only when missing.
+# npm (tools/package.json) brings three.js for `fae serve --live` and the glTF validator.
 system-deps:
 	@missing=""; \
 	ldconfig -p 2>/dev/null | grep -q 'libOSMesa\.so' || missing="$$missing libosmesa6"; \
@@ -30,9 +31,9 @@ $(STAMP): pyproject.toml | system-deps
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q -e '.[dev,landmarks,batch]'
 	$(PY) -m pip install -q --no-deps 'pyrender==0.1.45'
-	@if command -v npm >/dev/null 2>&1 && [ ! -d tools/node_modules/gltf-validator ]; then \
+	@if command -v npm >/dev/null 2>&1 && { [ ! -d tools/node_modules/gltf-validator ] || [ ! -d tools/node_modules/three ]; }; then \
 	  npm install --prefix tools --silent --no-audit --no-fund --no-package-lock >/dev/null 2>&1 \
-	  || echo "gltf-validator (npm) not installed: the glTF validation test will be skipped"; \
+	  || echo "npm packages not installed: no live view (fae serve --live); the glTF validation test will be skipped"; \
 	fi
 	@touch $(STAMP)
 
@@ -42,8 +43,14 @@ demo: install
 	$(VENV)/bin/fae play fap_streams/expressions.fap -o demo.mp4
 	@echo "wrote demo.mp4"
 
+# A real browser for the live view's test (the product never needs one): Debian's chromium,
+# driven by Playwright's Python API. Installed only when missing.
+browser:
+	@command -v chromium >/dev/null 2>&1 || { echo "installing chromium from Debian (for the browser tests)"; \
+	  $(SUDO) apt-get update -qq && $(SUDO) DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null; }
+
 # The whole suite, slow end-to-end tests included, on both cores.
-test: install
+test: install browser
 	$(PY) -m pytest -n 2 -q
 
 test-fast: install

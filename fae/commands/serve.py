@@ -1,7 +1,9 @@
 """`fae serve`: play FAP streams that arrive over TCP (native line protocol and Xface tasks).
 
 See docs/protocol.md. Stops cleanly on SIGINT/SIGTERM: connections are closed, and the
---record video is finished and moved into place.
+--record video is finished and moved into place. --live also serves the live view's page
+and WebSocket (fae.net.view) on --http-port; --view stays the camera of --record, as in
+`fae play` and `fae render`.
 """
 
 from __future__ import annotations
@@ -32,6 +34,10 @@ def register(subparsers) -> None:
     add_view_arguments(parser, "640x480")  # of the --record video
     parser.add_argument("--fap-dir", metavar="DIR", help="folder Xface LOAD_FAP may read .fap files from "
                         "(default: LOAD_FAP is refused)")
+    parser.add_argument("--live", action="store_true", help="also serve a live view: a page on --host showing "
+                        "every face as it moves (WebGL, three.js from npm), frames over a WebSocket")
+    parser.add_argument("--http-port", type=int, default=8080, metavar="PORT",
+                        help="port of the live view's page (default 8080; 0: any)")
     parser.add_argument("--device", default="cpu", help="Warp device for the faces (default cpu)")
     defaults = ServerLimits()
     parser.add_argument("--idle-timeout", type=float, default=defaults.idle_timeout, metavar="SECONDS",
@@ -60,7 +66,22 @@ async def _serve(args, model, player=None) -> int:
         recorder = StreamRecorder(server.subscribe(maxsize=64, lossless=True), args.record,
                                   lambda: FaceRenderer(model, args.size, args.view, supersample=args.supersample,
                                                        show_bones=args.show_bones), args.size)
+    view = None
+    if args.live:
+        from fae.net.view import LiveView
+
+        try:
+            view = LiveView(model, server.subscribe, args.host, args.http_port)
+        except FileNotFoundError as exc:
+            return fail("serve", f"--live: {exc}")
     await server.start()
+    if view is not None:
+        try:
+            await view.start()
+        except OSError as exc:
+            await server.close()
+            return fail("serve", f"--live: cannot listen on {args.host}:{args.http_port} ({exc.strerror or exc})")
+        print(f"fae serve: live view on {view.url}", file=sys.stderr, flush=True)
     if recorder is not None:
         recorder.start()
     stop = asyncio.Event()
@@ -73,6 +94,8 @@ async def _serve(args, model, player=None) -> int:
     print(f"fae serve: stopped after {st['connections']} connections; native streams: {st['native_frames']} "
           f"frames in {st['native_steps']} face steps; Xface: {st['xface_frames']} frames in "
           f"{st['xface_steps']} face steps", file=sys.stderr)
+    if view is not None:
+        await view.close()
     if recorder is not None:
         await recorder.close()
         print(f"fae serve: wrote {recorder.frames_written} frames to {args.record}"
@@ -92,6 +115,8 @@ def run(args) -> int:
             return fail("serve", problem)
     if not args.idle_timeout > 0:
         return fail("serve", f"--idle-timeout {args.idle_timeout:g}: expected a positive number of seconds")
+    if not 0 <= args.http_port <= 65535:
+        return fail("serve", f"--http-port {args.http_port}: expected 0..65535")
     for flag, value in (("--max-clients", args.max_clients), ("--max-per-address", args.max_per_address)):
         if value < 1:
             return fail("serve", f"{flag} {value}: expected at least 1")

@@ -1,0 +1,197 @@
+"""A live view of the faces stepping in `fae serve`, in the browser.
+
+    LiveView(model, subscribe, host="127.0.0.1", port=8080, three_dir=None)
+    await view.start(); view.url; await view.close()
+
+One asyncio server (the `websockets` library) answers plain HTTP and WebSockets on one
+port: GET / is the page (fae/net/view_page/index.html), /three/... the three.js files
+from npm (`three_dir`: its package folder, see find_three), and /ws the WebSocket.
+
+On /ws a page first gets the head as one JSON text message:
+
+    {"type": "head", "skin": {"positions": [x, y, z, ...] metres, "faces": [i, j, k, ...],
+     "color": [r, g, b, a]}, "parts": [{"name", "bone", "positions", "faces", "color"}]}
+
+then one binary message per frame it is shown: a little-endian uint32 n, n bytes of JSON
+{"stream", "index", "time", "fps", "step", "bones": {bone: 16 floats, column-major}},
+zero padding to a multiple of 4, then the skin's positions as float32 (V x 3, metres,
+face frame). Each page has its own lossy subscription to the server's frames (fae.net.hub):
+a slow page skips frames, never slows a stream; a page that closes or breaks leaves the
+streams and the other pages as they were.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import mimetypes
+import os
+import struct
+from http import HTTPStatus
+from pathlib import Path
+
+import numpy as np
+
+from fae.net.hub import FrameEvent, StreamEnd
+
+log = logging.getLogger("fae.net.view")
+PAGE_DIR = Path(__file__).resolve().parent / "view_page"
+THREE_FILES = ("build", "examples/jsm")  # the only folders of the three package served
+HIDDEN_PARTS = ("cranium", "mandible")  # always under the skin: not sent
+
+
+def find_three() -> Path | None:
+    """The three.js npm package folder: $FAE_THREE_DIR, else node_modules/three beside the
+    project's tools (where `make install` puts it) or in the working directory."""
+    candidates = []
+    if os.environ.get("FAE_THREE_DIR"):
+        candidates.append(Path(os.environ["FAE_THREE_DIR"]))
+    root = Path(__file__).resolve().parents[2]
+    candidates += [root / "tools" / "node_modules" / "three", Path.cwd() / "node_modules" / "three"]
+    for c in candidates:
+        if (c / "build" / "three.module.js").is_file():
+            return c
+    return None
+
+
+def head_message(model) -> str:
+    """The JSON text message describing the head (see the module docstring)."""
+    def rounded(a):
+        return np.round(np.asarray(a, dtype=np.float64), 6).ravel().tolist()
+
+    skin = {"positions": rounded(model.skin_vertices), "faces": np.asarray(model.skin_faces).ravel().tolist(),
+            "color": np.asarray(model.skin_color, dtype=float).ravel()[:4].tolist()
+            if model.skin_color is not None and np.size(model.skin_color) >= 3 else [0.85, 0.65, 0.55, 1.0]}
+    parts = []
+    for name, part in model.parts.items():
+        if name in HIDDEN_PARTS:
+            continue
+        entry = {"name": name, "bone": part.bone, "positions": rounded(part.vertices),
+                 "faces": np.asarray(part.faces).ravel().tolist(),
+                 "color": np.asarray(part.color, dtype=float).ravel()[:4].tolist()}
+        if part.vertex_colors is not None:
+            entry["colors"] = np.round(np.asarray(part.vertex_colors, dtype=float)[:, :3], 3).ravel().tolist()
+        parts.append(entry)
+    return json.dumps({"type": "head", "skin": skin, "parts": parts}, separators=(",", ":"))
+
+
+def frame_message(event: FrameEvent) -> bytes:
+    """The binary message of one frame (see the module docstring)."""
+    bones = {name: np.asarray(T, dtype=np.float64).T.ravel().round(7).tolist()
+             for name, T in (event.pose.bone_transforms or {}).items()}
+    meta = json.dumps({"stream": event.stream, "index": int(event.index), "time": float(event.time),
+                       "fps": float(event.fps), "step": int(event.step), "bones": bones},
+                      separators=(",", ":")).encode()
+    meta += b" " * (-(4 + len(meta)) % 4)
+    return struct.pack("<I", len(meta)) + meta + np.asarray(event.pose.skin_vertices, dtype="<f4").tobytes()
+
+
+class LiveView:
+    """The page and its WebSocket for the server's frames (see the module docstring).
+
+    subscribe: a callable returning a new lossy subscription (FapServer.subscribe);
+    three_dir: the three.js package folder (find_three() when None)."""
+
+    def __init__(self, model, subscribe, host: str = "127.0.0.1", port: int = 8080, three_dir: Path | None = None):
+        self.model = model
+        self.subscribe = subscribe
+        self.host, self.requested_port = host, port
+        self.three_dir = Path(three_dir) if three_dir is not None else find_three()
+        if self.three_dir is None:
+            raise FileNotFoundError("three.js (npm package 'three') is not installed: run `make install`, or "
+                                    "`npm install --prefix tools three`, or set FAE_THREE_DIR to its folder")
+        self._head = head_message(model)
+        self._server = None
+        self.pages_total = 0
+        self.frames_sent = 0
+
+    @property
+    def port(self) -> int:
+        if self._server is None:
+            raise RuntimeError("LiveView.port: not started")
+        return self._server.sockets[0].getsockname()[1]
+
+    @property
+    def url(self) -> str:
+        return f"http://{self.host}:{self.port}/"
+
+    async def start(self) -> None:
+        from websockets.asyncio.server import serve
+
+        self._server = await serve(self._page, self.host, self.requested_port, process_request=self._http,
+                                   max_size=2 ** 16, compression=None, logger=log)
+
+    async def close(self) -> None:
+        if self._server is not None:
+            self._server.close()
+            await self._server.wait_closed()
+
+    # -- HTTP ------------------------------------------------------------------------
+    def _file(self, path: str) -> Path | None:
+        """The file a GET path names, only inside the page's folder or three's served ones."""
+        if path in ("/", "/index.html"):
+            return PAGE_DIR / "index.html"
+        if path.startswith("/three/"):
+            rel = path[len("/three/"):]
+            for allowed in THREE_FILES:
+                base = (self.three_dir / allowed).resolve()
+                if rel.startswith(allowed + "/"):
+                    target = (self.three_dir / rel).resolve()
+                    if target.is_file() and base in target.parents:
+                        return target
+        return None
+
+    def _http(self, connection, request):
+        from websockets.datastructures import Headers
+        from websockets.http11 import Response
+
+        path = request.path.split("?", 1)[0]
+        if path == "/ws":
+            return None  # the WebSocket handshake goes on
+        if path == "/favicon.ico":
+            return Response(HTTPStatus.NO_CONTENT, "No Content", Headers([("Content-Length", "0")]), b"")
+        target = self._file(path)
+        if target is None:
+            return connection.respond(HTTPStatus.NOT_FOUND, f"{path}: not found\n")
+        kind = "text/javascript" if target.suffix == ".js" else (mimetypes.guess_type(target.name)[0] or
+                                                                 "application/octet-stream")
+        body = target.read_bytes()
+        headers = Headers([("Content-Type", f"{kind}; charset=utf-8" if kind.startswith("text") else kind),
+                           ("Content-Length", str(len(body))), ("Cache-Control", "no-cache")])
+        return Response(HTTPStatus.OK, "OK", headers, body)
+
+    # -- WebSocket -------------------------------------------------------------------
+    async def _page(self, ws) -> None:
+        from websockets.exceptions import ConnectionClosed
+
+        self.pages_total += 1
+        sub = self.subscribe(maxsize=2)  # latest frames only: a slow page skips, never slows a stream
+        reader = asyncio.create_task(self._drain(ws, sub))
+        try:
+            await ws.send(self._head)
+            async for event in sub:
+                if isinstance(event, FrameEvent):
+                    await ws.send(frame_message(event))
+                    self.frames_sent += 1
+                elif isinstance(event, StreamEnd):
+                    await ws.send(json.dumps({"type": "end", "stream": event.stream}))
+        except ConnectionClosed:
+            pass
+        finally:
+            sub.close()
+            reader.cancel()
+
+    @staticmethod
+    async def _drain(ws, sub) -> None:
+        # the page sends nothing that matters; reading notices when it goes away, and then
+        # its subscription ends even while no stream plays
+        from websockets.exceptions import ConnectionClosed
+
+        try:
+            async for _ in ws:
+                pass
+        except ConnectionClosed:
+            pass
+        finally:
+            sub.close()

@@ -1,0 +1,201 @@
+"""`fae serve --live`: the page, three.js and the frames a page is sent (in process), and
+a real browser (Debian's chromium driven by Playwright) watching a stream sent with `fae send`."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import shutil
+import signal
+import struct
+import subprocess
+import sys
+import urllib.error
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fae.data import shipped_head_path
+from fae.io.facemodel_gltf import read_facemodel
+from fae.net.faces import Pose
+from fae.net.hub import FrameEvent, FrameHub, StreamEnd
+from fae.net.view import LiveView, find_three
+
+REPO = Path(__file__).resolve().parents[1]
+websockets = pytest.importorskip("websockets")
+
+
+@pytest.fixture(scope="module")
+def model():
+    return read_facemodel(shipped_head_path())
+
+
+@pytest.fixture
+def three(tmp_path) -> Path:
+    """A stand-in for the three npm package: the files the page asks for, and one beside them."""
+    root = tmp_path / "three"
+    (root / "build").mkdir(parents=True)
+    (root / "build" / "three.module.js").write_text("export const REVISION = 'test';\n")
+    (root / "examples" / "jsm" / "controls").mkdir(parents=True)
+    (root / "examples" / "jsm" / "controls" / "OrbitControls.js").write_text("export class OrbitControls {}\n")
+    (root / "package.json").write_text('{"name": "three"}')
+    return root
+
+
+def get(url: str) -> tuple[int, str, bytes]:
+    try:
+        with urllib.request.urlopen(url, timeout=10) as r:
+            return r.status, r.headers.get("Content-Type", ""), r.read()
+    except urllib.error.HTTPError as e:
+        return e.code, "", b""
+
+
+def parse_frame(message: bytes) -> tuple[dict, np.ndarray]:
+    n = struct.unpack("<I", message[:4])[0]
+    return json.loads(message[4:4 + n]), np.frombuffer(message[4 + n:], dtype="<f4").reshape(-1, 3)
+
+
+def event(model, index: int, lift: float) -> FrameEvent:
+    skin = np.asarray(model.skin_vertices).copy()
+    skin[:, 1] += lift
+    jaw = np.eye(4)
+    jaw[1, 3] = -lift
+    return FrameEvent("native-1", index, index / 25.0, 25.0, Pose(skin, {"head": np.eye(4), "jaw": jaw}), index + 1)
+
+
+def test_the_page_and_three_js_are_served_and_nothing_else(model, three):
+    async def main():
+        view = LiveView(model, FrameHub().subscribe, port=0, three_dir=three)
+        await view.start()
+        try:
+            base = view.url
+            loop = asyncio.get_running_loop()
+            page = await loop.run_in_executor(None, get, base)
+            js = await loop.run_in_executor(None, get, base + "three/build/three.module.js")
+            addon = await loop.run_in_executor(None, get, base + "three/examples/jsm/controls/OrbitControls.js")
+            outside = await loop.run_in_executor(None, get, base + "three/package.json")
+            climb = await loop.run_in_executor(None, get, base + "three/build/%2e%2e/package.json")
+            missing = await loop.run_in_executor(None, get, base + "nothing.html")
+            return page, js, addon, outside, climb, missing
+        finally:
+            await view.close()
+
+    page, js, addon, outside, climb, missing = asyncio.run(main())
+    assert page[0] == 200 and page[1].startswith("text/html") and b"window.faeView" in page[2]
+    assert js[0] == 200 and "javascript" in js[1] and b"REVISION" in js[2]
+    assert addon[0] == 200
+    assert outside[0] == 404 and climb[0] == 404 and missing[0] == 404
+
+
+def test_every_page_gets_the_head_then_each_frame_and_one_leaving_disturbs_no_one(model, three):
+    from websockets.asyncio.client import connect
+
+    async def main():
+        hub = FrameHub()
+        view = LiveView(model, hub.subscribe, port=0, three_dir=three)
+        await view.start()
+        url = f"ws://127.0.0.1:{view.port}/ws"
+        try:
+            async with connect(url, max_size=2 ** 24) as stays:
+                leaves = await connect(url, max_size=2 ** 24)
+                heads = [json.loads(await stays.recv()), json.loads(await leaves.recv())]
+                while hub.subscriber_count < 2:
+                    await asyncio.sleep(0.01)
+                await hub.publish(event(model, 0, 0.0))
+                first = [parse_frame(await stays.recv()), parse_frame(await leaves.recv())]
+                await leaves.close()  # a page closed mid-stream
+                while hub.subscriber_count > 1:
+                    await asyncio.sleep(0.01)
+                await hub.publish(event(model, 1, 0.004))
+                second = parse_frame(await stays.recv())
+                await hub.publish(StreamEnd("native-1"))
+                end = json.loads(await stays.recv())
+                return heads, first, second, end, hub.subscriber_count, view.pages_total
+        finally:
+            await view.close()
+
+    heads, first, second, end, subscribers, pages = asyncio.run(asyncio.wait_for(main(), 60))
+    for head in heads:
+        assert head["type"] == "head"
+        assert len(head["skin"]["positions"]) == 3 * len(model.skin_vertices)
+        assert len(head["skin"]["faces"]) == 3 * len(model.skin_faces)
+        assert {p["name"] for p in head["parts"]} == set(model.parts) - {"cranium", "mandible"}
+    for meta, skin in first:
+        assert meta["stream"] == "native-1" and meta["index"] == 0 and meta["fps"] == 25.0
+        assert np.allclose(skin, model.skin_vertices, atol=1e-6)
+    meta, skin = second
+    assert meta["index"] == 1 and np.allclose(skin[:, 1], np.asarray(model.skin_vertices)[:, 1] + 0.004, atol=1e-6)
+    assert np.isclose(np.array(meta["bones"]["jaw"]).reshape(4, 4).T[1, 3], -0.004)  # column-major, as three.js
+    assert end == {"type": "end", "stream": "native-1"}
+    assert pages == 2 and subscribers == 1  # the page that left took its subscription along
+
+
+def test_live_view_without_three_js_says_how_to_get_it(model, monkeypatch):
+    import fae.net.view as view_module
+
+    monkeypatch.setattr(view_module, "find_three", lambda: None)
+    with pytest.raises(FileNotFoundError, match="make install"):
+        LiveView(model, FrameHub().subscribe, port=0)
+
+
+def _browser_available() -> str | None:
+    if find_three() is None:
+        return "three.js is not installed (npm)"
+    if shutil.which("chromium") is None:
+        return "Debian's chromium is not installed"
+    try:
+        import playwright.sync_api  # noqa: F401
+    except ImportError:
+        return "playwright is not installed"
+    return None
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(_browser_available() is not None, reason=str(_browser_available()))
+def test_a_browser_watches_a_stream_sent_to_the_server(tmp_path):
+    from playwright.sync_api import sync_playwright
+
+    from test_serve_e2e import ServeProcess
+
+    server = ServeProcess("--live", "--http-port", "0")
+    try:
+        url = next(line.split("live view on ", 1)[1].strip() for line in server.lines if "live view on " in line)
+        with sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=shutil.which("chromium"), headless=True,
+                                        args=["--use-gl=swiftshader", "--enable-unsafe-swiftshader",
+                                              "--ignore-gpu-blocklist"])
+            page = browser.new_page(viewport={"width": 480, "height": 480})
+            errors: list[str] = []
+            page.on("pageerror", lambda e: errors.append(str(e)))
+            page.goto(url)
+            page.wait_for_function("window.faeView && window.faeView.headLoaded", timeout=60000)
+            sender = subprocess.Popen([sys.executable, "-m", "fae", "send", str(REPO / "fap_streams" / "expressions.fap"),
+                                       "--port", str(server.port)], cwd=REPO,
+                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            page.wait_for_function("window.faeView.framesReceived >= 10", timeout=120000)
+            shot_a = tmp_path / "a.png"
+            page.screenshot(path=str(shot_a))
+            frame_a = page.evaluate("window.faeView.frame")
+            page.wait_for_function(f"window.faeView.frame >= {frame_a} + 50", timeout=120000)
+            shot_b = tmp_path / "b.png"
+            page.screenshot(path=str(shot_b))
+            state = page.evaluate("window.faeView")
+            hud = page.inner_text("#hud")
+            browser.close()
+        assert sender.wait(120) == 0
+    finally:
+        code, log = server.stop(signal.SIGTERM)
+    assert errors == []
+    assert state["connected"] and state["framesReceived"] >= 10 and state["stream"].startswith("native")
+    import re
+
+    assert re.search(r"native-\d+  frame \d+  stream 25\.0 fps", hud) and "frames received" in hud, hud
+    from PIL import Image
+
+    a = np.asarray(Image.open(shot_a).convert("RGB"), dtype=float)
+    b = np.asarray(Image.open(shot_b).convert("RGB"), dtype=float)
+    face = (slice(120, 400), slice(120, 360))  # the face, below the HUD
+    assert np.abs(a[face] - b[face]).mean() > 0.5  # the face moved between the shots
+    assert code == 0, log
