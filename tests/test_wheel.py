@@ -45,7 +45,9 @@ def installed(tmp_path_factory) -> tuple[Path, dict]:
     run([sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w", root / "dist", source], root, env)
     wheels = list((root / "dist").glob("fae-*.whl"))
     assert len(wheels) == 1, wheels
-    assert "fae/data/generic_head.glb" in zipfile.ZipFile(wheels[0]).namelist()
+    names = zipfile.ZipFile(wheels[0]).namelist()
+    assert "fae/data/generic_head.glb" in names
+    assert "fae/net/view_page/index.html" in names  # the live view's page
 
     target = root / "venv"
     venv.create(target, with_pip=False)
