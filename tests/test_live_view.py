@@ -140,7 +140,8 @@ def test_live_view_without_three_js_says_how_to_get_it(model, monkeypatch):
         LiveView(model, FrameHub().subscribe, port=0)
 
 
-def _browser_available() -> str | None:
+def browser_problem() -> str | None:
+    """Why the browser tests cannot run here (None when they can)."""
     if find_three() is None:
         return "three.js is not installed (npm)"
     if shutil.which("chromium") is None:
@@ -152,8 +153,15 @@ def _browser_available() -> str | None:
     return None
 
 
+def launch_chromium(playwright):
+    """Debian's chromium, headless, WebGL on the CPU (SwiftShader)."""
+    return playwright.chromium.launch(executable_path=shutil.which("chromium"), headless=True,
+                                      args=["--use-gl=swiftshader", "--enable-unsafe-swiftshader",
+                                            "--ignore-gpu-blocklist"])
+
+
 @pytest.mark.slow
-@pytest.mark.skipif(_browser_available() is not None, reason=str(_browser_available()))
+@pytest.mark.skipif(browser_problem() is not None, reason=str(browser_problem()))
 def test_a_browser_watches_a_stream_sent_to_the_server(tmp_path):
     from playwright.sync_api import sync_playwright
 
@@ -163,9 +171,7 @@ def test_a_browser_watches_a_stream_sent_to_the_server(tmp_path):
     try:
         url = next(line.split("live view on ", 1)[1].strip() for line in server.lines if "live view on " in line)
         with sync_playwright() as p:
-            browser = p.chromium.launch(executable_path=shutil.which("chromium"), headless=True,
-                                        args=["--use-gl=swiftshader", "--enable-unsafe-swiftshader",
-                                              "--ignore-gpu-blocklist"])
+            browser = launch_chromium(p)
             page = browser.new_page(viewport={"width": 480, "height": 480})
             errors: list[str] = []
             page.on("pageerror", lambda e: errors.append(str(e)))
