@@ -1,6 +1,7 @@
 """Geometric validity of a FaceModel: what the structure alone cannot tell.
 
     facemodel_problems(model) -> list[str]      one message per problem, [] when valid
+    check_report(model) -> dict                  `fae template check`'s report (FAPU, parts, problems)
 
 Checks: the skin is an oriented 2-manifold whose only open borders (if any) run through
 the mouth, the eyelids or the bottom of the neck; it does not cut through itself; no skin
@@ -17,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 
 from fae.io.facemodel import FaceModel
-from fae.mpeg4 import FEATURE_POINTS
+from fae.mpeg4 import FEATURE_POINTS, fapu0_from_positions
 
 MIRROR_TOLERANCE = 1e-5  # m: partners of a symmetric head are reflections up to float32 storage
 OPENING_REGIONS = ("lip_upper", "lip_lower", "mouth_cavity", "eyelid_upper_l", "eyelid_upper_r",
@@ -220,3 +221,30 @@ def facemodel_problems(model: FaceModel) -> list[str]:
                 problems.append(f"skin_mirror: partners are {err * 1e3:.3g} mm from each other's reflection "
                                 f"(tolerance {MIRROR_TOLERANCE * 1e3:g} mm; the head claims to be symmetric)")
     return problems
+
+
+def check_report(model) -> dict:
+    """The report of `fae template check` for a loaded FaceModel (a dict that JSON takes):
+    skin_vertex_count, feature_points (name -> [x, y, z] metres), fapu0 (name -> metres),
+    muscles ([{name, kind}]), parts, regions, problems (one line each; empty: valid)."""
+    from fae.io.facemodel_gltf import structural_problems
+
+    problems = list(structural_problems(model))
+    if not problems:
+        problems += facemodel_problems(model)
+    positions = {}
+    fapu0 = {}
+    try:
+        positions = {name: [float(v) for v in p] for name, p in model.feature_point_positions().items()}
+        fapu0 = fapu0_from_positions(model.feature_point_positions())
+    except (KeyError, ValueError, IndexError) as exc:
+        problems.append(f"feature_points: cannot measure FAPU: {exc}")
+    return {
+        "skin_vertex_count": model.skin_vertex_count,
+        "feature_points": positions,
+        "fapu0": fapu0,
+        "muscles": [{"name": m.name, "kind": m.kind} for m in model.muscles],
+        "parts": sorted(model.parts),
+        "regions": list(model.region_names),
+        "problems": problems,
+    }

@@ -54,33 +54,6 @@ def _build(output: str | None) -> int:
     return 0
 
 
-def check_report(model) -> dict:
-    """The JSON report of `fae template check` for a loaded FaceModel."""
-    from fae.anatomy.checks import facemodel_problems
-    from fae.io.facemodel_gltf import structural_problems
-    from fae.mpeg4 import fapu0_from_positions
-
-    problems = list(structural_problems(model))
-    if not problems:
-        problems += facemodel_problems(model)
-    positions = {}
-    fapu0 = {}
-    try:
-        positions = {name: [float(v) for v in p] for name, p in model.feature_point_positions().items()}
-        fapu0 = fapu0_from_positions(model.feature_point_positions())
-    except (KeyError, ValueError, IndexError) as exc:
-        problems.append(f"feature_points: cannot measure FAPU: {exc}")
-    return {
-        "skin_vertex_count": model.skin_vertex_count,
-        "feature_points": positions,
-        "fapu0": fapu0,
-        "muscles": [{"name": m.name, "kind": m.kind} for m in model.muscles],
-        "parts": sorted(model.parts),
-        "regions": list(model.region_names),
-        "problems": problems,
-    }
-
-
 def _check(path: str, as_json: bool) -> int:
     from fae.io.facemodel_gltf import read_facemodel
 
@@ -88,6 +61,8 @@ def _check(path: str, as_json: bool) -> int:
         model = read_facemodel(path, check=False)
     except (OSError, ValueError, KeyError) as exc:
         return fail("template check", f"cannot read {path}: {exc}")
+    from fae.anatomy.checks import check_report
+
     report = check_report(model)
     if as_json:
         print(json.dumps(report, indent=1))
