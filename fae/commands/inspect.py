@@ -10,11 +10,10 @@ import argparse
 import json
 import os
 
-import numpy as np
-
 from fae.commands.common import fail
-from fae.io.fap import FapFormatError, read_fap
-from fae.mpeg4.faps import FAP_COUNT, FAPS
+from fae.io.fap import FapFormatError
+from fae.io.fap_summary import summarize_fap
+from fae.mpeg4.faps import FAPS
 from fae.mpeg4.highlevel import EXPRESSIONS, VISEMES
 
 
@@ -27,49 +26,6 @@ def register(subparsers) -> None:
     parser.add_argument("path", metavar="FILE.fap", help="the .fap file to read")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of text")
     parser.set_defaults(func=run)
-
-
-def summarize(path: str) -> dict:
-    """Read `path` fully (streaming) and return the summary dict; raises FapFormatError."""
-    stream = read_fap(path)
-    ever = np.zeros(FAP_COUNT, dtype=bool)
-    low = np.full(FAP_COUNT, np.inf)
-    high = np.full(FAP_COUNT, -np.inf)
-    first_number = last_number = None
-    visemes: set[int] = set()
-    expressions: set[int] = set()
-    for frame in stream:
-        if first_number is None:
-            first_number = frame.number
-        last_number = frame.number
-        ever |= frame.mask
-        sent = frame.mask
-        low[sent] = np.minimum(low[sent], frame.values[sent])
-        high[sent] = np.maximum(high[sent], frame.values[sent])
-        if frame.viseme is not None:
-            visemes.update((frame.viseme.select1, frame.viseme.select2))
-        if frame.expression is not None:
-            expressions.update((frame.expression.select1, frame.expression.select2))
-    header = stream.header
-    used = [int(i) + 1 for i in np.flatnonzero(ever)]
-    frame_count = stream.frame_count or 0
-    span = (last_number - first_number + 1) if first_number is not None else 0
-    return {
-        "path": str(path),
-        "version": header.version,
-        "name": header.name,
-        "fps": header.fps,
-        "frame_count": frame_count,
-        "declared_frame_count": header.declared_frame_count,
-        "first_frame_number": first_number,
-        "last_frame_number": last_number,
-        "duration_s": span / header.fps,
-        "faps_used": used,
-        "value_ranges": {str(n): [float(low[n - 1]), float(high[n - 1])] for n in used},
-        "visemes_used": sorted(visemes),
-        "expressions_used": sorted(expressions),
-        "warnings": list(stream.warnings),
-    }
 
 
 def _text(summary: dict) -> str:
@@ -101,7 +57,7 @@ def run(args: argparse.Namespace) -> int:
         reason = "is not a file" if os.path.exists(args.path) else "no such file"
         return fail("inspect", f"{args.path}: {reason}")
     try:
-        summary = summarize(args.path)
+        summary = summarize_fap(args.path)
     except FapFormatError as exc:
         return fail("inspect", str(exc))
     if args.json:
