@@ -16,7 +16,7 @@ Choice per FAP group (every low-level FAP 3-68 drives something):
 - eyeballs, pupils, tongue, head (23-30, 43-50): rigid poses, see fae.animate.rigid.
 
 Procedure: (1) linear response: the skin's stiffness matrix at rest (springs k n n^T plus
-anchors) is factorized once (scipy splu); each control's rest force field gives the skin's
+anchors: fae.sim.reference.ReferenceSolver.rest_stiffness) is factorized once; each control's rest force field gives the skin's
 displacement per unit control (with the unsimulated skin carried by its hold). (2) per
 FAP and side, bounded least squares (scipy lsq_linear) for the controls moving its feature
 point by one metre along the standard direction while, for a sided FAP, its mirror point
@@ -124,37 +124,13 @@ def pull_fields(face, fapu: dict[str, float], graph: sp.csr_matrix | None = None
     return out
 
 
-def _stiffness(ref: ReferenceSolver) -> tuple[sp.csc_matrix, np.ndarray]:
-    a, P = ref.a, ref.model.particle_count
-    q = a["particle_q"].astype(np.float64)
-    n = q[ref.j] - q[ref.i]
-    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-    blocks = a["spring_stiffness"][:, None, None] * n[:, :, None] * n[:, None, :]
-    rows, cols, vals = [], [], []
-    ii, jj = ref.i, ref.j
-    for r in range(3):
-        for c in range(3):
-            for (x, y, s) in ((ii, ii, 1.0), (jj, jj, 1.0), (ii, jj, -1.0), (jj, ii, -1.0)):
-                rows.append(3 * x + r)
-                cols.append(3 * y + c)
-                vals.append(s * blocks[:, r, c])
-    ap = np.arange(P)
-    for r in range(3):
-        rows.append(3 * ap + r)
-        cols.append(3 * ap + r)
-        vals.append(a["particle_anchor_stiffness"].astype(np.float64))
-    K = sp.coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(3 * P, 3 * P)).tocsc()
-    free = np.repeat(a["particle_inv_mass"] > 0, 3)
-    return K[free][:, free].tocsc(), free
-
-
 class _Probe:
     """Linear response of a head's simulation, as skin displacement fields (V, 3)."""
 
     def __init__(self, face, model):
         self.face, self.model = face, model
         self.ref = ReferenceSolver(model)
-        K, self.free = _stiffness(self.ref)
+        K, self.free = self.ref.rest_stiffness()
         self.lu = symmetric_splu(K)
         self.q0 = self.ref.a["particle_q"].astype(np.float64)
         self.fixed = self.ref.inv_mass == 0.0

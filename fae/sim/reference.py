@@ -4,6 +4,7 @@ benchmarks. Same scheme, substeps and order of operations as :mod:`fae.sim.solve
 from __future__ import annotations
 
 import numpy as np
+import scipy.sparse as sp
 
 from fae.sim.model import MUSCLE_FIELD, MUSCLE_LINEAR, MUSCLE_SPHINCTER, SkinModel
 from fae.sim.collision import ENTRY_BISECTIONS, ON_SURFACE, TRACE_STEPS, TRACE_TOLERANCE, WRONG_SIDE_COS
@@ -35,6 +36,33 @@ class ReferenceSolver:
         head = self.rest @ bone_rotation[0].T + bone_translation[0]
         jaw = self.rest @ bone_rotation[1].T + bone_translation[1]
         return head * (1.0 - self.jaw) + jaw * self.jaw
+
+    def rest_stiffness(self) -> tuple[sp.csc_matrix, np.ndarray]:
+        """The skin's linear stiffness at rest, over its free particles: (K (3F, 3F) sparse
+        N/m, springs k n n^T along each spring's rest direction plus every particle's
+        anchor; free (3P,) bool, the coordinates of particles with mass, in K's order).
+        Calibration factors it once to get each control's linear response."""
+        a, P = self.a, self.model.particle_count
+        q = a["particle_q"].astype(np.float64)
+        n = q[self.j] - q[self.i]
+        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+        blocks = a["spring_stiffness"][:, None, None] * n[:, :, None] * n[:, None, :]
+        rows, cols, vals = [], [], []
+        ii, jj = self.i, self.j
+        for r in range(3):
+            for c in range(3):
+                for (x, y, s) in ((ii, ii, 1.0), (jj, jj, 1.0), (ii, jj, -1.0), (jj, ii, -1.0)):
+                    rows.append(3 * x + r)
+                    cols.append(3 * y + c)
+                    vals.append(s * blocks[:, r, c])
+        ap = np.arange(P)
+        for r in range(3):
+            rows.append(3 * ap + r)
+            cols.append(3 * ap + r)
+            vals.append(a["particle_anchor_stiffness"].astype(np.float64))
+        K = sp.coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(3 * P, 3 * P)).tocsc()
+        free = np.repeat(a["particle_inv_mass"] > 0, 3)
+        return K[free][:, free].tocsc(), free
 
     def spring_forces(self, q: np.ndarray) -> np.ndarray:
         """(P, 3) N: the springs' forces at positions q (P, 3) metres."""
