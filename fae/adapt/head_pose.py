@@ -185,7 +185,7 @@ def _up_candidates(S: np.ndarray) -> list[np.ndarray]:
 
 
 def _icp(head: TemplateHead, A: np.ndarray, S: np.ndarray, tree: cKDTree, s: float, R: np.ndarray,
-         t: np.ndarray, iterations: int) -> tuple[float, np.ndarray, np.ndarray]:
+         t: np.ndarray, iterations: int, workers: int = 1) -> tuple[float, np.ndarray, np.ndarray]:
     """Trimmed symmetric similarity ICP: x -> s R x + t taking template head points A (n, 3)
     onto the scan cloud S (tree over S). Pairs go both ways: each template point to its
     closest scan point, and each scan point inside the template head's box to its closest
@@ -194,13 +194,14 @@ def _icp(head: TemplateHead, A: np.ndarray, S: np.ndarray, tree: cKDTree, s: flo
     treeA = cKDTree(A)
     for _ in range(iterations):
         Y = s * A @ R.T + t
-        d1, j1 = tree.query(Y)
+        d1, j1 = tree.query(Y, workers=workers)
         good1 = d1 <= np.quantile(d1, KEEP)
         X = (S - t) @ R / s
         inbox = np.flatnonzero(np.all((X >= head.box_min) & (X <= head.box_max), axis=1))
+        inbox = inbox[:: max(1, len(inbox) // (2 * len(A)))]  # as many scan pairs as template ones, about
         src, dst = [A[good1]], [S[j1[good1]]]
         if len(inbox) > 10:
-            d2, j2 = treeA.query(X[inbox])
+            d2, j2 = treeA.query(X[inbox], workers=workers)
             d2 = d2 * s
             good2 = d2 <= np.quantile(d2, KEEP)
             src.append(A[j2[good2]])
@@ -232,11 +233,11 @@ def head_pose(head: TemplateHead, scan_V: np.ndarray) -> tuple[float, np.ndarray
     A = np.vstack([A, head.face])  # the face counts twice: it tells front from back
     head_tree = cKDTree(head.head)
 
-    def score(s, R, t) -> float:
+    def score(s, R, t, cloud=S, cloud_tree=tree) -> float:
         # in the template's frame: template head -> scan, and scan in the head's box -> head
-        d1 = tree.query(s * probe @ R.T + t)[0] / s
-        d3 = tree.query(s * face_probe @ R.T + t)[0] / s
-        X = (S - t) @ R / s
+        d1 = cloud_tree.query(s * probe @ R.T + t)[0] / s
+        d3 = cloud_tree.query(s * face_probe @ R.T + t)[0] / s
+        X = (cloud - t) @ R / s
         inbox = np.all((X >= head.box_min) & (X <= head.box_max), axis=1)
         d2 = head_tree.query(X[inbox])[0] if inbox.sum() > 10 else np.full(1, np.inf)
         return _trimmed_mean(d1) + _trimmed_mean(d2) + FACE_WEIGHT * _trimmed_mean(d3, 0.95)
@@ -265,11 +266,11 @@ def head_pose(head: TemplateHead, scan_V: np.ndarray) -> tuple[float, np.ndarray
     coarse_A = A[:: max(1, len(A) // COARSE_HEAD)]
     for s, R, t in starts:
         s, R, t = _icp(head, coarse_A, coarse, coarse_tree, s, R, t, iterations=5)
-        scored.append((score(s, R, t), s, R, t))
+        scored.append((score(s, R, t, coarse, coarse_tree), s, R, t))
     scored.sort(key=lambda x: x[0])
     best = (np.inf, 1.0, np.eye(3), np.zeros(3))
     for _, s, R, t in scored[:REFINED_STARTS]:
-        s, R, t = _icp(head, A, S, tree, s, R, t, iterations=20)
+        s, R, t = _icp(head, A, S, tree, s, R, t, iterations=20, workers=-1)  # large queries: every core
         e = score(s, R, t)
         if e < best[0]:
             best = (e, s, R, t)
