@@ -39,6 +39,9 @@ Controls C: the head's muscles, then the pull fields, then jaw (angle rad, thrus
 from __future__ import annotations
 
 import copy
+import os
+import queue
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import scipy.sparse as sp
@@ -78,6 +81,7 @@ CONTROL_SCALE = 0.01  # metres
 # passes of the nonlinear correction from neutral table scales, and from another head's
 COLD_PASSES = 3
 WARM_PASSES = 1
+SETTLE_THREADS = 4  # at most; Warp's CPU kernels release the GIL
 
 
 def edge_length_graph(face) -> sp.csr_matrix:
@@ -258,11 +262,24 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
     faps = [k for k in SKIN_TRANSLATION_FAPS if np.any(gain_pos[k - 1]) or np.any(gain_neg[k - 1])]
     batches = _disjoint_batches(face, model, faps, responses, gain_pos, gain_neg, unit)
     controls_face = copy.copy(face)
-    solver = SkinSolver(model)
-    scratch = settle_scratch(model)
+    # the settles of one pass do not depend on each other (each starts from rest and holds only
+    # its batch's FAPs): they run on every core, each thread with its own solver and state
+    workers = max(1, min(SETTLE_THREADS, os.cpu_count() or 1))
+    contexts: queue.SimpleQueue = queue.SimpleQueue()
+    for _ in range(workers):
+        contexts.put((SkinSolver(model), settle_scratch(model)))
+
+    def settled(job):
+        solver, scratch = contexts.get()
+        try:
+            return settle(model, solver, ctl, job[2], rig, frames=settle_frames, scratch=scratch)
+        finally:
+            contexts.put((solver, scratch))
+
     for _ in range(passes):
         controls_face.fap_mapping = mapping
         ctl = FapControls(controls_face, model)
+        jobs = []
         for side in (1.0, -1.0):
             for batch in batches:
                 todo = [k for k in batch if (side > 0 and np.any(gain_pos[k - 1]))
@@ -272,15 +289,18 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
                 values = np.zeros(FAP_COUNT)
                 for k in todo:
                     values[k - 1] = side * half[k - 1]
-                skin = settle(model, solver, ctl, values, rig, frames=settle_frames, scratch=scratch)
-                for k in todo:
-                    fdp = FAP_FEATURE_POINT[k - 1]
-                    moved = face.surface_point_position(face.feature_points[fdp], skin) - fdp_pos[fdp]
-                    along = float(moved @ FAP_DIRECTION[k - 1]) * side
-                    expected = half[k - 1] * unit[k - 1]
-                    g = float(np.clip(expected / along, 0.5, 2.0)) if along > 1e-3 * expected else 2.0
-                    cols = [3, 4] if side > 0 else [1, 0]
-                    table_scale[k - 1, cols] *= g
+                jobs.append((side, todo, values))
+        with ThreadPoolExecutor(workers) as pool:
+            skins = list(pool.map(settled, jobs))
+        for (side, todo, _), skin in zip(jobs, skins):
+            for k in todo:
+                fdp = FAP_FEATURE_POINT[k - 1]
+                moved = face.surface_point_position(face.feature_points[fdp], skin) - fdp_pos[fdp]
+                along = float(moved @ FAP_DIRECTION[k - 1]) * side
+                expected = half[k - 1] * unit[k - 1]
+                g = float(np.clip(expected / along, 0.5, 2.0)) if along > 1e-3 * expected else 2.0
+                cols = [3, 4] if side > 0 else [1, 0]
+                table_scale[k - 1, cols] *= g
     mapping["table_scale"] = table_scale
     out = copy.copy(face)
     out.fap_mapping = mapping
