@@ -154,11 +154,24 @@ class _Probe:
         verts, bary = self.fdp[name]
         return bary @ u[verts]
 
-    def muscle_response(self, m: int) -> np.ndarray:
-        act = np.zeros(self.model.muscle_count)
-        act[m] = 1.0
+    def muscle_responses(self, count: int) -> list[np.ndarray]:
+        """The skin's response (V, 3) to each of the first `count` controls at unit
+        activation, all solved at once (one triangular solve with `count` right-hand sides)."""
         t = np.zeros((2, 3))
-        return self._skin_response(self.ref.forces(self.q0, act, self.eye, t), self.q0, self.eye, t)
+        forces = []
+        for m in range(count):
+            act = np.zeros(self.model.muscle_count)
+            act[m] = 1.0
+            forces.append(self.ref.forces(self.q0, act, self.eye, t).reshape(-1)[self.free])
+        if not forces:
+            return []
+        U = self.lu.solve(np.column_stack(forces))
+        out = []
+        for m in range(count):
+            u = np.zeros(3 * self.model.particle_count)
+            u[self.free] = U[:, m]
+            out.append(skin_positions(self.model, self.q0 + u.reshape(-1, 3), self.eye, t) - self.rest)
+        return out
 
     def jaw_response(self, rig, which: int, eps: float) -> np.ndarray:
         T = rig.jaw(*(eps if i == which else 0.0 for i in range(3)))
@@ -206,7 +219,7 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
     C = nm + nf + JAW_CONTROLS
     field_of = {k: nm + i for i, k in enumerate(field_faps(face))}
 
-    responses = [probe.muscle_response(m) for m in range(nm + nf)]
+    responses = probe.muscle_responses(nm + nf)
     responses += [probe.jaw_response(rig, 0, 1e-3), probe.jaw_response(rig, 1, 1e-4), probe.jaw_response(rig, 2, 1e-4)]
 
     gain_pos, gain_neg = np.zeros((FAP_COUNT, C)), np.zeros((FAP_COUNT, C))
