@@ -19,12 +19,21 @@ import numpy as np
 import scipy.sparse as sp
 
 
+def _edge_keys(e: np.ndarray) -> tuple[np.ndarray, int]:
+    """One int64 per undirected edge of e (k, 2) (i < j after sorting), and the base used:
+    a row-wise unique on keys is several times faster than numpy's unique(axis=0)."""
+    base = int(e.max()) + 1 if e.size else 1
+    lo, hi = np.minimum(e[:, 0], e[:, 1]), np.maximum(e[:, 0], e[:, 1])
+    return lo * base + hi, base
+
+
 def edges(F: np.ndarray) -> np.ndarray:
     """(E, 2) int64 unique undirected edges (i < j) of triangles F (m, 3), sorted."""
     F = np.asarray(F, dtype=np.int64)
     e = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
-    e.sort(axis=1)
-    return np.unique(e, axis=0)
+    keys, base = _edge_keys(e)
+    keys = np.unique(keys)
+    return np.column_stack([keys // base, keys % base])
 
 
 def adjacency_from_edges(n: int, E: np.ndarray) -> sp.csr_matrix:
@@ -89,7 +98,7 @@ def boundary_edges(F: np.ndarray) -> np.ndarray:
     """(b, 2) directed edges (as their triangle lists them) used by exactly one triangle."""
     F = np.asarray(F, dtype=np.int64)
     E = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
-    _, inverse, counts = np.unique(np.sort(E, axis=1), axis=0, return_inverse=True, return_counts=True)
+    _, inverse, counts = np.unique(_edge_keys(E)[0], return_inverse=True, return_counts=True)
     return E[counts[inverse.ravel()] == 1]
 
 

@@ -103,14 +103,14 @@ def group_means(X: np.ndarray, label: np.ndarray, k: int) -> np.ndarray:
 
 def within(X: np.ndarray, Y: np.ndarray, radius: float) -> np.ndarray:
     """(n,) bool: which points X (n, 3) have a point of Y (k, 3) within `radius` (same unit)."""
-    X = np.asarray(X, dtype=np.float64)
-    Y = np.asarray(Y, dtype=np.float64)
-    out = np.zeros(len(X), dtype=bool)
-    xx = np.sum(X * X, axis=1)[:, None]
-    for a in range(0, len(Y), 256):
-        y = Y[a:a + 256]
-        out |= np.min(xx + np.sum(y * y, axis=1)[None, :] - 2.0 * X @ y.T, axis=1) <= radius * radius
-    return out
+    from scipy.spatial import cKDTree
+
+    X = np.asarray(X, dtype=np.float64).reshape(-1, 3)
+    Y = np.asarray(Y, dtype=np.float64).reshape(-1, 3)
+    if len(X) == 0 or len(Y) == 0:
+        return np.zeros(len(X), dtype=bool)
+    d, _ = cKDTree(Y).query(X, distance_upper_bound=radius * (1.0 + 1e-12))
+    return np.isfinite(d)
 
 
 def cotangent_laplacian_of(V: np.ndarray, F: np.ndarray) -> np.ndarray:
