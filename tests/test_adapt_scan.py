@@ -327,3 +327,21 @@ def test_an_ear_is_found_where_the_scan_has_it(template):
     assert left.sum() >= 10
     error = np.linalg.norm(points[left] - on_template[left] - shift, axis=1)
     assert np.median(error) < 0.002 and np.quantile(error, 0.9) < 0.004, np.sort(error)
+
+
+def test_the_workflow_refuses_what_it_cannot_trust_without_the_command_line(template):
+    """fae.adapt.workflow works as a library: a plate is no head, and a scan nothing can look
+    at is refused unless feature points stand in for the face-landmark model."""
+    from fae.adapt.workflow import AdaptRefused, FacePairsUnavailable, adapt_scan
+
+    plate = trimesh.creation.box(extents=(0.3, 0.02, 0.3)).subdivide().subdivide().subdivide()
+    with pytest.raises(AdaptRefused, match="plate.obj: could not find a head .* give feature points"):
+        adapt_scan(template, np.asarray(plate.vertices), np.asarray(plate.faces), lambda V, F: None,
+                   scan_name="plate.obj")
+
+    def blind(V, F):
+        raise FacePairsUnavailable("nothing to draw with", fatal=True)
+
+    head = np.asarray(template.skin_vertices) * 1000.0  # a scan in mm: the template itself
+    with pytest.raises(AdaptRefused, match="nothing to draw with"):
+        adapt_scan(template, head, np.asarray(template.skin_faces), blind)

@@ -7,7 +7,8 @@ plinth, shoulders and chest left out: fae.adapt.head_pose), corresponding points
 found by a face-landmark model looking at the template and at the scan from the same
 camera (fae.render.landmarks; feature points given with --landmarks join them), the skin
 is fitted to the head part without folds (fae.adapt.nonrigid) and the anatomy carried
-over (fae.adapt.transfer). The paper methods ("multilevel", "rbf", "wendland",
+over (fae.adapt.transfer); fae.adapt.workflow.adapt_scan runs these steps, this command
+reads the inputs, calibrates, draws and writes. The paper methods ("multilevel", "rbf", "wendland",
 "multiquadric") fit the whole scan from feature points, as in papers 000-002.
 
 Exit 0 on success; 2 on bad input, or when fae cannot find the head or its face, or the
@@ -28,13 +29,6 @@ from fae.adapt import PAPER_METHODS
 from fae.data import shipped_head_path
 
 ADAPT_METHODS = ("surface",) + PAPER_METHODS
-# A face found on the scan is trusted with at least this many point pairs, whose RMS
-# distance from their best similarity is at most this share of the eye distance (the
-# busts: 0.08-0.10; a face mistaken elsewhere on a scan: far above).
-MIN_PAIRS = 20
-MIN_HEAD_TRIANGLES = 100
-MAX_PAIR_RESIDUAL_SHARE = 0.2
-
 DEFAULT_TEMPLATE = str(shipped_head_path())
 
 
@@ -132,102 +126,37 @@ def _say(msg: str) -> None:
 
 
 def _run_surface(args, template, V, F, landmarks) -> int:
-    import numpy as np
-
-    from fae.adapt.calibration import apply_transform, outlier_landmarks
-    from fae.adapt.from_scan import adapt_to_scan
-    from fae.adapt.head_pose import MAX_HEAD_RESIDUAL, MIN_FACE_COVERAGE, find_head, head_from_landmarks, kept_part
-    from fae.adapt.transfer import visible_skin
-    from fae.render.framing import camera_view
-    from fae.render.landmarks import LandmarkModelMissing, landmark_pairs
+    from fae.adapt.workflow import AdaptRefused, adapt_scan
 
     started = time.perf_counter()
     try:
-        if landmarks:
-            fdp = template.feature_point_positions()
-            names = [n for n in landmarks if n in fdp and template.feature_points[n].part == "skin"
-                     and np.all(np.isfinite(landmarks[n]))]
-            if len(names) < 4:
-                _say(f"{args.landmarks}: {len(names)} usable feature points of the template's skin; at least 4 "
-                     "are needed (or leave --landmarks out to find the head without them)")
-                return 2
-            A = np.array([fdp[n] for n in names])
-            B = np.array([landmarks[n] for n in names])
-            wrong = set(outlier_landmarks(B, A, names))
-            for n in sorted(wrong):
-                _say(f"ignored feature point {n}: disagrees with the others (wrong placement?)")
-            names = [n for n in names if n not in wrong]
-            landmarks = {n: landmarks[n] for n in names}
-            head = head_from_landmarks(template, V, F, np.array([fdp[n] for n in names]),
-                                       np.array([landmarks[n] for n in names]))
-        else:
-            head = find_head(template, V, F)
-            if not head.trusted:
-                _say(f"{args.scan}: could not find a head that matches the template (face covered "
-                     f"{head.face_coverage * 100:.0f} %, at least {MIN_FACE_COVERAGE * 100:.0f} % needed; "
-                     f"residual {head.residual * 1000:.1f} mm, at most {MAX_HEAD_RESIDUAL * 1000:.0f} mm); "
-                     "give feature points with --landmarks")
-                return 2
-        part_V, part_F = kept_part(apply_transform(head.transform, V), F, head.keep)
-        if len(part_F) < MIN_HEAD_TRIANGLES:
-            _say(f"{args.scan}: the part of the scan where the head should be holds {len(part_F)} triangles "
-                 f"(at least {MIN_HEAD_TRIANGLES} expected): "
-                 + ("do the feature points belong to this scan, in its unit?" if landmarks
-                    else "give feature points with --landmarks"))
-            return 2
-        pairs = None
-        try:
-            found = landmark_pairs(template, part_V, part_F, camera_view(template, "front", aspect=1.0),
-                                   seen=visible_skin(template))
-        except LandmarkModelMissing as exc:
-            if not landmarks:
-                _say(f"{exc}")
-                return 2
-            found = None
-        except (RuntimeError, ImportError, OSError) as exc:  # no OpenGL to draw the faces with
-            _say(f"cannot render the scan to find its face ({exc}); is OSMesa installed (make install)?")
-            return 2
-        if found is None or len(found.face) < MIN_PAIRS:
-            if not landmarks:
-                _say(f"{args.scan}: no face found on the head part of the scan (eyes, nose and mouth); "
-                     "give feature points with --landmarks")
-                return 2
-            found = None
-        elif found.report["similarity_residual_m"] > MAX_PAIR_RESIDUAL_SHARE * _eye_distance(template):
-            if not landmarks:
-                _say(f"{args.scan}: the face found on the scan does not match the template's (its points lie "
-                     f"{found.report['similarity_residual_m'] * 1000:.1f} mm RMS from a similar placement; at most "
-                     f"{MAX_PAIR_RESIDUAL_SHARE * _eye_distance(template) * 1000:.1f} mm expected); give feature "
-                     "points with --landmarks")
-                return 2
-            found = None
-        else:
-            pairs = (found.face, found.bary, found.scan_points)
-        model, report = adapt_to_scan(template, V, F, head, pairs, landmarks)
-    except ValueError as exc:
-        _say(f"{args.scan}: {exc}")
+        model, report, keep = adapt_scan(template, V, F, _face_pairs(template), landmarks, scan_name=args.scan,
+                                         landmarks_name=args.landmarks, say=_say)
+    except AdaptRefused as exc:
+        _say(str(exc))
         return 2
-    if found is not None:
-        report["feature_pair_search"] = found.report
-    report["confidence"] = {
-        "head_found": head.trusted, "face_coverage_after_pose": head.face_coverage,
-        "pose_residual_m": head.residual, "feature_pairs": 0 if found is None else int(len(found.face)),
-        "pair_residual_share_of_eye_distance": None if found is None else
-        found.report["similarity_residual_m"] / _eye_distance(template),
-        "landmarks_given": len(landmarks or {})}
-    S = model.scan_transform
-    report["feature_points_on_scan"] = {n: (S[:3, :3] @ p + S[:3, 3]).tolist()
-                                        for n, p in model.feature_point_positions().items()
-                                        if model.feature_points[n].part == "skin"}
-    return _finish(args, model, report, V, F, head.keep, started, template.fap_mapping)
+    return _finish(args, model, report, V, F, keep, started, template.fap_mapping)
 
 
-def _eye_distance(template) -> float:
-    """The template's pupil distance (ES0), metres."""
-    import numpy as np
+def _face_pairs(template):
+    """The face-landmark model's corresponding points on a head part (fae.render.landmarks),
+    as fae.adapt.workflow asks for them."""
+    from fae.adapt.transfer import visible_skin
+    from fae.adapt.workflow import FacePairsUnavailable
+    from fae.render.framing import camera_view
+    from fae.render.landmarks import LandmarkModelMissing, landmark_pairs
 
-    fdp = template.feature_point_positions()
-    return float(np.linalg.norm(fdp["3.5"] - fdp["3.6"])) if "3.5" in fdp and "3.6" in fdp else 0.065
+    def find(part_V, part_F):
+        try:
+            return landmark_pairs(template, part_V, part_F, camera_view(template, "front", aspect=1.0),
+                                  seen=visible_skin(template))
+        except LandmarkModelMissing as exc:
+            raise FacePairsUnavailable(str(exc), fatal=False) from exc
+        except (RuntimeError, ImportError, OSError) as exc:  # no OpenGL to draw the faces with
+            raise FacePairsUnavailable(f"cannot render the scan to find its face ({exc}); is OSMesa installed "
+                                       "(make install)?", fatal=True) from exc
+
+    return find
 
 
 def _finish(args, model, report, V, F, keep, started, start_mapping=None) -> int:

@@ -1,0 +1,139 @@
+"""A personalized head from a scan, as `fae adapt` makes it (the default "surface" method).
+
+    adapt_scan(template, V, F, face_pairs, landmarks=None, scan_name="scan",
+               landmarks_name="--landmarks", say=None) -> (FaceModel, report, keep)
+
+Steps: feature points given are checked against each other (one that disagrees with the
+rest is dropped, with a notice); the head is found in the scan, from them or from the
+scan's shape alone (fae.adapt.head_pose); `face_pairs(part_V, part_F)` finds corresponding
+points on the head part (fae adapt passes a face-landmark model looking at the template and
+at the head part from the same camera, fae.render.landmarks: a layer above this one);
+the skin is fitted and the anatomy carried over (fae.adapt.from_scan). The report gains
+what the search found and a confidence summary. keep (n,) bool: the scan vertices of the
+head part.
+
+Whenever a step cannot be trusted, AdaptRefused says why, naming the scan and what would
+help (usually feature points): `fae adapt` prints it and exits with status 2. What the fit
+itself measures (folds, a face off the scan) goes into the report's verdict instead, for
+the caller to weigh. Notices go to `say` (one line each; default: none).
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+
+from fae.io.facemodel import FaceModel
+
+# A face found on the scan is trusted with at least this many point pairs, whose RMS
+# distance from their best similarity is at most this share of the eye distance (the
+# busts: 0.08-0.10; a face mistaken elsewhere on a scan: far above).
+MIN_PAIRS = 20
+MIN_HEAD_TRIANGLES = 100
+MAX_PAIR_RESIDUAL_SHARE = 0.2
+
+
+class AdaptRefused(Exception):
+    """The scan cannot be adapted well enough; the message says why and what would help."""
+
+
+class FacePairsUnavailable(Exception):
+    """face_pairs cannot look at the scan: fatal (nothing to draw with) or not (no
+    face-landmark model: feature points given can stand in for it)."""
+
+    def __init__(self, message: str, fatal: bool):
+        super().__init__(message)
+        self.fatal = fatal
+
+
+def eye_distance(template: FaceModel) -> float:
+    """The template's pupil distance (ES0), metres."""
+    fdp = template.feature_point_positions()
+    return float(np.linalg.norm(fdp["3.5"] - fdp["3.6"])) if "3.5" in fdp and "3.6" in fdp else 0.065
+
+
+def adapt_scan(template: FaceModel, V: np.ndarray, F: np.ndarray, face_pairs: Callable,
+               landmarks: dict[str, np.ndarray] | None = None, scan_name: str = "scan",
+               landmarks_name: str = "--landmarks",
+               say: Callable[[str], None] | None = None) -> tuple[FaceModel, dict, np.ndarray]:
+    """See the module docstring. V (n, 3), F (m, 3): the scan in its own frame and unit;
+    face_pairs(part_V, part_F): an object with face (k,), bary (k, 3), scan_points (k, 3)
+    and report (with "similarity_residual_m"), or None; raises FacePairsUnavailable;
+    landmarks: FDP name -> (3,) in the scan's frame; scan_name / landmarks_name: how
+    messages name the two inputs."""
+    from fae.adapt.calibration import apply_transform, outlier_landmarks
+    from fae.adapt.from_scan import adapt_to_scan
+    from fae.adapt.head_pose import MAX_HEAD_RESIDUAL, MIN_FACE_COVERAGE, find_head, head_from_landmarks, kept_part
+
+    say = say or (lambda msg: None)
+    try:
+        if landmarks:
+            fdp = template.feature_point_positions()
+            names = [n for n in landmarks if n in fdp and template.feature_points[n].part == "skin"
+                     and np.all(np.isfinite(landmarks[n]))]
+            if len(names) < 4:
+                raise AdaptRefused(f"{landmarks_name}: {len(names)} usable feature points of the template's skin; at "
+                                   "least 4 are needed (or leave --landmarks out to find the head without them)")
+            A = np.array([fdp[n] for n in names])
+            B = np.array([landmarks[n] for n in names])
+            wrong = set(outlier_landmarks(B, A, names))
+            for n in sorted(wrong):
+                say(f"ignored feature point {n}: disagrees with the others (wrong placement?)")
+            names = [n for n in names if n not in wrong]
+            landmarks = {n: landmarks[n] for n in names}
+            head = head_from_landmarks(template, V, F, np.array([fdp[n] for n in names]),
+                                       np.array([landmarks[n] for n in names]))
+        else:
+            head = find_head(template, V, F)
+            if not head.trusted:
+                raise AdaptRefused(
+                    f"{scan_name}: could not find a head that matches the template (face covered "
+                    f"{head.face_coverage * 100:.0f} %, at least {MIN_FACE_COVERAGE * 100:.0f} % needed; "
+                    f"residual {head.residual * 1000:.1f} mm, at most {MAX_HEAD_RESIDUAL * 1000:.0f} mm); "
+                    "give feature points with --landmarks")
+        part_V, part_F = kept_part(apply_transform(head.transform, V), F, head.keep)
+        if len(part_F) < MIN_HEAD_TRIANGLES:
+            raise AdaptRefused(
+                f"{scan_name}: the part of the scan where the head should be holds {len(part_F)} triangles "
+                f"(at least {MIN_HEAD_TRIANGLES} expected): "
+                + ("do the feature points belong to this scan, in its unit?" if landmarks
+                   else "give feature points with --landmarks"))
+        pairs = None
+        try:
+            found = face_pairs(part_V, part_F)
+        except FacePairsUnavailable as exc:
+            if exc.fatal or not landmarks:
+                raise AdaptRefused(str(exc)) from exc
+            found = None
+        if found is None or len(found.face) < MIN_PAIRS:
+            if not landmarks:
+                raise AdaptRefused(f"{scan_name}: no face found on the head part of the scan (eyes, nose and "
+                                   "mouth); give feature points with --landmarks")
+            found = None
+        elif found.report["similarity_residual_m"] > MAX_PAIR_RESIDUAL_SHARE * eye_distance(template):
+            if not landmarks:
+                raise AdaptRefused(
+                    f"{scan_name}: the face found on the scan does not match the template's (its points lie "
+                    f"{found.report['similarity_residual_m'] * 1000:.1f} mm RMS from a similar placement; at most "
+                    f"{MAX_PAIR_RESIDUAL_SHARE * eye_distance(template) * 1000:.1f} mm expected); give feature "
+                    "points with --landmarks")
+            found = None
+        else:
+            pairs = (found.face, found.bary, found.scan_points)
+        model, report = adapt_to_scan(template, V, F, head, pairs, landmarks)
+    except ValueError as exc:
+        raise AdaptRefused(f"{scan_name}: {exc}") from exc
+    if found is not None:
+        report["feature_pair_search"] = found.report
+    report["confidence"] = {
+        "head_found": head.trusted, "face_coverage_after_pose": head.face_coverage,
+        "pose_residual_m": head.residual, "feature_pairs": 0 if found is None else int(len(found.face)),
+        "pair_residual_share_of_eye_distance": None if found is None else
+        found.report["similarity_residual_m"] / eye_distance(template),
+        "landmarks_given": len(landmarks or {})}
+    S = model.scan_transform
+    report["feature_points_on_scan"] = {n: (S[:3, :3] @ p + S[:3, 3]).tolist()
+                                        for n, p in model.feature_point_positions().items()
+                                        if model.feature_points[n].part == "skin"}
+    return model, report, head.keep
