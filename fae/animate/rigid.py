@@ -76,17 +76,22 @@ class RigidRig:
         self.tongue_root = np.array([self.tongue_center[0], self.tongue_center[1], tv[:, 2].min()])
         self.tongue_length = max(float(np.linalg.norm(self.tongue_tip - self.tongue_root)), 1e-3)
         self.irisd0 = fapu["IRISD"] * 1024.0
-        self._jaw_key, self._jaw = None, None
-        self._poses_key, self._poses = None, None
+        # (key, value) of the last call, one attribute each: replaced whole, so threads sharing
+        # a rig (calibration's settles) never read one call's key with another's value
+        self._jaw_cache: tuple | None = None
+        self._poses_cache: tuple | None = None
 
     def jaw(self, angle: float, thrust: float, shift: float) -> np.ndarray:
         """(4, 4) jaw pose: opening `angle` rad about the hinge with the condylar glide, then
         `thrust` (+z) and `shift` (+x) metres (the caller must not modify it)."""
         key = (float(angle), float(thrust), float(shift))
-        if key != self._jaw_key:
-            self._jaw_key, self._jaw = key, self._jaw_pose(*key)
-            self._jaw.setflags(write=False)
-        return self._jaw
+        cached = self._jaw_cache
+        if cached is not None and cached[0] == key:
+            return cached[1]
+        pose = self._jaw_pose(*key)
+        pose.setflags(write=False)
+        self._jaw_cache = (key, pose)
+        return pose
 
     def _jaw_pose(self, angle: float, thrust: float, shift: float) -> np.ndarray:
         glide = CONDYLE_GLIDE * max(float(angle), 0.0)
@@ -122,11 +127,14 @@ class RigidRig:
         frame (the caller must not modify them). Held poses (most frames of a stream move only
         the face) are not recomputed."""
         key = v[22:30].tobytes() + v[42:50].tobytes() + np.asarray(jaw).tobytes()
-        if key != self._poses_key:
-            self._poses_key, self._poses = key, self._all_poses(v, jaw)
-            for T in self._poses.values():
-                T.setflags(write=False)
-        return dict(self._poses)
+        cached = self._poses_cache
+        if cached is not None and cached[0] == key:
+            return dict(cached[1])
+        poses = self._all_poses(v, jaw)
+        for T in poses.values():
+            T.setflags(write=False)
+        self._poses_cache = (key, poses)
+        return dict(poses)
 
     def _all_poses(self, v: np.ndarray, jaw: np.ndarray) -> dict[str, np.ndarray]:
         H = self.head(v)
