@@ -69,6 +69,8 @@ def ear_pairs(template: FaceModel, scan: Surface) -> tuple[tuple[np.ndarray, np.
         if name not in template.region_names:
             continue
         ear = region == template.region_names.index(name)
+        if not ear.any():
+            continue
         centre = P[ear].mean(axis=0)
         near_t = np.flatnonzero(np.linalg.norm(P - centre, axis=1) < EAR_SEARCH)
         near_s = np.flatnonzero(np.linalg.norm(scan.V - centre, axis=1) < EAR_SEARCH)
@@ -94,7 +96,7 @@ def ear_pairs(template: FaceModel, scan: Surface) -> tuple[tuple[np.ndarray, np.
             continue
         pick = t_ear[np.linspace(0, len(t_ear) - 1, min(PAIRS_PER_EAR, len(t_ear))).astype(int)]
         mapped = s * P[pick] @ R.T + t
-        on_scan, dist, tri, _ = scan.query.closest_points(mapped, PROJECT_REACH)
+        on_scan, _, tri, _ = scan.query.closest_points(mapped, PROJECT_REACH)
         ok = (tri >= 0) & (corner_face[pick] >= 0)
         if ok.sum() < MIN_EAR_POINTS // 3:
             report[name] = {"found": False, "why": "the mapped ear lies off the scan", **entry}

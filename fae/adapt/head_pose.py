@@ -198,7 +198,7 @@ def _icp(head: TemplateHead, A: np.ndarray, S: np.ndarray, tree: cKDTree, s: flo
         good1 = d1 <= np.quantile(d1, KEEP)
         X = (S - t) @ R / s
         inbox = np.flatnonzero(np.all((X >= head.box_min) & (X <= head.box_max), axis=1))
-        inbox = inbox[:: max(1, len(inbox) // (2 * len(A)))]  # as many scan pairs as template ones, about
+        inbox = inbox[:: max(1, len(inbox) // (2 * len(A)))]  # at most twice as many scan pairs as template ones
         src, dst = [A[good1]], [S[j1[good1]]]
         if len(inbox) > 10:
             d2, j2 = treeA.query(X[inbox], workers=workers)

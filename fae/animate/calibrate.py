@@ -322,11 +322,12 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
 
 def warm_start_usable(mapping: dict | None) -> bool:
     """Whether `mapping`'s table scales can start a calibration: made for this solver
-    (FORMAT_VERSION) with the standard's 68 FAPs at the same table values."""
+    (FORMAT_VERSION), one finite positive row of 5 scales for each of the 68 FAPs."""
     if not mapping or "table_scale" not in mapping or "layout" not in mapping:
         return False
     scale = np.asarray(mapping["table_scale"])
-    return (int(np.asarray(mapping["layout"])[3]) == FORMAT_VERSION and scale.shape == (FAP_COUNT, 5)
+    layout = np.asarray(mapping["layout"]).ravel()
+    return (layout.size >= 4 and int(layout[3]) == FORMAT_VERSION and scale.shape == (FAP_COUNT, 5)
             and bool(np.all(np.isfinite(scale))) and bool(np.all(scale > 0)))
 
 

@@ -103,8 +103,8 @@ class LiveView:
                                     "`npm install --prefix tools three`, or set FAE_THREE_DIR to its folder")
         self._head = head_message(model)
         self._server = None
+        self._files: dict[Path, bytes] = {}  # read once: the event loop also steps the faces
         self.pages_total = 0
-        self.frames_sent = 0
 
     @property
     def port(self) -> int:
@@ -156,7 +156,9 @@ class LiveView:
             return connection.respond(HTTPStatus.NOT_FOUND, f"{path}: not found\n")
         kind = "text/javascript" if target.suffix == ".js" else (mimetypes.guess_type(target.name)[0] or
                                                                  "application/octet-stream")
-        body = target.read_bytes()
+        body = self._files.get(target)
+        if body is None:
+            body = self._files[target] = target.read_bytes()
         headers = Headers([("Content-Type", f"{kind}; charset=utf-8" if kind.startswith("text") else kind),
                            ("Content-Length", str(len(body))), ("Cache-Control", "no-cache")])
         return Response(HTTPStatus.OK, "OK", headers, body)
@@ -173,7 +175,6 @@ class LiveView:
             async for event in sub:
                 if isinstance(event, FrameEvent):
                     await ws.send(frame_message(event))
-                    self.frames_sent += 1
                 elif isinstance(event, StreamEnd):
                     await ws.send(json.dumps({"type": "end", "stream": event.stream}))
         except ConnectionClosed:

@@ -2,8 +2,10 @@
 
 The skin's non-penetration test needs the distance to the skull and to the mandible for
 every particle and substep; a closest-point query against a mesh costs ~100x a trilinear
-lookup in a precomputed grid, so the grid is built once (Warp mesh queries with the
-winding-number sign, robust for meshes that are not watertight) and only looked up per step.
+lookup in a precomputed grid, so the grid is built once and only looked up per step: the distance is exact within
+NEAR_BAND cells of the surface, signed by the mesh's normal there; farther out it comes from
+a grid of half the resolution signed by the winding number (robust for meshes that are not
+watertight), interpolated and lowered to stay a lower bound.
 """
 
 from __future__ import annotations
