@@ -242,6 +242,17 @@ EYE_SOCKET_REACH = 0.004  # m: skin this close to the template's eyeball forms i
 EYE_MIN_GAP_SHARE = 0.5  # of each socket vertex's template gap kept between it and the eyeball
 
 
+def eye_socket(template: FaceModel, name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The template's eyeball `name` and the skin around it: centre c0 (3,) metres, the
+    eyeball's vertices EV (k, 3), their distances r_eye (k,) from c0, and each skin
+    vertex's gap (n,) metres from the eyeball's median radius (< 0 inside it)."""
+    c0 = np.asarray(template.eye_centers[name], dtype=np.float64)
+    EV = template.parts[name].vertices
+    r_eye = np.linalg.norm(EV - c0, axis=1)
+    gap = np.linalg.norm(template.skin_vertices - c0, axis=1) - float(np.median(r_eye))
+    return c0, EV, r_eye, gap
+
+
 def eye_in_socket(template: FaceModel, model: FaceModel, name: str) -> tuple[np.ndarray, float]:
     """Centre (3,) metres and uniform scale of eyeball `name` fitted into the adapted socket.
 
@@ -255,12 +266,8 @@ def eye_in_socket(template: FaceModel, model: FaceModel, name: str) -> tuple[np.
     """
     from scipy.optimize import least_squares
 
-    c0 = np.asarray(template.eye_centers[name], dtype=np.float64)
-    EV = template.parts[name].vertices
-    r_eye = np.linalg.norm(EV - c0, axis=1)
+    c0, EV, r_eye, gap = eye_socket(template, name)
     r0 = float(np.median(r_eye))
-    X0 = template.skin_vertices
-    gap = np.linalg.norm(X0 - c0, axis=1) - r0
     socket = np.flatnonzero((gap > 0) & (gap < EYE_SOCKET_REACH))
     c_start = np.asarray(model.eye_centers[name], dtype=np.float64)
     if len(socket) < 10:
@@ -293,12 +300,8 @@ def orbit_yields(template: FaceModel, model: FaceModel, name: str, c: np.ndarray
     its opening. Changes model.skin_vertices in place; returns whether any moved."""
     from scipy.spatial import cKDTree
 
-    c0 = np.asarray(template.eye_centers[name], dtype=np.float64)
-    EV = template.parts[name].vertices
-    r_eye = np.linalg.norm(EV - c0, axis=1)
-    X0 = template.skin_vertices
-    gap = np.linalg.norm(X0 - c0, axis=1) - float(np.median(r_eye))
-    behind = (X0 - c0)[:, 2] < 0.0
+    c0, EV, r_eye, gap = eye_socket(template, name)
+    behind = (template.skin_vertices - c0)[:, 2] < 0.0
     socket = np.flatnonzero((gap > 0) & (gap < EYE_SOCKET_REACH) & behind)
     if len(socket) == 0:
         return False

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from fae.mesh import boundary_edges, vertex_normals
+from fae.mesh import adjacency, boundary_edges, vertex_normals
 
 
 # ---------------------------------------------------------------------------------------
@@ -372,8 +372,6 @@ def refine_long_triangles(V: np.ndarray, F: np.ndarray, max_edge: float, allowed
     flips and `relax` rounds of tangential smoothing of the vertices inside the allowed
     faces, each put back onto the input surface. Vertices keep their indices (new ones are
     appended); vertices on the open border (a half mesh's plane x = 0) do not move."""
-    from scipy.sparse import coo_matrix
-
     V = np.asarray(V, dtype=np.float64)
     F = np.asarray(F, dtype=np.int64)
     V2, F2, allowed2 = split_long_edges(V, F, max_edge, allowed)
@@ -385,10 +383,7 @@ def refine_long_triangles(V: np.ndarray, F: np.ndarray, max_edge: float, allowed
     free = np.flatnonzero(free)
     for _ in range(cycles):
         F2 = flip_to_delaunay(V2, F2, allowed2)
-        rows = np.concatenate([F2[:, 0], F2[:, 1], F2[:, 2]])
-        cols = np.concatenate([F2[:, 1], F2[:, 2], F2[:, 0]])
-        A = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(len(V2), len(V2))).tocsr()
-        A = ((A + A.T) > 0).astype(np.float64)
+        A = adjacency(F2, len(V2))
         degree = np.asarray(A.sum(axis=1)).ravel()
         for _ in range(relax):
             step = (A @ V2)[free] / degree[free, None] - V2[free]

@@ -146,8 +146,12 @@ class _Probe:
                     for name, p in face.feature_points.items() if p.part == "skin"}
 
     def _skin_response(self, force: np.ndarray, q: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+        return self._skin_moved(self.lu.solve(force.reshape(-1)[self.free]), q, R, t)
+
+    def _skin_moved(self, u_free: np.ndarray, q: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """(V, 3) skin displacement when the free particles at q move by u_free (3F,)."""
         u = np.zeros(3 * self.model.particle_count)
-        u[self.free] = self.lu.solve(force.reshape(-1)[self.free])
+        u[self.free] = u_free
         return skin_positions(self.model, q + u.reshape(-1, 3), R, t) - self.rest
 
     def fdp_motion(self, u: np.ndarray, name: str) -> np.ndarray:
@@ -166,12 +170,7 @@ class _Probe:
         if not forces:
             return []
         U = self.lu.solve(np.column_stack(forces))
-        out = []
-        for m in range(count):
-            u = np.zeros(3 * self.model.particle_count)
-            u[self.free] = U[:, m]
-            out.append(skin_positions(self.model, self.q0 + u.reshape(-1, 3), self.eye, t) - self.rest)
-        return out
+        return [self._skin_moved(U[:, m], self.q0, self.eye, t) for m in range(count)]
 
     def jaw_response(self, rig, which: int, eps: float) -> np.ndarray:
         T = rig.jaw(*(eps if i == which else 0.0 for i in range(3)))
