@@ -132,8 +132,7 @@ def adapt_scan(template: FaceModel, V: np.ndarray, F: np.ndarray, face_pairs: Ca
         "pair_residual_share_of_eye_distance": None if found is None else
         found.report["similarity_residual_m"] / eye_distance(template),
         "landmarks_given": len(landmarks or {})}
-    S = model.scan_transform
-    report["feature_points_on_scan"] = {n: (S[:3, :3] @ p + S[:3, 3]).tolist()
+    report["feature_points_on_scan"] = {n: apply_transform(model.scan_transform, p[None])[0].tolist()
                                         for n, p in model.feature_point_positions().items()
                                         if model.feature_points[n].part == "skin"}
     return model, report, head.keep

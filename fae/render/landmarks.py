@@ -212,9 +212,9 @@ def landmark_pairs(template: FaceModel, scan_V: np.ndarray, scan_F: np.ndarray, 
     A, B = on_template.points[idx], on_scan.points[idx]
     s, R, t = similarity_transform(A, B)
     res = np.linalg.norm(s * A @ R.T + t - B, axis=1)
-    fdp = template.feature_point_positions()
-    es = float(np.linalg.norm(fdp["3.5"] - fdp["3.6"])) if "3.5" in fdp and "3.6" in fdp else 0.065
-    good = (res <= OUTLIER_SHARE * es) | (res <= 4.0 * np.median(res))
+    from fae.adapt.workflow import eye_distance
+
+    good = (res <= OUTLIER_SHARE * eye_distance(template)) | (res <= 4.0 * np.median(res))
     idx = idx[good]
     report.update({"pairs": int(len(idx)), "similarity_scale": float(s),
                    "similarity_residual_m": float(np.sqrt(np.mean(res[good] ** 2))),
