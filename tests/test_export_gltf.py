@@ -5,9 +5,6 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import shutil
-import subprocess
-import json
 from pathlib import Path
 
 import numpy as np
@@ -19,9 +16,9 @@ from fae.animate.morphs import MorphWeights, displacement, morph_targets
 from fae.animate.player import Player
 from fae.io.facemodel_gltf import write_facemodel
 from test_bake import FAPS, small_head
+from test_facemodel_gltf import validate
 
 REPO = Path(__file__).resolve().parent.parent
-VALIDATOR = REPO / "tools" / "node_modules" / "gltf-validator"
 FPS = 20.0
 
 
@@ -30,18 +27,6 @@ def run_command(name: str, argv: list[str]) -> int:
     importlib.import_module(f"fae.commands.{name}").register(parser.add_subparsers())
     args = parser.parse_args([name, *argv])
     return args.func(args)
-
-
-def validate(path: Path) -> dict:
-    node = shutil.which("node")
-    if node is None:
-        pytest.skip("node is not installed: cannot run the Khronos glTF validator")
-    if not VALIDATOR.is_dir():
-        pytest.skip("tools/node_modules/gltf-validator is missing (run `make install`)")
-    result = subprocess.run([node, str(REPO / "tests" / "validate_gltf.mjs"), str(path)], capture_output=True,
-                            text=True, timeout=300)
-    assert result.returncode in (0, 1), result.stderr
-    return json.loads(result.stdout)
 
 
 def moving_stream(path: Path, frames: int = 30) -> Path:
