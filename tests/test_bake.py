@@ -14,22 +14,15 @@ from fae.animate.bake import THRESHOLD, bake_tables, baked_model, has_baked_tabl
 from fae.animate.calibrate import calibrate
 from fae.animate.player import Player
 from fae.io.facemodel_gltf import read_facemodel, structural_problems, write_facemodel
-from test_sim_facemodel import synthetic_face_model
+from synthetic_head import synthetic_head
 
 FAPS = (3, 5, 12, 19)  # open_jaw (skin carried by the mandible), a lip, a lip corner, an eyelid
 
 
 def small_head():
-    """The small synthetic head with every MPEG-4 feature point (those it lacks on the crown),
-    so that it is a complete FaceModel file."""
-    from fae.io.facemodel import SurfacePoint
-    from fae.mpeg4 import FEATURE_POINTS
-
-    face = synthetic_face_model(subdivisions=4)
-    for fp in FEATURE_POINTS:
-        name = getattr(fp, "name", fp)
-        face.feature_points.setdefault(name, SurfacePoint("skin", 0, np.full(3, 1.0 / 3.0)))
-    return calibrate(face, passes=0)
+    """The small synthetic head with every MPEG-4 feature point, so that it is a complete
+    FaceModel file, calibrated."""
+    return calibrate(synthetic_head(personalized=False, subdivisions=4, all_points=True, complete=False), passes=0)
 
 
 @pytest.fixture(scope="module")

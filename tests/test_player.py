@@ -8,14 +8,14 @@ import pytest
 from fae.animate.calibrate import calibrate
 from fae.animate.faptables import FAP_LIMITS
 from fae.animate.player import Player
-from test_sim_facemodel import synthetic_face_model
+from synthetic_head import synthetic_head
 
 pytestmark = pytest.mark.slow
 
 
 @pytest.fixture(scope="module")
 def player():
-    return Player(calibrate(synthetic_face_model(subdivisions=4), passes=0))
+    return Player(calibrate(synthetic_head(personalized=False, subdivisions=4, complete=False), passes=0))
 
 
 def test_zero_faps_keep_the_face_at_rest(player):

@@ -11,12 +11,12 @@ from fae.sim.build import skin_model, skin_positions
 from fae.sim.reference import ReferenceSolver
 from fae.sim.sdf import sample_grid, signed_distance_grid
 from fae.sim.solver import SkinSolver, substep_count
-from test_sim_facemodel import synthetic_face_model
+from synthetic_head import synthetic_head
 
 
 @pytest.fixture(scope="module")
 def face():
-    return synthetic_face_model(subdivisions=4)
+    return synthetic_head(personalized=False, subdivisions=4, complete=False)
 
 
 @pytest.fixture(scope="module")
