@@ -1,0 +1,129 @@
+"""FAP values -> clamped values -> simulation controls (fae.animate.faptables.clamp_values,
+fae.animate.controls.FapControls) on the synthetic head, calibrated without correction
+passes: what the standard's ranges and the face's left/right symmetry require."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+
+from fae.animate.calibrate import calibrate
+from fae.animate.controls import ACTIVATION_LIMIT, JAW_ANGLE_LIMIT, FapControls
+from fae.animate.faptables import FAP_LIMITS, clamp_values
+from fae.animate.mapping import field_faps
+from fae.mpeg4.faps import FAP_COUNT, FAPS, MIRROR_FAP
+from fae.mpeg4.fdps import FEATURE_POINTS
+from synthetic_head import synthetic_head
+
+any_values = arrays(np.float64, FAP_COUNT, elements=st.floats(allow_nan=True, allow_infinity=True, width=64))
+finite_values = arrays(np.float64, FAP_COUNT, elements=st.floats(-1e7, 1e7))
+FAST = settings(max_examples=60, deadline=None)
+
+
+@pytest.fixture(scope="module")
+def head():
+    return calibrate(synthetic_head(personalized=False, subdivisions=3, complete=False), passes=0)
+
+
+@pytest.fixture(scope="module")
+def controls(head):
+    return FapControls(head)
+
+
+def one_fap(fap: int, value: float) -> np.ndarray:
+    v = np.zeros(FAP_COUNT)
+    v[fap - 1] = value
+    return v
+
+
+@FAST
+@given(any_values)
+def test_clamped_values_lie_in_the_standard_ranges_and_clamping_twice_changes_nothing(values):
+    once = clamp_values(values)
+    assert np.all(np.isfinite(once))
+    assert np.all((FAP_LIMITS[:, 0] <= once) & (once <= FAP_LIMITS[:, 1]))
+    assert np.all(once[:2] == 0.0)  # the high-level FAPs are no low-level values
+    assert np.array_equal(clamp_values(once), once)
+    inside = np.isfinite(values) & (FAP_LIMITS[:, 0] <= values) & (values <= FAP_LIMITS[:, 1])
+    inside[:2] = False
+    assert np.array_equal(once[inside], values[inside])  # values in range are left alone
+
+
+def test_clamping_follows_the_standard_table():
+    v = clamp_values(np.full(FAP_COUNT, -1e12))
+    for info in FAPS[2:]:
+        low = v[info.number - 1]
+        if info.bidirectional is False:
+            assert low == 0.0, info.name  # unidirectional: nothing below neutral
+        else:
+            assert low < 0.0, info.name
+    assert clamp_values(one_fap(3, 5000.0))[2] == 1080.0  # open_jaw: its I range in MNS
+    assert clamp_values(one_fap(49, np.inf))[48] == FAPS[48].value_range[1]  # head_yaw: I range x quant step
+    assert clamp_values(one_fap(49, np.nan))[48] == 0.0
+
+
+@FAST
+@given(finite_values)
+def test_activations_and_jaw_are_bounded_for_any_values(controls, values):
+    act, jaw = controls.controls(clamp_values(values))
+    raw_act, raw_jaw = controls.controls(values)
+    for a, j in ((act, jaw), (raw_act, raw_jaw)):
+        assert np.all(np.isfinite(a)) and np.all(np.abs(a) <= ACTIVATION_LIMIT)
+        assert np.all(a[: controls.model_muscles] >= 0.0)  # muscles only pull
+        assert -0.05 <= j[0] <= JAW_ANGLE_LIMIT and -0.02 <= j[1] <= 0.03 and abs(j[2]) <= 0.03
+
+
+def test_neutral_values_give_no_controls(controls):
+    act, jaw = controls.controls(np.zeros(FAP_COUNT))
+    assert not act.any() and not jaw.any()
+
+
+def test_open_jaw_opens_the_jaw_monotonically_up_to_the_limit(controls):
+    angles = [controls.controls(one_fap(3, v))[1][0] for v in np.linspace(0.0, 1080.0, 25)]
+    assert angles[0] == 0.0 and angles[-1] > 0.0
+    assert np.all(np.diff(angles) >= -1e-12)
+    assert max(angles) <= JAW_ANGLE_LIMIT
+
+
+def _mirror_permutation(head) -> np.ndarray:
+    """Control index of each control's mirror partner: muscles _l <-> _r, the pull fields of
+    mirror FAPs, the midline ones onto themselves."""
+    names = [m.name for m in head.muscles]
+    swap = {"_l": "_r", "_r": "_l"}
+    muscle = [names.index(n[:-2] + swap[n[-2:]] if n[-2:] in swap else n) for n in names]
+    fields = field_faps(head)
+    field = [len(names) + fields.index(MIRROR_FAP.get(f, f)) for f in fields]
+    return np.array(muscle + field)
+
+
+@FAST
+@given(fap=st.sampled_from(sorted(MIRROR_FAP)), fraction=st.floats(-1.0, 1.0))
+def test_a_fap_and_its_mirror_drive_the_mirror_controls(head, controls, fap, fraction):
+    """The synthetic head is mirror-symmetric, so a left FAP's controls, mirrored (left
+    muscles for right ones, each pull field for its mirror FAP's), are its right partner's."""
+    value = float(np.clip(fraction * 1000.0, *FAP_LIMITS[fap - 1]))
+    act, jaw = controls.controls(one_fap(fap, value))
+    mirror_act, mirror_jaw = controls.controls(one_fap(MIRROR_FAP[fap], value))
+    scale = max(np.abs(act).max(), 1e-12)
+    assert np.allclose(act[_mirror_permutation(head)], mirror_act, atol=1e-3 * scale)
+    assert np.allclose(jaw, mirror_jaw, atol=1e-9)
+
+
+def test_mirror_faps_are_left_right_pairs_moving_mirror_points():
+    """Every sided FAP has its partner; a pair moves mirror feature points along mirrored
+    directions (the eyeballs' yaw excepted: both gaze to the face's left, so that copying
+    one eye's value to the other keeps the gaze conjugate)."""
+    mirror_point = {p.name: p.mirror for p in FEATURE_POINTS}
+    sided = [info for info in FAPS if any(w in info.name.split("_") for w in ("l", "r", "lm", "rm"))]
+    assert {info.number for info in sided} == set(MIRROR_FAP)
+    for fap, partner in MIRROR_FAP.items():
+        a, b = FAPS[fap - 1], FAPS[partner - 1]
+        assert MIRROR_FAP[partner] == fap
+        assert [mirror_point[p] for p in a.feature_points] == list(b.feature_points), a.name
+        if a.direction is None:
+            continue
+        expected = np.array(a.direction) if "yaw" in a.name else np.array(a.direction) * (-1.0, 1.0, 1.0)
+        assert np.allclose(expected, b.direction), (a.name, b.name)
