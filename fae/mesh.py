@@ -107,3 +107,28 @@ def boundary_vertices(F: np.ndarray, n: int) -> np.ndarray:
     out = np.zeros(n, dtype=bool)
     out[boundary_edges(F).ravel()] = True
     return out
+
+
+def wrapped_seam(F: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Texture coordinates that wrap around in u (a cylindrical map, u in [0, 1]) without
+    the seam's triangles interpolating across the whole texture.
+
+    A triangle whose corners' u span more than half the texture crosses the seam: its
+    corners with u < 0.5 are replaced by copies of their vertices with u + 1 (sampled with
+    u wrapping around, GL_REPEAT). F (m, 3) int, uv (n, 2). Returns (F2 (m, 3) int64 into
+    the n + k vertices, source (k,) int64: the vertex each copy repeats, uv2 (n + k, 2)
+    float32). Nothing changes (k = 0) when no triangle crosses the seam.
+    """
+    F = np.asarray(F, dtype=np.int64)
+    uv = np.asarray(uv, dtype=np.float32)
+    u = uv[F, 0]
+    crossing = (u.max(axis=1) - u.min(axis=1)) > 0.5
+    low = crossing[:, None] & (u < 0.5)
+    source = np.unique(F[low])
+    F2 = F.copy()
+    if len(source):
+        copy_of = np.full(len(uv), -1, dtype=np.int64)
+        copy_of[source] = len(uv) + np.arange(len(source))
+        F2[low] = copy_of[F[low]]
+    uv2 = np.concatenate([uv, uv[source] + np.array([1.0, 0.0], dtype=np.float32)])
+    return F2, source, uv2

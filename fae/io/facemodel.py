@@ -135,6 +135,9 @@ class FaceModel:
                     opaque to io, stored as-is; empty until calibrated
     scan_transform  (4, 4) float64: maps this model's face frame back to the frame and
                     unit of the scan it was adapted to (identity for the template)
+    skin_texture    (H, W, 3) uint8 sRGB colour image of the skin, or None (then the skin
+                    is drawn in `skin_color`); texel row r, column c lies at skin_uv
+                    ((c + 0.5) / W, (r + 0.5) / H): glTF's convention, v = 0 on the first row
     meta            free JSON-serializable metadata ("name", "generator", ...)
     """
 
@@ -157,6 +160,7 @@ class FaceModel:
     fap_mapping: dict[str, np.ndarray] = field(default_factory=dict)
     scan_transform: np.ndarray = field(default_factory=lambda: np.eye(4))
     meta: dict = field(default_factory=dict)
+    skin_texture: np.ndarray | None = None
 
     @property
     def skin_vertex_count(self) -> int:

@@ -94,6 +94,11 @@ def structural_problems(model: FaceModel, fdp_names: list[str] | None = None) ->
     if _check_array(add, "skin_uv", model.skin_uv, np.float32, (n_verts, 2)) is not None:
         _check_unit_interval(add, "skin_uv", model.skin_uv)
     _check_color(add, "skin_color", model.skin_color)
+    texture = getattr(model, "skin_texture", None)
+    if texture is not None:
+        _check_array(add, "skin_texture", texture, np.uint8, (None, None, 3))
+        if isinstance(texture, np.ndarray) and texture.ndim == 3 and min(texture.shape[:2]) < 1:
+            add(f"skin_texture: expected an image of at least 1x1 pixels, got shape {texture.shape}")
     if _check_array(add, "skin_mirror", model.skin_mirror, np.int32, (n_verts,)) is not None and n_verts:
         if _check_index_range(add, "skin_mirror", model.skin_mirror, n_verts, "skin vertex"):
             m = model.skin_mirror
@@ -424,8 +429,15 @@ class _Writer:
         return len(self.gltf.accessors) - 1
 
     # meshes ------------------------------------------------------------------------
-    def mesh_node(self, name: str, vertices, faces, color, uv=None, vertex_colors=None) -> int | None:
-        """Add the render mesh, material and node of one surface; None if it has no triangles."""
+    def image(self, rgb: np.ndarray) -> int:
+        """Add an (H, W, 3) uint8 image as a PNG in the binary chunk; its glTF image index."""
+        self.gltf.images.append(pygltflib.Image(bufferView=self._view(png_bytes(rgb), None), mimeType="image/png"))
+        return len(self.gltf.images) - 1
+
+    def mesh_node(self, name: str, vertices, faces, color, uv=None, vertex_colors=None,
+                  texture: int | None = None) -> int | None:
+        """Add the render mesh, material and node of one surface; None if it has no triangles.
+        texture: a glTF image index that becomes the material's base colour texture (with uv)."""
         vertices = np.asarray(vertices, dtype=np.float64)
         faces = np.asarray(faces)
         if len(vertices) == 0 or len(faces) == 0:
@@ -443,10 +455,20 @@ class _Writer:
 
         base = [1.0, 1.0, 1.0, 1.0] if vertex_colors is not None else [float(c) for c in np.asarray(color, dtype=np.float32)]
         base = [min(max(c, 0.0), 1.0) for c in base]
+        base_texture = None
+        if texture is not None and uv is not None:
+            if not self.gltf.samplers:
+                self.gltf.samplers.append(pygltflib.Sampler(magFilter=pygltflib.LINEAR,
+                                                            minFilter=pygltflib.LINEAR_MIPMAP_LINEAR,
+                                                            wrapS=pygltflib.REPEAT, wrapT=pygltflib.CLAMP_TO_EDGE))
+            self.gltf.textures.append(pygltflib.Texture(sampler=0, source=texture))
+            base_texture = pygltflib.TextureInfo(index=len(self.gltf.textures) - 1)
+            base = [1.0, 1.0, 1.0, 1.0]
         material = pygltflib.Material(
             name=name,
             pbrMetallicRoughness=pygltflib.PbrMetallicRoughness(
-                baseColorFactor=base, metallicFactor=0.0, roughnessFactor=ROUGHNESS.get(name, DEFAULT_ROUGHNESS)
+                baseColorFactor=base, metallicFactor=0.0, roughnessFactor=ROUGHNESS.get(name, DEFAULT_ROUGHNESS),
+                baseColorTexture=base_texture,
             ),
             alphaMode=pygltflib.BLEND if base[3] < 1.0 else None,
             doubleSided=False,
@@ -460,7 +482,9 @@ class _Writer:
     # the whole file ----------------------------------------------------------------
     def glb(self) -> bytes:
         m = self.model
-        skin_node = self.mesh_node("skin", m.skin_vertices, m.skin_faces, m.skin_color, uv=m.skin_uv)
+        texture = None if m.skin_texture is None else self.image(np.asarray(m.skin_texture))
+        skin_node = self.mesh_node("skin", m.skin_vertices, m.skin_faces, m.skin_color, uv=m.skin_uv,
+                                   texture=texture)
         part_nodes = {
             name: self.mesh_node(name, part.vertices, part.faces, part.color, vertex_colors=part.vertex_colors)
             for name, part in m.parts.items()
@@ -476,6 +500,7 @@ class _Writer:
                 "mirror": self.array("skin_mirror", m.skin_mirror),
                 "region": self.array("skin_region", m.skin_region),
                 "thickness": self.array("skin_thickness", m.skin_thickness),
+                **({} if texture is None else {"texture": {"image": texture}}),  # untextured files stay byte-identical
             },
             "region_names": list(m.region_names),
             "layer_params": m.layer_params,
@@ -541,6 +566,30 @@ class _Writer:
             "semi_axes": None if mu.semi_axes is None else _float_list(mu.semi_axes),
             "axes": None if mu.axes is None else [_float_list(a) for a in np.asarray(mu.axes)],
         }
+
+
+def png_bytes(rgb: np.ndarray) -> bytes:
+    """An (H, W, 3) uint8 image as PNG bytes (lossless: png_pixels gives it back exactly)."""
+    import io
+
+    from PIL import Image
+
+    out = io.BytesIO()
+    Image.fromarray(np.ascontiguousarray(rgb, dtype=np.uint8), "RGB").save(out, format="PNG", compress_level=6)
+    return out.getvalue()
+
+
+def png_pixels(data: bytes) -> np.ndarray:
+    """(H, W, 3) uint8 pixels of PNG (or JPEG) bytes; ValueError when they are not an image."""
+    import io
+
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(io.BytesIO(bytes(data))) as image:
+            return np.asarray(image.convert("RGB"), dtype=np.uint8).copy()
+    except (UnidentifiedImageError, OSError) as exc:
+        raise ValueError(f"expected a PNG or JPEG image ({exc})") from exc
 
 
 def _float_list(values, dtype=np.float64) -> list[float]:
@@ -809,7 +858,27 @@ class _Reader:
             },
             scan_transform=self.numbers(self.get(e, "scan_transform", f"{X}.scan_transform", list), f"{X}.scan_transform", (4, 4), np.float64),
             meta=self.get(e, "meta", f"{X}.meta", dict),
+            skin_texture=self.texture(s.get("texture"), f"{X}.skin.texture"),
         )
+
+    def texture(self, record, field: str) -> np.ndarray | None:
+        """The skin's texture (H, W, 3) uint8 from {"image": index}, or None."""
+        if record is None:
+            return None
+        index = self.get(record, "image", f"{field}.image", int)
+        images = self.gltf.images or []
+        if not 0 <= index < len(images):
+            self.fail(f"{field}.image", f"expected an image index in [0, {len(images)}), got {index}")
+        view_index = images[index].bufferView
+        if not isinstance(view_index, int) or not 0 <= view_index < len(self.views):
+            self.fail(f"images[{index}].bufferView", "expected the image inside the binary chunk")
+        view = self.views[view_index]
+        start = view.byteOffset or 0
+        data = self.blob[start:start + view.byteLength]
+        try:
+            return png_pixels(data)
+        except ValueError as exc:
+            self.fail(f"images[{index}]", str(exc))
 
     def strings(self, values: list, field: str) -> list[str]:
         if not all(isinstance(v, str) for v in values):

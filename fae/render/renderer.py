@@ -41,6 +41,7 @@ from OpenGL import GL  # noqa: E402
 
 from fae.io.facemodel import FaceModel, Part  # noqa: E402
 from fae.render.framing import VIEWS, CameraView, camera_view, head_frame  # noqa: E402
+from fae.mesh import wrapped_seam  # noqa: E402
 from fae.render.normals import per_vertex_normals  # noqa: E402
 
 # Colours are linear RGB; the shader applies gamma 2.2. The background is used as-is.
@@ -84,6 +85,7 @@ layout(location = 0) in vec3 position;
 layout(location = 1) in vec3 normal;
 layout(location = 2) in vec3 color;
 layout(location = 3) in vec2 gloss;
+layout(location = 4) in vec3 texcoord;  // u, v and how much of the colour comes from the texture
 uniform mat4 world_to_camera;
 uniform mat4 projection;
 uniform vec3 light_direction[%(lights)d];
@@ -91,24 +93,26 @@ uniform vec3 light_color[%(lights)d];
 uniform float ambient;
 out vec3 v_front;
 out vec3 v_back;
-
-vec3 shade(vec3 n, vec3 to_eye, vec3 albedo, vec2 g) {
-    vec3 c = ambient * albedo;
-    for (int i = 0; i < %(lights)d; ++i) {
-        float d = dot(n, light_direction[i]);
-        if (d > 0.0) {
-            vec3 h = normalize(light_direction[i] + to_eye);
-            c += light_color[i] * (d * albedo + g.x * pow(max(dot(n, h), 0.0), g.y));
-        }
-    }
-    return pow(clamp(c, 0.0, 1.0), vec3(1.0 / 2.2));
-}
+out vec3 v_light;  // light reaching the surface (times albedo: the diffuse colour)
+out vec3 v_specular;
+out vec3 v_texcoord;
 
 void main() {
     vec4 p = world_to_camera * vec4(position, 1.0);
     vec3 n = normalize(mat3(world_to_camera) * normal);
     vec3 to_eye = normalize(-p.xyz);
-    v_front = shade(n, to_eye, color, gloss);
+    v_light = vec3(ambient);
+    v_specular = vec3(0.0);
+    for (int i = 0; i < %(lights)d; ++i) {
+        float d = dot(n, light_direction[i]);
+        if (d > 0.0) {
+            vec3 h = normalize(light_direction[i] + to_eye);
+            v_light += light_color[i] * d;
+            v_specular += light_color[i] * gloss.x * pow(max(dot(n, h), 0.0), gloss.y);
+        }
+    }
+    v_front = pow(clamp(color * v_light + v_specular, 0.0, 1.0), vec3(1.0 / 2.2));
+    v_texcoord = texcoord;
     // The inside: mostly its own dark colour, a little shape from the key light.
     v_back = pow(vec3(%(cavity)s) * (0.6 + 0.6 * max(dot(-n, light_direction[0]), 0.0)), vec3(1.0 / 2.2));
     gl_Position = projection * p;
@@ -125,6 +129,29 @@ in vec3 v_back;
 out vec4 frag_color;
 void main() {
     frag_color = vec4(gl_FrontFacing ? v_front : v_back, 1.0);
+}
+"""
+
+# A skin with a texture (a photo's colours): the albedo is looked up per pixel, the light
+# still comes per vertex; where the texture weight is 0 (rigid parts, inside the mouth) the
+# colour is exactly the untextured one.
+_TEXTURED_FRAGMENT_SHADER = """
+#version 330 core
+in vec3 v_front;
+in vec3 v_back;
+in vec3 v_light;
+in vec3 v_specular;
+in vec3 v_texcoord;
+uniform sampler2D skin_texture;
+out vec4 frag_color;
+void main() {
+    if (!gl_FrontFacing) {
+        frag_color = vec4(v_back, 1.0);
+        return;
+    }
+    vec3 albedo = pow(texture(skin_texture, v_texcoord.xy).rgb, vec3(2.2));
+    vec3 lit = pow(clamp(albedo * v_light + v_specular, 0.0, 1.0), vec3(1.0 / 2.2));
+    frag_color = vec4(mix(v_front, lit, clamp(v_texcoord.z, 0.0, 1.0)), 1.0);
 }
 """
 
@@ -171,12 +198,20 @@ def skin_colors(model: FaceModel) -> np.ndarray:
     """(V, 3) float32 linear RGB of the skin's vertices: the skin colour, and inside the mouth
     (the skin region MOUTH_REGION, where the head has one) the lining's darker colour,
     blended over MOUTH_BLEND_RINGS edge rings so that the lips' inner side darkens into it."""
-    nv = len(model.skin_vertices)
     skin = np.asarray(model.skin_color, dtype=np.float32).reshape(-1)[:3]
+    w = mouth_weight(model)
+    mouth = np.asarray(MOUTH_COLOR, dtype=np.float32)
+    return (skin[None, :] * (1.0 - w[:, None]) + mouth[None, :] * w[:, None]).astype(np.float32)
+
+
+def mouth_weight(model: FaceModel) -> np.ndarray:
+    """(V,) float64 in [0, 1]: 1 inside the mouth (the skin region MOUTH_REGION), falling
+    to 0 over MOUTH_BLEND_RINGS edge rings around it; zeros when the head has no such region."""
+    nv = len(model.skin_vertices)
     names = list(model.region_names)
     region = np.asarray(model.skin_region)
     if MOUTH_REGION not in names or region.shape != (nv,):
-        return np.tile(skin, (nv, 1))
+        return np.zeros(nv)
     w = (region == names.index(MOUTH_REGION)).astype(np.float64)
     faces = np.asarray(model.skin_faces, dtype=np.int64)
     e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
@@ -185,8 +220,7 @@ def skin_colors(model: FaceModel) -> np.ndarray:
         mean = (np.bincount(e[:, 0], weights=w[e[:, 1]], minlength=nv)
                 + np.bincount(e[:, 1], weights=w[e[:, 0]], minlength=nv)) / np.maximum(valence, 1)
         w = np.maximum(w, mean)
-    mouth = np.asarray(MOUTH_COLOR, dtype=np.float32)
-    return (skin[None, :] * (1.0 - w[:, None]) + mouth[None, :] * w[:, None]).astype(np.float32)
+    return w
 
 
 def boundary_components(F: np.ndarray, n: int) -> list[np.ndarray]:
@@ -331,12 +365,37 @@ class FaceRenderer:
         self._corner_index = faces.ravel()
         self._skin_rest_normals = per_vertex_normals(rest, faces, self._corner_index)
 
+        # A textured skin: its texture coordinates wrap around the head, so the vertices of
+        # the triangles that cross the seam are drawn twice (copies with u + 1, `_seam_source`),
+        # and the inside of the mouth keeps its own colour (texture weight 0).
+        texture = getattr(model, "skin_texture", None)
+        self._texture_image = None
+        self._seam_source = np.zeros(0, dtype=np.int64)
+        self._skin_draw_faces = faces
+        texcoord = np.zeros((nv, 3), dtype=np.float32)
+        if texture is not None:
+            texture = np.asarray(texture)
+            if texture.ndim != 3 or texture.shape[2] != 3 or texture.dtype != np.uint8 or min(texture.shape[:2]) < 1:
+                raise ValueError(f"skin_texture: expected an (H, W, 3) uint8 image, got {texture.dtype} {texture.shape}")
+            uv = np.asarray(model.skin_uv, dtype=np.float32)
+            if uv.shape != (nv, 2):
+                raise ValueError(f"skin_uv: expected shape {(nv, 2)} for the texture, got {uv.shape}")
+            self._texture_image = np.ascontiguousarray(texture)
+            self._skin_draw_faces, self._seam_source, uv2 = wrapped_seam(faces, uv)
+            weight = (1.0 - mouth_weight(model)).astype(np.float32)
+            weight = np.concatenate([weight, weight[self._seam_source]])
+            texcoord = np.concatenate([uv2, weight[:, None]], axis=1).astype(np.float32)
+        skin_count = nv + len(self._seam_source)  # skin vertices drawn, seam copies included
+        self._skin_count = skin_count
+
         # Vertex arrays: the skin, then each drawn rigid part. The skin's inner side (the
         # cavity) is the same vertices drawn again with front faces culled.
-        colors = [skin_colors(model)]
-        gloss = [np.tile(np.asarray(GLOSS["skin"], dtype=np.float32), (nv, 1))]
-        tris = [faces]
-        offset = nv
+        skin_rgb = skin_colors(model)
+        colors = [np.concatenate([skin_rgb, skin_rgb[self._seam_source]])]
+        gloss = [np.tile(np.asarray(GLOSS["skin"], dtype=np.float32), (skin_count, 1))]
+        texcoords = [texcoord]
+        tris = [self._skin_draw_faces]
+        offset = skin_count
         self._parts = []  # (bone, slice into the vertex arrays, rest vertices, rest normals, pupil rig)
         for name, part in model.parts.items():
             pv = np.asarray(part.vertices, dtype=np.float64)
@@ -353,6 +412,7 @@ class FaceRenderer:
                     pupil = None  # an eye without a pupil colour: drawn, never dilated
             colors.append(pc[:, :3])
             gloss.append(np.tile(np.asarray(GLOSS.get(name, _DEFAULT_GLOSS), dtype=np.float32), (len(pv), 1)))
+            texcoords.append(np.zeros((len(pv), 3), dtype=np.float32))
             tris.append(pf + offset)
             self._parts.append((part.bone, slice(offset, offset + len(pv)), pv, per_vertex_normals(pv, pf), pupil))
             offset += len(pv)
@@ -370,7 +430,8 @@ class FaceRenderer:
         self._holes = boundary_components(faces, nv)
         # Per frame: positions and normals, float32, interleaved.
         self._dynamic = np.empty((offset, 6), dtype=np.float32)
-        static = np.concatenate([self.vertex_colors, np.concatenate(gloss)], axis=1).astype(np.float32)
+        static = np.concatenate([self.vertex_colors, np.concatenate(gloss), np.concatenate(texcoords)],
+                                axis=1).astype(np.float32)
         indices = self.triangles
 
         self._platform = _make_platform(self._vw, self._vh)
@@ -388,7 +449,8 @@ class FaceRenderer:
     def _make_gl_objects(self, static: np.ndarray, indices: np.ndarray) -> None:
         cavity = ", ".join(f"{c:.6f}" for c in CAVITY_COLOR)
         self._program = _compile_program(_VERTEX_SHADER % {"cavity": cavity, "lights": len(LIGHTS)},
-                                          _FRAGMENT_SHADER)
+                                          _FRAGMENT_SHADER if self._texture_image is None
+                                          else _TEXTURED_FRAGMENT_SHADER)
         self._vao = GL.glGenVertexArrays(1)
         GL.glBindVertexArray(self._vao)
         self._buffers = GL.glGenBuffers(3)
@@ -401,17 +463,34 @@ class FaceRenderer:
             GL.glVertexAttribPointer(location, 3, GL.GL_FLOAT, GL.GL_FALSE, 24, ctypes.c_void_p(4 * start))
         GL.glBindBuffer(GL.GL_ARRAY_BUFFER, static_buffer)
         GL.glBufferData(GL.GL_ARRAY_BUFFER, static.nbytes, np.ascontiguousarray(static), GL.GL_STATIC_DRAW)
-        for location, count, start in ((2, 3, 0), (3, 2, 3)):
+        for location, count, start in ((2, 3, 0), (3, 2, 3), (4, 3, 5)):
             GL.glEnableVertexAttribArray(location)
-            GL.glVertexAttribPointer(location, count, GL.GL_FLOAT, GL.GL_FALSE, 20, ctypes.c_void_p(4 * start))
+            GL.glVertexAttribPointer(location, count, GL.GL_FLOAT, GL.GL_FALSE, 32, ctypes.c_void_p(4 * start))
         GL.glBindBuffer(GL.GL_ELEMENT_ARRAY_BUFFER, index_buffer)
         # All triangles, then room for the inside triangles chosen each frame.
         GL.glBufferData(GL.GL_ELEMENT_ARRAY_BUFFER, indices.nbytes + 4 * self._skin_index_count, None,
                         GL.GL_DYNAMIC_DRAW)
         GL.glBufferSubData(GL.GL_ELEMENT_ARRAY_BUFFER, 0, indices.nbytes, indices)
         GL.glBindBuffer(GL.GL_ARRAY_BUFFER, 0)
+        self._texture = None
+        if self._texture_image is not None:
+            self._texture = int(GL.glGenTextures(1))
+            GL.glActiveTexture(GL.GL_TEXTURE0)
+            GL.glBindTexture(GL.GL_TEXTURE_2D, self._texture)
+            GL.glPixelStorei(GL.GL_UNPACK_ALIGNMENT, 1)
+            h, w = self._texture_image.shape[:2]
+            # rows go up in order, the first at t = 0: glTF's convention (v = 0 on the first row)
+            GL.glTexImage2D(GL.GL_TEXTURE_2D, 0, GL.GL_RGB8, w, h, 0, GL.GL_RGB, GL.GL_UNSIGNED_BYTE,
+                            self._texture_image)
+            GL.glGenerateMipmap(GL.GL_TEXTURE_2D)
+            GL.glTexParameteri(GL.GL_TEXTURE_2D, GL.GL_TEXTURE_WRAP_S, GL.GL_REPEAT)
+            GL.glTexParameteri(GL.GL_TEXTURE_2D, GL.GL_TEXTURE_WRAP_T, GL.GL_CLAMP_TO_EDGE)
+            GL.glTexParameteri(GL.GL_TEXTURE_2D, GL.GL_TEXTURE_MIN_FILTER, GL.GL_LINEAR_MIPMAP_LINEAR)
+            GL.glTexParameteri(GL.GL_TEXTURE_2D, GL.GL_TEXTURE_MAG_FILTER, GL.GL_LINEAR)
 
         GL.glUseProgram(self._program)
+        if self._texture is not None:
+            GL.glUniform1i(GL.glGetUniformLocation(self._program, "skin_texture"), 0)
         world_to_camera = np.linalg.inv(self.camera.pose)
         # Depth up to which the inside of skin facing away may show: the head centre, plus a
         # little for folds on the silhouette (the neck behind a turned or opened jaw).
@@ -460,6 +539,9 @@ class FaceRenderer:
         nv = V.shape[0]
         out[:nv, :3] = V
         out[:nv, 3:] = N
+        if len(self._seam_source):
+            out[nv:self._skin_count, :3] = V[self._seam_source]
+            out[nv:self._skin_count, 3:] = N[self._seam_source]
         bones = bone_transforms or {}
         pupils = pupil_scale or {}
         for bone, where, pv, pn, pupil in self._parts:
@@ -545,7 +627,7 @@ class FaceRenderer:
             for hole in self._holes:
                 hlo, hhi = xy[hole].min(axis=0) - margin, xy[hole].max(axis=0) + margin
                 seen |= (lo[:, 0] <= hhi[0]) & (hi[:, 0] >= hlo[0]) & (lo[:, 1] <= hhi[1]) & (hi[:, 1] >= hlo[1])
-        return np.ascontiguousarray(F[away & seen], dtype=np.uint32)
+        return np.ascontiguousarray(self._skin_draw_faces[away & seen], dtype=np.uint32)
 
     def _color_buffer(self) -> np.ndarray:
         """(vh, vw, 4) uint8 copy of the rendered colour buffer, top row first (the
@@ -564,6 +646,8 @@ class FaceRenderer:
         self._closed = True
         self._platform.make_current()
         GL.glDeleteBuffers(3, self._buffers)
+        if getattr(self, "_texture", None) is not None:
+            GL.glDeleteTextures([self._texture])
         GL.glDeleteVertexArrays(1, [self._vao])
         GL.glDeleteProgram(self._program)
         self._platform.delete_context()
