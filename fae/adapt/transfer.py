@@ -148,7 +148,10 @@ def smooth_push(V: np.ndarray, push: np.ndarray, at: np.ndarray, radius: float) 
     return D / np.maximum(total, 1.0)[:, None]
 
 
-def push_under_skin(model: FaceModel, part: str, min_depth: float = MIN_BONE_DEPTH, rounds: int = 10,
+PUSH_ROUNDS = 10  # of push_under_skin
+
+
+def push_under_skin(model: FaceModel, part: str, min_depth: float = MIN_BONE_DEPTH, rounds: int = PUSH_ROUNDS,
                     reference: np.ndarray | None = None, skin: Surface | None = None) -> int:
     """Push bone `part` of `model` inwards wherever less than `min_depth` metres of soft
     tissue cover it, or a skin vertex lies inside it (the scanned face is thinner than the
@@ -331,6 +334,51 @@ MUSCLE_SEARCH_RADIUS = 0.035  # m: how far a linear muscle's attachment may move
 MUSCLE_MARGIN = 2e-4  # m: a muscle's line keeps this far inside the skin
 
 
+MOUTH_PARTS = ("upper_teeth", "lower_teeth", "tongue")
+MOUTH_SINK_STEP = 0.0005  # m: teeth or tongue that show through the lips move back this much at a time
+MOUTH_MAX_SINK_STEPS = 30
+MOUTH_POKE_REACH = 0.006  # m behind a tooth where the skin it pokes through is looked for
+
+
+def teeth_through_skin(model: FaceModel, skin: MeshQuery, X: np.ndarray) -> np.ndarray:
+    """(n,) bool: points X (n, 3) of teeth or tongue that show through the skin from the
+    front: nothing lies in front of them (+z), and just behind them (within
+    MOUTH_POKE_REACH) is outer skin facing forwards, not the mouth's lining: a tooth in
+    front of the lips or the chin. Teeth seen through the parted lips have the mouth behind
+    them instead; teeth behind closed lips have the lips in front."""
+    from fae.mesh import triangle_normals
+
+    F = np.asarray(model.skin_faces, np.int64)
+    normal_z = triangle_normals(model.skin_vertices, F)[:, 2]
+    names = list(model.region_names)
+    lining = np.zeros(len(F), dtype=bool)
+    if "mouth_cavity" in names:
+        lining = (np.asarray(model.skin_region)[F] == names.index("mouth_cavity")).any(axis=1)
+    ahead, _, _, _ = skin.ray_hits(X, np.tile([0.0, 0.0, 1.0], (len(X), 1)), 1.0)
+    behind, t, face, _ = skin.ray_hits(X, np.tile([0.0, 0.0, -1.0], (len(X), 1)), MOUTH_POKE_REACH)
+    face = np.maximum(face, 0)
+    return ~ahead & behind & (t < MOUTH_POKE_REACH) & (normal_z[face] > 0.0) & ~lining[face]
+
+
+def mouth_parts_behind_lips(model: FaceModel, skin: MeshQuery) -> dict[str, float]:
+    """Move teeth and tongue back (-z, rigidly, MOUTH_SINK_STEP at a time) while any of
+    their vertices shows through the skin (teeth_through_skin): a fit that widened the
+    mouth or moved the lips (a smile on a photo) would otherwise leave teeth in front of
+    the lips or the chin. Returns part -> metres moved (the parts that moved)."""
+    moved = {}
+    for name in MOUTH_PARTS:
+        if name not in model.parts:
+            continue
+        part = model.parts[name]
+        step = 0
+        while step < MOUTH_MAX_SINK_STEPS and teeth_through_skin(model, skin, part.vertices).any():
+            part.vertices = part.vertices - np.array([0.0, 0.0, MOUTH_SINK_STEP])
+            step += 1
+        if step:
+            moved[name] = step * MOUTH_SINK_STEP
+    return moved
+
+
 def keep_muscles_inside(model: FaceModel, skin: MeshQuery | None = None) -> list[str]:
     """Move the bone attachment of every linear muscle whose line leaves the soft tissue of
     `model` (skin changed, bones did not follow exactly) to the nearest bone vertex, within
@@ -455,9 +503,18 @@ def personalize(template: FaceModel, skin: np.ndarray, T: np.ndarray, unit: str,
             model.parts[name].vertices = rel * s + c
             model.eye_centers[name] = c
             eye_scale[name] = s
+    mouth_moved = mouth_parts_behind_lips(model, skin.query)
     model.jaw_pivot = carried(field, np.asarray(template.jaw_pivot)[None])[0]
-    pushed = sum(push_under_skin(model, name, reference=template.parts[name].vertices, skin=skin)
-                 for name in ("cranium", "mandible") if name in model.parts)
+    pushed = 0
+    for name in ("cranium", "mandible"):
+        if name not in model.parts:
+            continue
+        pushed += push_under_skin(model, name, reference=template.parts[name].vertices, skin=skin)
+        # an orbit deepened for a large eye can need more rounds than a thin face does
+        bone = model.parts[name]
+        if MeshQuery(bone.vertices, np.asarray(bone.faces, np.int64)).inside(model.skin_vertices).any():
+            pushed += push_under_skin(model, name, rounds=3 * PUSH_ROUNDS, reference=template.parts[name].vertices,
+                                      skin=skin)
     # soft-tissue depth: distance to the nearest bone (both bones in one BVH)
     bones = [model.parts[n] for n in ("cranium", "mandible") if n in model.parts]
     if bones:
@@ -485,6 +542,7 @@ def personalize(template: FaceModel, skin: np.ndarray, T: np.ndarray, unit: str,
     model.meta.update({"generator": "fae adapt", "adapt_method": method, "scan_unit": unit, "symmetric": False})
     report = {"method": method, "scan_unit": unit, "bone_vertices_pushed_under_skin": pushed,
               "fapu_ratio": fapu_ratio, "eye_scale": eye_scale, "orbits_deepened": orbits_deepened,
+              "mouth_parts_moved_back_m": mouth_moved,
               "muscle_attachments_moved": moved_muscles}
     return model, report
 

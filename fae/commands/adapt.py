@@ -38,7 +38,9 @@ def register(subparsers) -> None:
                               "reads, any unit and orientation, a bust on its plinth; feature points are "
                               "found when none are given), carry skull, jaw, muscles, eyes, teeth and tongue "
                               "over, and write the personalized head.")
-    p.add_argument("scan", metavar="SCAN", help="head mesh (OBJ, PLY, STL, OFF, GLB/glTF)")
+    p.add_argument("scan", metavar="SCAN", nargs="?", help="head mesh (OBJ, PLY, STL, OFF, GLB/glTF)")
+    p.add_argument("--photo", metavar="FACE.jpg", help="instead of a scan: one frontal photo of a face (JPEG, PNG); "
+                   "the head is shaped from the face's points and coloured from the photo (paper 002)")
     p.add_argument("--landmarks", metavar="FILE", help="feature points: JSON {\"9.3\": [x, y, z] or vertex "
                    "index}, menpo .ljson or CSV (68 iBUG points or name,x,y,z rows)")
     p.add_argument("--feature-search", choices=("fit", "ga"), default="fit",
@@ -91,6 +93,11 @@ def run(args) -> int:
     from fae.io.facemodel_gltf import read_facemodel
     from fae.io.scan import LandmarkError, read_landmarks, read_scan
 
+    if (args.scan is None) == (args.photo is None):
+        print("fae adapt: give either a scan (SCAN) or --photo FACE.jpg", file=sys.stderr)
+        return 2
+    if args.photo is not None:
+        return _run_photo(args)
     if args.method != "surface" and args.compare:
         print("fae adapt: --compare needs --method surface", file=sys.stderr)
         return 2
@@ -293,4 +300,126 @@ def _run_paper(args, template, V, F, landmarks) -> int:
     print(f"{args.output}: scan->model RMS {f['scan_to_model_rms'] * 1000:.3f} mm, model->scan RMS "
           f"{f['model_to_scan_rms'] * 1000:.3f} mm, marker error {f['marker_error'] * 1000:.3f} mm, "
           f"{f['seconds']:.1f} s")
+    return 0
+
+
+# The landmark model's points on the head drawn like the photo lie within this share of the
+# eye distance (RMS) from its points on the photo, or the head is not to be trusted.
+MAX_RENDER_POINTS_SHARE = 0.1
+
+
+def read_photo(path: str):
+    """(h, w, 3) uint8 RGB pixels of an image file, turned upright by its EXIF orientation;
+    ValueError naming the file when it is not an image."""
+    import numpy as np
+    from PIL import Image, ImageOps, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as image:
+            return np.asarray(ImageOps.exif_transpose(image).convert("RGB"), dtype=np.uint8).copy()
+    except FileNotFoundError:
+        raise ValueError(f"{path}: no such file") from None
+    except (UnidentifiedImageError, OSError) as exc:
+        raise ValueError(f"{path}: not an image fae can read (expected JPEG or PNG; {exc})") from exc
+
+
+def _run_photo(args) -> int:
+    """`fae adapt --photo FACE.jpg -o HEAD.glb`: see fae.adapt.photo."""
+    import numpy as np
+
+    from fae.adapt.photo import PhotoPoints, PhotoRefused, head_from_photo
+    from fae.commands.adapt_checks import overwritten_input
+    from fae.commands.common import output_problem
+    from fae.io.atomic import atomic_open, atomic_path
+    from fae.io.facemodel_gltf import read_facemodel, write_facemodel
+
+    started = time.perf_counter()
+    if args.landmarks or args.method != "surface":
+        _say("--landmarks and --method belong to scans; a photo's points are found by the landmark model")
+        return 2
+    outputs = {"-o": args.output, "--report": args.report, "--compare": args.compare}
+    problem = overwritten_input(outputs, {"photo": args.photo, "--template": args.template})
+    for flag, path in outputs.items():
+        problem = problem or (path and output_problem(path) and f"{flag} {output_problem(path)}")
+    if problem:
+        _say(problem)
+        return 2
+    try:
+        image = read_photo(args.photo)
+        if not os.path.isfile(args.template):
+            raise ValueError(f"template {args.template} not found (build it with `fae template`)")
+        template = read_facemodel(args.template)
+    except (OSError, ValueError) as exc:
+        _say(str(exc))
+        return 2
+    try:
+        from fae.render.landmarks import (EYE_POINTS, EYES, FACE_OVAL, INNER_LIP_POINTS, MOUTH_OPENING,
+                                          OUTER_LIP_POINTS, LandmarkModelMissing, detect_points_any_turn,
+                                          points_on_render, template_points)
+
+        points, turns = detect_points_any_turn(image)
+        if points is None:
+            raise PhotoRefused(f"{args.photo}: no face found (a face seen from the front, its eyes at least "
+                               "20 pixels apart, is needed)")
+        on_template = template_points(template)
+        if on_template is None:
+            raise PhotoRefused(f"{args.template}: the landmark model finds no face on the template")
+        size = (image.shape[1], image.shape[0])
+        model, report = head_from_photo(
+            template, image, PhotoPoints(points, size), on_template,
+            skip=(EYE_POINTS, INNER_LIP_POINTS, OUTER_LIP_POINTS), eyes=EYES, outline=FACE_OVAL,
+            holes=(EYES[0], EYES[1], MOUTH_OPENING), photo_name=args.photo)
+        report["photo_quarter_turns"] = turns
+        # the result, drawn as the photo was taken, must read as the same face
+        seen = points_on_render(model, size)
+        eye_px = report["eye_distance_px"]
+        share = None if seen is None else float(np.sqrt(np.mean(np.sum((seen[:, :2] - points[:, :2]) ** 2, axis=1)))
+                                                / eye_px)
+        report["render_points_share_of_eye_distance"] = share
+        verdict = []
+        if share is None:
+            verdict.append("the landmark model finds no face on the head drawn like the photo")
+        elif share > MAX_RENDER_POINTS_SHARE:
+            verdict.append(f"the head drawn like the photo puts the face's points {share * 100:.0f} % of the eye "
+                           f"distance from the photo's (RMS; at most {MAX_RENDER_POINTS_SHARE * 100:.0f} %)")
+        if report["folded_triangles"]:
+            verdict.append(f"{report['folded_triangles']} skin triangles folded")
+        report["verdict"] = verdict
+    except LandmarkModelMissing as exc:
+        _say(str(exc).replace("finding feature points on a scan", "a head from a photo")
+             .replace(" (or give --landmarks)", ""))
+        return 2
+    except PhotoRefused as exc:
+        _say(str(exc))
+        return 2
+    except (RuntimeError, ImportError, OSError) as exc:  # no OpenGL to draw the template with
+        _say(f"cannot render the template to find its face ({exc}); is OSMesa installed (make install)?")
+        return 2
+    for why in verdict:
+        _say(f"{args.photo}: {why}")
+    if verdict and not args.force:
+        _say(f"not writing {args.output}: the head is not to be trusted (--force writes it anyway)")
+        if args.report:
+            with atomic_open(args.report, "w") as fh:
+                json.dump(_json_safe(report), fh, indent=1, allow_nan=False)
+        return 2
+    model = _calibrated(args, model, report, template.fap_mapping)
+    picture = None
+    if args.compare:
+        from fae.render.compare import photo_comparison_image
+
+        picture = photo_comparison_image(model, image)
+    report["total_seconds"] = time.perf_counter() - started
+    write_facemodel(model, args.output)
+    if args.report:
+        with atomic_open(args.report, "w") as fh:
+            json.dump(_json_safe(report), fh, indent=1, allow_nan=False)
+    if picture is not None:
+        from fae.render.png import write_png
+
+        with atomic_path(args.compare) as tmp:
+            write_png(tmp, picture)
+    print(f"{args.output}: head from {args.photo} ({report['eye_distance_px']:.0f} pixels between the eyes, turned "
+          f"{report['yaw_deg']:.0f} degrees); the landmark model sees it {share * 100:.1f} % of the eye distance "
+          f"from the photo's points (RMS); {report['total_seconds']:.1f} s")
     return 0

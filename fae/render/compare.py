@@ -54,3 +54,32 @@ def comparison_image(model: FaceModel, scan_V: np.ndarray, scan_F: np.ndarray, k
                 images.append(renderer.render())
         rows.append(np.concatenate(images, axis=1))
     return np.concatenate(rows, axis=0)
+
+
+def photo_comparison_image(model: FaceModel, image: np.ndarray, height: int = 360) -> np.ndarray:
+    """(height, 4 height, 3) uint8 for a head adapted from a photo: the photo around the
+    face, the head drawn through the photo's camera (fae.render.framing.photo_camera)
+    over the same square, the two blended half and half, and the head in profile.
+    image (h, w, 3) uint8, the photo."""
+    from PIL import Image
+
+    from fae.render.framing import photo_camera
+    from fae.render.renderer import FaceRenderer
+
+    M = np.asarray(model.scan_transform, dtype=np.float64)
+    xy = (model.skin_vertices @ M[:3, :3].T + M[:3, 3])[:, :2]
+    lo, hi = xy.min(axis=0), xy.max(axis=0)
+    side = 1.15 * float(max(hi - lo))
+    x0, y0 = 0.5 * (lo + hi) - 0.5 * side  # the square around the head, photo pixels
+    k = height / side
+    to_crop = np.diag([k, k, k, 1.0]) @ np.array([[1, 0, 0, -x0], [0, 1, 0, -y0], [0, 0, 1, 0], [0, 0, 0, 1.0]]) @ M
+    with FaceRenderer(model, (height, height), camera=photo_camera(to_crop, (height, height)),
+                      supersample=2) as renderer:
+        head = renderer.render()
+    with FaceRenderer(model, (height, height), "profile", supersample=2) as renderer:
+        profile = renderer.render()
+    box = (float(x0), float(y0), float(x0 + side), float(y0 + side))
+    photo = np.asarray(Image.fromarray(np.ascontiguousarray(image[:, :, :3])).resize(
+        (height, height), Image.LANCZOS, box=box))
+    blend = ((photo.astype(np.uint16) + head) // 2).astype(np.uint8)
+    return np.concatenate([photo, head, blend, profile], axis=1)

@@ -151,3 +151,27 @@ def camera_view(model: FaceModel, view: str = "front", aspect: float = 4.0 / 3.0
     extent = max(frame.height, frame.depth, frame.width)
     return CameraView(pose=pose, yfov=float(yfov), znear=max(distance - 2.0 * extent, 0.05 * distance),
                       zfar=distance + 2.0 * extent, target=frame.centre)
+
+
+PHOTO_CAMERA_DISTANCE = 30.0  # metres: far enough that perspective is within 1 % of the photo's weak perspective
+
+
+def photo_camera(to_photo: np.ndarray, size: tuple[int, int]) -> CameraView:
+    """The camera of a photo whose pixels a head's face frame maps to: to_photo (4, 4) a
+    similarity, face frame (metres) -> photo pixels (x right, y down, z away; the
+    scan_transform of a head adapted from a photo, fae.adapt.photo); size (width, height)
+    of the photo. The camera stands PHOTO_CAMERA_DISTANCE away with the field of view
+    that keeps the photo's scale (nearly orthographic), so a render of the head at `size`
+    lies over the photo."""
+    A = np.asarray(to_photo, dtype=np.float64)[:3, :3]
+    s = float(np.cbrt(abs(np.linalg.det(A))))  # pixels per metre
+    R = np.diag([1.0, -1.0, -1.0]) @ A / s  # face frame -> camera axes (x right, y up, z towards the viewer)
+    width, height = size
+    centre = np.linalg.solve(np.asarray(to_photo)[:3, :3], np.array([0.5 * width, 0.5 * height, 0.0]) - to_photo[:3, 3])
+    # the image centre's point of the face's depth plane (z = 0 in photo pixels, the face's middle)
+    pose = np.eye(4)
+    pose[:3, :3] = R.T
+    pose[:3, 3] = centre + PHOTO_CAMERA_DISTANCE * R.T[:, 2]
+    yfov = 2.0 * np.arctan(0.5 * height / (s * PHOTO_CAMERA_DISTANCE))
+    return CameraView(pose=pose, yfov=float(yfov), znear=PHOTO_CAMERA_DISTANCE - 1.0,
+                      zfar=PHOTO_CAMERA_DISTANCE + 1.0, target=centre)

@@ -129,6 +129,14 @@ def _native_stderr_silenced():
 def detect_pixels(image: np.ndarray) -> np.ndarray | None:
     """MediaPipe Face Mesh's 468 points (468, 2) in pixels of an RGB image (H, W, 3)
     uint8, or None when it finds no face."""
+    points = detect_points(image)
+    return None if points is None else points[:, :2]
+
+
+def detect_points(image: np.ndarray) -> np.ndarray | None:
+    """MediaPipe Face Mesh's 468 points (468, 3) of an RGB image (H, W, 3) uint8: pixels
+    (x right, y down) and the model's own depth (z away from the viewer, in pixels of the
+    image's width, 0 about the face's centre), or None when it finds no face."""
     import os
     import warnings
 
@@ -150,7 +158,33 @@ def detect_pixels(image: np.ndarray) -> np.ndarray | None:
     if not found.multi_face_landmarks:
         return None
     pts = found.multi_face_landmarks[0].landmark
-    return np.array([[p.x * w, p.y * h] for p in pts[:468]])
+    return np.array([[p.x * w, p.y * h, p.z * w] for p in pts[:468]])
+
+
+def detect_points_any_turn(image: np.ndarray) -> tuple[np.ndarray | None, int]:
+    """detect_points on the image as it is, else turned by a quarter, half and three
+    quarters (a photo stored on its side): (points (468, 3) in the image's own pixels, or
+    None; the quarter turns that found them, 0-3)."""
+    h, w = image.shape[:2]
+    for k in range(4):
+        points = detect_points(np.ascontiguousarray(np.rot90(image, k)))
+        if points is None:
+            continue
+        return _unturned(points, k, (w, h)), k
+    return None, 0
+
+
+def _unturned(points: np.ndarray, quarter_turns: int, size: tuple[int, int]) -> np.ndarray:
+    """Points (n, 3) found on np.rot90(image, k) back in the pixels of image (size (w, h))."""
+    w, h = size
+    out = np.array(points, dtype=np.float64)
+    for j in range(quarter_turns, 0, -1):
+        # np.rot90 turns counter-clockwise: the pixel (x, y) of np.rot90(image, j) is the
+        # pixel (ww - y, x) of np.rot90(image, j - 1), whose width is ww
+        ww = w if (j - 1) % 2 == 0 else h
+        x, y = out[:, 0].copy(), out[:, 1].copy()
+        out[:, 0], out[:, 1] = ww - y, x
+    return out
 
 
 def face_points_seen(model: FaceModel, camera: CameraView, size: tuple[int, int] = DETECTION_SIZE,
@@ -220,3 +254,46 @@ def landmark_pairs(template: FaceModel, scan_V: np.ndarray, scan_F: np.ndarray, 
                    "similarity_residual_m": float(np.sqrt(np.mean(res[good] ** 2))),
                    "dropped_as_outliers": int((~good).sum())})
     return LandmarkPairs(on_template.face[idx], on_template.bary[idx], on_scan.points[idx], idx, report)
+
+
+# Each eye's own points (the first half of EYE_POINTS is the face's right eye).
+EYES = (EYE_POINTS[:16], EYE_POINTS[16:])
+
+
+def template_points(template: FaceModel, size: tuple[int, int] = DETECTION_SIZE):
+    """The landmark model's points on a front render of `template`, with the template's
+    feature points seen in the same render (fae.adapt.photo.TemplatePoints); None when no
+    face is found on it."""
+    from fae.adapt.photo import TemplatePoints
+    from fae.render.framing import camera_view
+
+    camera = camera_view(template, "front", aspect=size[0] / size[1])
+    seen = face_points_seen(template, camera, size)
+    if seen is None:
+        return None
+    fdp = {n: p for n, p in template.feature_point_positions().items() if template.feature_points[n].part == "skin"}
+    names = sorted(fdp)
+    pixels = camera.project(np.array([fdp[n] for n in names]), size)
+    return TemplatePoints(pixels=seen.pixels, points=seen.points, fdp_pixels=dict(zip(names, pixels)))
+# The lips' inner contour as a polygon (upper lip left to right, lower lip back): the mouth's opening.
+MOUTH_OPENING = INNER_LIP_POINTS[:11] + INNER_LIP_POINTS[11:][::-1]
+# The lips' outer contour but its corners (61, 291): on a photo of a smile or an open mouth
+# they would open the neutral head's mouth.
+OUTER_LIP_POINTS = (146, 91, 181, 84, 17, 314, 405, 321, 375, 185, 40, 39, 37, 0, 267, 269, 270, 409)
+
+
+def points_on_render(model: FaceModel, size: tuple[int, int]) -> np.ndarray | None:
+    """The landmark model's points (468, 3) on `model` drawn through the camera of the
+    photo it was adapted from (its scan_transform; fae.render.framing.photo_camera), in
+    the photo's pixels; None when the model finds no face there. Rendered at least
+    DETECTION_SIZE large (a small photo's face is drawn larger, then scaled back)."""
+    from fae.render.framing import photo_camera
+    from fae.render.renderer import FaceRenderer
+
+    width, height = size
+    k = max(1.0, DETECTION_SIZE[0] / max(width, height))
+    render_size = (round(width * k), round(height * k))
+    with FaceRenderer(model, render_size, camera=photo_camera(model.scan_transform, size), supersample=2) as r:
+        image = r.render()
+    points = detect_points(image)
+    return None if points is None else points / k
