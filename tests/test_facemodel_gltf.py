@@ -426,3 +426,66 @@ def test_corrupted_bytes_raise_facemodel_error_or_decode(head_file, data):
         assert "corrupt.glb" in str(exc)
     else:
         assert structural_problems(model) == []
+
+
+# -- a textured skin -----------------------------------------------------------------------
+
+
+def textured(head: FaceModel) -> FaceModel:
+    """The head with a cylindrical texture map and a colour ramp for a texture."""
+    from fae.anatomy.template import skin_uv
+
+    out = copy.deepcopy(head)
+    out.skin_uv = skin_uv(out.skin_vertices)
+    rows, cols = np.mgrid[0:64, 0:128]
+    out.skin_texture = np.stack([2 * cols, 4 * rows, 255 - 2 * cols], axis=2).astype(np.uint8)
+    return out
+
+
+def test_a_texture_comes_back_exactly_and_viewers_see_it(head, tmp_path):
+    model = textured(head)
+    path = tmp_path / "textured.glb"
+    write_facemodel(model, path)
+    again = read_facemodel(path)
+    assert_same(model, again)
+    document, _ = split_glb(path.read_bytes())
+    skin_material = document["materials"][document["meshes"][0]["primitives"][0]["material"]]
+    assert skin_material["pbrMetallicRoughness"]["baseColorTexture"]["index"] == 0
+    assert document["images"][0]["mimeType"] == "image/png"
+    assert validate(path)["issues"]["numErrors"] == 0
+
+
+def test_a_texture_that_is_not_an_rgb_image_is_named(head):
+    model = textured(head)
+    model.skin_texture = model.skin_texture.astype(np.float32)
+    assert any(p.startswith("skin_texture") for p in structural_problems(model))
+    with pytest.raises(FaceModelError, match="skin_texture"):
+        facemodel_to_glb(model)
+
+
+def test_the_exported_scene_carries_the_texture_across_the_seam(head, tmp_path):
+    """`fae export`'s scene: the skin's triangles that cross the texture's seam get their own
+    copies of its vertices (u + 1), in the mesh and in its morph targets, and the file
+    passes the validator."""
+    from fae.io.export_gltf import scene_glb
+    from fae.mesh import wrapped_seam
+
+    model = textured(head)
+    n = len(model.skin_vertices)
+
+    class Target:
+        name = "lift"
+        vertices = np.arange(0, n, 3)
+        displacement = np.tile([0.0, 0.001, 0.0], (len(vertices), 1))
+
+    _, source, _ = wrapped_seam(model.skin_faces, model.skin_uv)
+    assert len(source) > 0  # the synthetic head's map has a seam
+    path = tmp_path / "scene.glb"
+    path.write_bytes(scene_glb(model, targets=[Target()]))
+    document, _ = split_glb(path.read_bytes())
+    skin = next(m for m in document["meshes"] if m["name"] == "skin")["primitives"][0]
+    assert document["accessors"][skin["attributes"]["POSITION"]]["count"] == n + len(source)
+    assert "TEXCOORD_0" in skin["attributes"]
+    sparse = document["accessors"][skin["targets"][0]["POSITION"]]["sparse"]
+    assert sparse["count"] == len(Target.vertices) + int(np.isin(source, Target.vertices).sum())
+    assert validate(path)["issues"]["numErrors"] == 0

@@ -32,7 +32,8 @@ import pygltflib
 from scipy.spatial.transform import Rotation
 
 from fae.io.atomic import atomic_path
-from fae.io.facemodel_gltf import DEFAULT_ROUGHNESS, ROUGHNESS, vertex_normals
+from fae.io.facemodel_gltf import DEFAULT_ROUGHNESS, ROUGHNESS, png_bytes, vertex_normals
+from fae.mesh import wrapped_seam
 
 GENERATOR = "fae scene export"
 HIDDEN_PARTS = ("cranium", "mandible")  # under the skin: never seen, left out
@@ -40,6 +41,13 @@ BONE_PARENTS = {"head": None, "eye_l": "head", "eye_r": "head", "jaw": "head", "
 _ALIGNMENT = 8
 _ARRAY_BUFFER = 34962
 _ELEMENT_ARRAY_BUFFER = 34963
+
+
+class _Target:
+    """A morph target as the writer takes it: name, vertices (k,), displacement (k, 3)."""
+
+    def __init__(self, name: str, vertices: np.ndarray, displacement: np.ndarray):
+        self.name, self.vertices, self.displacement = name, vertices, displacement
 
 
 def local_transforms(bone_transforms: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -132,8 +140,10 @@ class _SceneWriter:
         self.gltf.accessors.append(acc)
         return len(self.gltf.accessors) - 1
 
-    def mesh(self, name: str, vertices, faces, color, colors=None, targets=()) -> int:
-        """A mesh node (index) of one surface."""
+    def mesh(self, name: str, vertices, faces, color, colors=None, targets=(), uv=None, image: int | None = None
+             ) -> int:
+        """A mesh node (index) of one surface; uv (n, 2) and image (a glTF image index): its
+        base colour texture."""
         vertices = np.asarray(vertices, dtype=np.float64)
         attributes = pygltflib.Attributes(
             POSITION=self.accessor(vertices.astype(np.float32), pygltflib.FLOAT, pygltflib.VEC3, _ARRAY_BUFFER, True),
@@ -147,9 +157,21 @@ class _SceneWriter:
         indices = self.accessor(np.asarray(faces).astype(np.uint32).reshape(-1), pygltflib.UNSIGNED_INT,
                                 pygltflib.SCALAR, _ELEMENT_ARRAY_BUFFER)
         base = [1.0, 1.0, 1.0, 1.0] if colors is not None else [min(max(float(c), 0.0), 1.0) for c in color]
+        texture = None
+        if uv is not None and image is not None:
+            attributes.TEXCOORD_0 = self.accessor(np.asarray(uv, dtype=np.float32), pygltflib.FLOAT, pygltflib.VEC2,
+                                                  _ARRAY_BUFFER)
+            if not self.gltf.samplers:
+                self.gltf.samplers.append(pygltflib.Sampler(magFilter=pygltflib.LINEAR,
+                                                            minFilter=pygltflib.LINEAR_MIPMAP_LINEAR,
+                                                            wrapS=pygltflib.REPEAT, wrapT=pygltflib.CLAMP_TO_EDGE))
+            self.gltf.textures.append(pygltflib.Texture(sampler=0, source=image))
+            texture = pygltflib.TextureInfo(index=len(self.gltf.textures) - 1)
+            base = [1.0, 1.0, 1.0, 1.0]
         self.gltf.materials.append(pygltflib.Material(
             name=name, pbrMetallicRoughness=pygltflib.PbrMetallicRoughness(
-                baseColorFactor=base, metallicFactor=0.0, roughnessFactor=ROUGHNESS.get(name, DEFAULT_ROUGHNESS)),
+                baseColorFactor=base, metallicFactor=0.0, roughnessFactor=ROUGHNESS.get(name, DEFAULT_ROUGHNESS),
+                baseColorTexture=texture),
             alphaMode=pygltflib.BLEND if base[3] < 1.0 else None))
         primitive = pygltflib.Primitive(attributes=attributes, indices=indices, material=len(self.gltf.materials) - 1,
                                         mode=pygltflib.TRIANGLES)
@@ -173,8 +195,11 @@ class _SceneWriter:
             if parent is not None:
                 children[parent].append(bones[b])
         colors = None if self.skin_colors is None else np.asarray(self.skin_colors, dtype=np.float32)
-        skin = self.mesh("skin", m.skin_vertices, m.skin_faces, np.asarray(m.skin_color, dtype=np.float32),
-                         colors=colors, targets=self.targets)
+        if getattr(m, "skin_texture", None) is None:
+            skin = self.mesh("skin", m.skin_vertices, m.skin_faces, np.asarray(m.skin_color, dtype=np.float32),
+                             colors=colors, targets=self.targets)
+        else:
+            skin = self.textured_skin(colors)
         children["head"].insert(0, skin)
         for part_name, part in m.parts.items():
             if part_name in HIDDEN_PARTS or len(part.faces) == 0 or part.bone not in children:
@@ -192,6 +217,32 @@ class _SceneWriter:
         g.buffers = [pygltflib.Buffer(byteLength=len(self.blob))]
         g.set_binary_blob(bytes(self.blob))
         return b"".join(g.save_to_bytes())
+
+    def textured_skin(self, colors: np.ndarray | None) -> int:
+        """The skin's mesh node with its texture: the vertices of the triangles that cross the
+        texture's seam are repeated (fae.mesh.wrapped_seam), in the mesh and in every morph
+        target; vertex colours, when given, become factors of the texture (1 where they are
+        the skin colour, darker inside the mouth)."""
+        m = self.model
+        V = np.asarray(m.skin_vertices, dtype=np.float64)
+        n = len(V)
+        F2, source, uv2 = wrapped_seam(m.skin_faces, m.skin_uv)
+        targets = []
+        for t in self.targets:
+            row = np.full(n, -1, dtype=np.int64)
+            row[np.asarray(t.vertices, dtype=np.int64)] = np.arange(len(t.vertices))
+            copies = np.flatnonzero(row[source] >= 0)
+            targets.append(_Target(t.name, np.concatenate([t.vertices, n + copies]),
+                                   np.concatenate([t.displacement, np.asarray(t.displacement)[row[source[copies]]]])))
+        factors = None
+        if colors is not None:
+            skin = np.maximum(np.asarray(m.skin_color, dtype=np.float32)[:3], 1e-3)
+            factors = np.clip(colors[:, :3] / skin, 0.0, 1.0)
+            factors = np.concatenate([factors, factors[source]])
+        image = len(self.gltf.images)
+        self.gltf.images.append(pygltflib.Image(bufferView=self.view(png_bytes(m.skin_texture)), mimeType="image/png"))
+        return self.mesh("skin", np.concatenate([V, V[source]]), F2, np.asarray(m.skin_color, dtype=np.float32),
+                         colors=factors, targets=targets, uv=uv2, image=image)
 
     def animation(self, skin: int, bones: dict[str, int]) -> None:
         k = self.keyframes
