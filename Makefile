@@ -29,7 +29,7 @@ system-deps:
 $(STAMP): pyproject.toml | system-deps
 	@[ -x $(PY) ] || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -e '.[dev,landmarks,batch]'
+	$(PY) -m pip install -q -e '.[dev,landmarks,photo,batch]'
 	$(PY) -m pip install -q --no-deps 'pyrender==0.1.45'
 	@if command -v npm >/dev/null 2>&1 && { [ ! -d tools/node_modules/gltf-validator ] || [ ! -d tools/node_modules/three ]; }; then \
 	  npm install --prefix tools --silent --no-audit --no-fund --no-package-lock >/dev/null 2>&1 \
