@@ -8,8 +8,11 @@ Writes (PNG, each well under 300 KB):
   docs/images/demo_strip.png              a few frames of fap_streams/expressions.fap side by side
   docs/images/adapt_bust.png              `fae adapt --compare` on a bust the project makes
                                           (fae.adapt.synthetic.bust_scan): scan, head, both
+  docs/images/photo_head.png              the head `fae adapt --photo` makes of scikit-image's
+                                          astronaut portrait: as the photo saw it, three-quarter,
+                                          profile, and two moments of expressions.fap
 
---only NAME renders one of them (template, strip, adapt).
+--only NAME renders one of them (template, strip, adapt, photo).
 """
 
 from __future__ import annotations
@@ -66,13 +69,39 @@ def adapt_picture(model) -> np.ndarray:
     return comparison_image(adapted, bust.vertices, bust.faces, head.keep, size=(300, 300))
 
 
+def photo_picture(model, stream_path: Path) -> np.ndarray:
+    """The head of skimage's astronaut photo (fae adapt --photo, calibrated from the
+    template's mapping): through the photo's camera, three-quarter, profile, then joy and
+    surprise from the expressions stream."""
+    from skimage import data
+
+    from fae.animate.calibrate import calibrate
+    from fae.commands.adapt import photo_head
+    from fae.render.compare import photo_comparison_image
+
+    head, report = photo_head(model, data.astronaut(), "astronaut")
+    if report["verdict"]:
+        raise SystemExit(f"the photo's head is not to be trusted: {report['verdict']}")
+    head = calibrate(head, start=model.fap_mapping)
+    size = 300
+    seen = photo_comparison_image(head, data.astronaut(), height=size)[:, size:2 * size]  # the head as the photo saw it
+    tiles = [seen]
+    for view in ("three-quarter", "profile"):
+        with FaceRenderer(head, size=(size, size), view=view, supersample=2) as r:
+            tiles.append(r.render())
+    frames = demo_frames(head, stream_path, 6)
+    with FaceRenderer(head, size=(size, size), view="front", supersample=2) as r:
+        tiles += [r.render(f.skin_vertices, f.bone_transforms, f.pupil_scale) for f in (frames[0], frames[5])]
+    return np.concatenate(tiles, axis=1)
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--head", type=Path, default=shipped_head_path())
     parser.add_argument("--stream", type=Path, default=REPO / "fap_streams" / "expressions.fap")
     parser.add_argument("--out", type=Path, default=REPO / "docs" / "images")
     parser.add_argument("--strip-frames", type=int, default=6)
-    parser.add_argument("--only", choices=("template", "strip", "adapt"))
+    parser.add_argument("--only", choices=("template", "strip", "adapt", "photo"))
     args = parser.parse_args()
     if not args.head.is_file():
         print(f"{args.head}: head not found (build the template first)", file=sys.stderr)
@@ -94,6 +123,9 @@ def main() -> int:
     if args.only in (None, "adapt"):
         write_png(args.out / "adapt_bust.png", adapt_picture(model), compress_level=9)
         written.append(args.out / "adapt_bust.png")
+    if args.only in (None, "photo"):
+        write_png(args.out / "photo_head.png", photo_picture(model, args.stream), compress_level=9)
+        written.append(args.out / "photo_head.png")
     for path in written:
         size = path.stat().st_size
         print(f"{path.relative_to(REPO) if path.is_relative_to(REPO) else path}: {size / 1000:.0f} KB")

@@ -323,11 +323,52 @@ def read_photo(path: str):
         raise ValueError(f"{path}: not an image fae can read (expected JPEG or PNG; {exc})") from exc
 
 
-def _run_photo(args) -> int:
-    """`fae adapt --photo FACE.jpg -o HEAD.glb`: see fae.adapt.photo."""
+def photo_head(template, image, photo_name: str = "photo", template_name: str = "template"):
+    """(model, report): the textured head of a photo (h, w, 3) uint8 as `fae adapt --photo`
+    makes it, before calibration: the landmark model's points on the photo (turned by
+    quarters when needed) and on the template, fae.adapt.photo.head_from_photo, then the
+    result drawn like the photo and looked at again (report["verdict"] lists what is not
+    to be trusted). Raises PhotoRefused, or LandmarkModelMissing without MediaPipe."""
     import numpy as np
 
     from fae.adapt.photo import PhotoPoints, PhotoRefused, head_from_photo
+    from fae.render.landmarks import (EYE_POINTS, EYES, FACE_OVAL, INNER_LIP_POINTS, MOUTH_OPENING,
+                                      OUTER_LIP_POINTS, detect_points_any_turn, points_on_render, template_points)
+
+    points, turns = detect_points_any_turn(image)
+    if points is None:
+        raise PhotoRefused(f"{photo_name}: no face found (a face seen from the front, its eyes at least "
+                           "20 pixels apart, is needed)")
+    on_template = template_points(template)
+    if on_template is None:
+        raise PhotoRefused(f"{template_name}: the landmark model finds no face on the template")
+    size = (image.shape[1], image.shape[0])
+    model, report = head_from_photo(
+        template, image, PhotoPoints(points, size), on_template,
+        skip=(EYE_POINTS, INNER_LIP_POINTS, OUTER_LIP_POINTS), eyes=EYES, outline=FACE_OVAL,
+        holes=(EYES[0], EYES[1], MOUTH_OPENING), photo_name=photo_name)
+    report["photo_quarter_turns"] = turns
+    # the result, drawn as the photo was taken, must read as the same face
+    seen = points_on_render(model, size)
+    eye_px = report["eye_distance_px"]
+    share = None if seen is None else float(np.sqrt(np.mean(np.sum((seen[:, :2] - points[:, :2]) ** 2, axis=1)))
+                                            / eye_px)
+    report["render_points_share_of_eye_distance"] = share
+    verdict = []
+    if share is None:
+        verdict.append("the landmark model finds no face on the head drawn like the photo")
+    elif share > MAX_RENDER_POINTS_SHARE:
+        verdict.append(f"the head drawn like the photo puts the face's points {share * 100:.0f} % of the eye "
+                       f"distance from the photo's (RMS; at most {MAX_RENDER_POINTS_SHARE * 100:.0f} %)")
+    if report["folded_triangles"]:
+        verdict.append(f"{report['folded_triangles']} skin triangles folded")
+    report["verdict"] = verdict
+    return model, report
+
+
+def _run_photo(args) -> int:
+    """`fae adapt --photo FACE.jpg -o HEAD.glb`: see fae.adapt.photo."""
+    from fae.adapt.photo import PhotoRefused
     from fae.commands.adapt_checks import overwritten_input
     from fae.commands.common import output_problem
     from fae.io.atomic import atomic_open, atomic_path
@@ -352,39 +393,12 @@ def _run_photo(args) -> int:
     except (OSError, ValueError) as exc:
         _say(str(exc))
         return 2
-    try:
-        from fae.render.landmarks import (EYE_POINTS, EYES, FACE_OVAL, INNER_LIP_POINTS, MOUTH_OPENING,
-                                          OUTER_LIP_POINTS, LandmarkModelMissing, detect_points_any_turn,
-                                          points_on_render, template_points)
+    from fae.render.landmarks import LandmarkModelMissing
 
-        points, turns = detect_points_any_turn(image)
-        if points is None:
-            raise PhotoRefused(f"{args.photo}: no face found (a face seen from the front, its eyes at least "
-                               "20 pixels apart, is needed)")
-        on_template = template_points(template)
-        if on_template is None:
-            raise PhotoRefused(f"{args.template}: the landmark model finds no face on the template")
-        size = (image.shape[1], image.shape[0])
-        model, report = head_from_photo(
-            template, image, PhotoPoints(points, size), on_template,
-            skip=(EYE_POINTS, INNER_LIP_POINTS, OUTER_LIP_POINTS), eyes=EYES, outline=FACE_OVAL,
-            holes=(EYES[0], EYES[1], MOUTH_OPENING), photo_name=args.photo)
-        report["photo_quarter_turns"] = turns
-        # the result, drawn as the photo was taken, must read as the same face
-        seen = points_on_render(model, size)
-        eye_px = report["eye_distance_px"]
-        share = None if seen is None else float(np.sqrt(np.mean(np.sum((seen[:, :2] - points[:, :2]) ** 2, axis=1)))
-                                                / eye_px)
-        report["render_points_share_of_eye_distance"] = share
-        verdict = []
-        if share is None:
-            verdict.append("the landmark model finds no face on the head drawn like the photo")
-        elif share > MAX_RENDER_POINTS_SHARE:
-            verdict.append(f"the head drawn like the photo puts the face's points {share * 100:.0f} % of the eye "
-                           f"distance from the photo's (RMS; at most {MAX_RENDER_POINTS_SHARE * 100:.0f} %)")
-        if report["folded_triangles"]:
-            verdict.append(f"{report['folded_triangles']} skin triangles folded")
-        report["verdict"] = verdict
+    try:
+        model, report = photo_head(template, image, args.photo, args.template)
+        verdict = report["verdict"]
+        share = report["render_points_share_of_eye_distance"]
     except LandmarkModelMissing as exc:
         _say(str(exc).replace("finding feature points on a scan", "a head from a photo")
              .replace(" (or give --landmarks)", ""))
@@ -419,7 +433,8 @@ def _run_photo(args) -> int:
 
         with atomic_path(args.compare) as tmp:
             write_png(tmp, picture)
+    seen = "finds no face on it" if share is None else \
+        f"sees it {share * 100:.1f} % of the eye distance from the photo's points (RMS)"
     print(f"{args.output}: head from {args.photo} ({report['eye_distance_px']:.0f} pixels between the eyes, turned "
-          f"{report['yaw_deg']:.0f} degrees); the landmark model sees it {share * 100:.1f} % of the eye distance "
-          f"from the photo's points (RMS); {report['total_seconds']:.1f} s")
+          f"{report['yaw_deg']:.0f} degrees); the landmark model {seen}; {report['total_seconds']:.1f} s")
     return 0
