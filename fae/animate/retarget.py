@@ -1,0 +1,511 @@
+"""Any mesh animated by the template's motion: motion-vector transfer (paper 002 §3).
+
+A head fae did not make (an artist's model, a game character, a scan nobody wants
+re-topologized) keeps its own vertices, faces and UVs. The template is played as usual
+(physics or FaceDefTables, fae.animate.player) and each frame its skin's motion vectors are
+carried over to the target:
+
+    target = read_target("bust.obj", "bust_landmarks.json")   # mesh + MPEG-4 feature points
+    rt = retarget(template, target)                            # once: seconds (a fit)
+    player = RetargetPlayer(rt, Player(template))
+    for f in player.play(stream): f.skin_vertices, f.bone_transforms   # the target's
+
+Once per target (`retarget`): the template is fitted to the target from its feature
+points exactly as `fae adapt` fits it to a scan (fae.adapt.workflow.adapt_scan, without the
+face-landmark model: the feature points given stand in for it), which is a far denser
+correspondence than an RBF through a few dozen points. Each target vertex is bound to the
+closest point of the fitted skin (triangle + barycentric coordinates); since the fitted
+skin has the template's topology, that point is also a point of the template. Per template
+vertex a 3x3 T = R_fit S R_template^T (fae.adapt.binding.frame_transforms: the paper's
+local frames and box scales, eq. 5-9) turns a motion vector of the template into one of
+the fitted skin, i.e. of the target. Motion fades to zero where the target extends beyond
+what the template covers (shoulders, plinth, hair: COVERAGE_NEAR..COVERAGE_FAR metres from
+the fitted skin). The target's separate pieces that sit on the fitted head's eyeballs,
+teeth or tongue become rigid parts moved by the template's eye, head, jaw and tongue
+bones, re-anchored at the fitted head's eye centres, jaw hinge and 7.1.
+
+Per frame (`RetargetPlayer.step`): the head pose is taken off the template's skin, the
+displacement from its neutral skin gathered (one batched 3x3 product over the template
+vertices in use and one sparse (k, u) product), added to the target's rest, and the head
+pose, re-anchored, put back (faded like the motion). A neutral frame gives the target's
+rest exactly. tools/bench_retarget.py measures the transfer's frames per second.
+
+The target is held as a FaceModel in the face frame (metres; `model.scan_transform` maps
+back to the file's frame and unit), with the template's regions read off the binding and
+the MPEG-4 feature points placed on its own surface: those given, and the others read off
+the fit, each projected onto the target's triangles of its own region (an inner-lip point
+on the lip it belongs to). So `fae.animate.verify.verify_faps(RetargetPlayer(...))`
+measures the target's own FAP response against value x the target's FAPU.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import scipy.sparse as sp
+
+from fae.adapt.binding import (bind_to_surface, coverage_weights, frame_transforms, gather_matrix,
+                               pinned_to_points, welded_components)
+from fae.io.facemodel import FaceModel, Part, SurfacePoint
+from fae.mesh import vertex_normals
+
+MIN_FEATURE_POINTS = 8  # usable feature points of the template's skin a target must have
+COVERAGE_NEAR = 0.004  # metres from the fitted skin within which a target vertex moves fully
+COVERAGE_FAR = 0.015  # metres from it beyond which a target vertex does not move at all
+RIGID_PARTS = ("eye_l", "eye_r", "upper_teeth", "lower_teeth", "tongue")
+MAX_PART_SHARE = 0.2  # a connected piece with more of the target's vertices than this is skin
+PART_REACH = 0.3  # a piece is a part when its median distance to it is below this share of its size
+PART_REACH_MIN = 0.002  # ... or below this many metres
+PIN_REACH = 0.03  # metres around the given feature points within which the fit is moved onto them
+FDP_REGION_REACH = 0.006
+NECK_FADE = (0.02, 0.09)  # metres below the chin (2.1) where the head pose starts and ends fading out  # metres: a feature point looks this far for triangles of its own region
+
+
+class RetargetError(ValueError):
+    """A target that cannot be animated; the message names the file and what was expected."""
+
+
+@dataclass
+class TargetMesh:
+    """A mesh to animate, as read.
+
+    path       where it came from (for messages)
+    vertices   (n, 3) float64 in the file's frame and unit
+    faces      (m, 3) int64
+    uv         (n, 2) float32 texture coordinates, or None when the file has none
+    landmarks  MPEG-4 feature point name -> (3,) in the file's frame and unit
+    landmarks_path  the feature points' file (for messages)
+    """
+
+    path: str
+    vertices: np.ndarray
+    faces: np.ndarray
+    uv: np.ndarray | None
+    landmarks: dict[str, np.ndarray]
+    landmarks_path: str = "--landmarks"
+
+
+def _read_uv(path: str, n: int) -> np.ndarray | None:
+    """(n, 2) float32 UVs of the mesh file when it has one per vertex, else None."""
+    try:
+        import trimesh
+
+        loaded = trimesh.load(path, force="mesh", process=False)
+        uv = getattr(getattr(loaded, "visual", None), "uv", None)
+    except Exception:
+        return None
+    if uv is None or len(uv) != n:
+        return None
+    return np.asarray(uv, dtype=np.float32)
+
+
+def read_target(mesh_path: str | os.PathLike, landmarks_path: str | os.PathLike) -> TargetMesh:
+    """The mesh (any format fae.io.scan.read_scan reads) and its feature points (any format
+    fae.io.scan.read_landmarks reads: FDP JSON or CSV, menpo .ljson / CSV with iBUG-68).
+    Raises RetargetError naming the file and what was expected."""
+    from fae.io.scan import LandmarkError, read_landmarks, read_scan
+
+    mesh_path, landmarks_path = os.fspath(mesh_path), os.fspath(landmarks_path)
+    try:
+        V, F = read_scan(mesh_path)
+    except (OSError, ValueError) as exc:
+        raise RetargetError(str(exc)) from None
+    try:
+        landmarks = read_landmarks(landmarks_path, V)
+    except (OSError, LandmarkError, ValueError) as exc:
+        raise RetargetError(str(exc)) from None
+    return TargetMesh(mesh_path, V, F, _read_uv(mesh_path, len(V)), landmarks, landmarks_path)
+
+
+def usable_landmarks(template: FaceModel, landmarks: dict[str, np.ndarray]) -> list[str]:
+    """Names of the given feature points the template has on its skin, with finite positions."""
+    return [n for n, p in landmarks.items() if n in template.feature_points
+            and template.feature_points[n].part == "skin" and np.all(np.isfinite(p))]
+
+
+@dataclass
+class Retarget:
+    """What a target needs per frame, computed once (see the module docstring).
+
+    model          the target as a FaceModel in the face frame (skin: its pieces that are
+                   not rigid parts; parts: the rigid ones), feature points on its surface
+    skin_index     (k,) int64: the target vertex of each model skin vertex
+    part_index     part name -> (j,) int64 target vertices of that part
+    used           (u,) int64 template skin vertices whose motion reaches the target
+    frame_transform (u, 3, 3) T of those vertices (template motion -> fitted skin's)
+    gather         (k, u) CSR: coverage weight x barycentric coordinates of each skin
+                   vertex's bound point
+    coverage       (k,) in [0, 1]: how fully each skin vertex follows (1: on the fitted skin)
+    head_weight    (k,) in [0, 1]: how fully each skin vertex turns with the head pose: the
+                   coverage, fading down the neck (NECK_FADE below the chin, 2.1) so that
+                   a bust's shoulders and chest stay put
+    anchors        bone -> ((3,) template point, (3,) target point) its poses are re-anchored at
+    scale          the target's size over the template's (FAPU ratio, mean of ES, ENS, MNS, MW)
+    report         what was found and measured (fit errors, scales, parts, feature points)
+    """
+
+    model: FaceModel
+    skin_index: np.ndarray
+    part_index: dict[str, np.ndarray]
+    used: np.ndarray
+    frame_transform: np.ndarray
+    gather: sp.csr_matrix
+    coverage: np.ndarray
+    anchors: dict[str, tuple[np.ndarray, np.ndarray]]
+    scale: float
+    report: dict = field(default_factory=dict)
+    vertex_count: int = 0
+    head_weight: np.ndarray | None = None
+
+    def displacements(self, template_motion: np.ndarray) -> np.ndarray:
+        """(k, 3) metres: the target skin's motion for the template skin's motion
+        (u, 3) at the vertices `used` (face frame, head pose taken off)."""
+        turned = np.einsum("uij,uj->ui", self.frame_transform, template_motion)
+        return self.gather @ turned
+
+    def bone_pose(self, bone: str, template_pose: np.ndarray, head: np.ndarray | None = None) -> np.ndarray:
+        """(4, 4) the target's pose of `bone` for the template's `template_pose` (rest -> now,
+        face frame): the same rotation about the target's own anchor, translations scaled.
+        head: the template's head pose, when template_pose includes it (every bone but
+        "head"): the bone's own motion is re-anchored at its anchor, the head's at 7.1's."""
+        if head is None:
+            return _reanchored(template_pose, *self.anchors[bone], self.scale)
+        own = np.linalg.solve(head, template_pose)
+        return _reanchored(head, *self.anchors["head"], self.scale) @ \
+            _reanchored(own, *self.anchors[bone], self.scale)
+
+    def target_vertices(self, skin: np.ndarray, bones: dict[str, np.ndarray], frame: str = "face") -> np.ndarray:
+        """(n, 3) every vertex of the target, in its own order: skin positions (k, 3) and the
+        rigid parts under `bones` (the target's poses), in the face frame (metres) or, with
+        frame="file", in the target file's frame and unit."""
+        from fae.adapt.calibration import apply_transform
+
+        out = np.zeros((self.vertex_count, 3))
+        out[self.skin_index] = skin
+        for name, idx in self.part_index.items():
+            part = self.model.parts[name]
+            M = bones.get(part.bone, np.eye(4))
+            out[idx] = part.vertices @ M[:3, :3].T + M[:3, 3]
+        return apply_transform(self.model.scan_transform, out) if frame == "file" else out
+
+
+def _reanchored(M: np.ndarray, a: np.ndarray, b: np.ndarray, s: float) -> np.ndarray:
+    """A M A^-1 with A: x -> s (x - a) + b (the pose M moved from anchor a to b, scaled by s)."""
+    A = np.eye(4)
+    A[:3, :3] *= s
+    A[:3, 3] = b - s * a
+    Ainv = np.eye(4)
+    Ainv[:3, :3] /= s
+    Ainv[:3, 3] = a - b / s
+    return A @ M @ Ainv
+
+
+def _sub_mesh(F: np.ndarray, keep: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(index (k,) of the kept vertices, faces (f, 3) renumbered into them): the triangles
+    of F whose corners are all kept."""
+    index = np.flatnonzero(keep)
+    new = np.full(len(keep), -1, dtype=np.int64)
+    new[index] = np.arange(len(index))
+    faces = np.asarray(F, dtype=np.int64)
+    faces = faces[keep[faces].all(axis=1)]
+    return index, new[faces]
+
+
+def _fapu_ratio(template: dict[str, float], target: dict[str, float]) -> float:
+    return float(np.mean([target[k] / template[k] for k in ("ES", "ENS", "MNS", "MW")]))
+
+
+def _on_region(V: np.ndarray, F: np.ndarray, same_region: np.ndarray, tri_region: np.ndarray, region: int,
+               p: np.ndarray, cache: dict) -> tuple[int, np.ndarray, float] | None:
+    """(triangle, bary, distance) of the closest point to p (3,) on the triangles of F whose
+    corners all lie in `region`, or None when there are none."""
+    from fae.adapt.query import MeshQuery
+
+    key = (id(V), region)
+    if key not in cache:
+        faces = np.flatnonzero(same_region & (tri_region[:, 0] == region))
+        cache[key] = (MeshQuery(V, F[faces]) if len(faces) else None, faces)
+    q, faces = cache[key]
+    if q is None:
+        return None
+    _, d, f, b = q.closest_points(p[None])
+    return int(faces[f[0]]), b[0], float(d[0])
+
+
+def _target_feature_points(template: FaceModel, fitted: FaceModel, given: dict[str, np.ndarray],
+                           skin_V: np.ndarray, skin_U: np.ndarray, skin_F: np.ndarray, skin_region: np.ndarray,
+                           parts: dict[str, tuple[str, np.ndarray, np.ndarray]]
+                           ) -> tuple[dict[str, SurfacePoint], dict[str, str]]:
+    """Feature points on the target: a given one (face frame) where it was given, projected
+    onto the target's skin; any other, the target's point bound closest to the template's
+    own (skin_U (k, 3): where each target skin vertex is bound on the template at rest), so
+    that it moves as the template's does. Either within the triangles of the point's own
+    template region where any lie within FDP_REGION_REACH (an inner-lip point stays on its
+    lip). Points of the template's parts go on the target's part of that name, or, for the
+    pupils (needed for ES), onto the skin (a sculpted eye); a point bound nowhere near the
+    target (a crown above a face mask) is left out. Returns the points and, per name,
+    "given" or "fit"."""
+    from fae.adapt.query import MeshQuery
+
+    fitted_at = fitted.feature_point_positions()
+    rest_at = template.feature_point_positions()
+    skin_q = MeshQuery(skin_V, skin_F)
+    pulled_q = MeshQuery(skin_U, skin_F)
+    tri_region = skin_region[skin_F]
+    same = (tri_region == tri_region[:, :1]).all(axis=1)
+    cache: dict = {}
+    out, source = {}, {}
+    for name, sp_ in template.feature_points.items():
+        if sp_.part != "skin":
+            target_part = next((k for k, (src, _, _) in parts.items() if src == sp_.part), None)
+            if target_part is not None:
+                _, PV, PF = parts[target_part]
+                _, _, f, b = MeshQuery(PV, PF).closest_points(fitted_at[name][None])
+                out[name], source[name] = SurfacePoint(target_part, int(f[0]), b[0]), "fit"
+            elif name in ("3.5", "3.6"):
+                _, _, f, b = skin_q.closest_points(fitted_at[name][None])
+                out[name], source[name] = SurfacePoint("skin", int(f[0]), b[0]), "fit"
+            continue
+        tri = template.skin_faces[sp_.triangle]
+        region = int(template.skin_region[tri[int(np.argmax(sp_.bary))]])
+        V, q, p = (skin_V, skin_q, given[name]) if name in given else (skin_U, pulled_q, rest_at[name])
+        hit = _on_region(V, skin_F, same, tri_region, region, p, cache)
+        if hit is None or hit[2] > FDP_REGION_REACH:
+            _, d, f, b = q.closest_points(p[None])
+            if name not in given and d[0] > FDP_REGION_REACH:
+                continue
+            hit = (int(f[0]), b[0], float(d[0]))
+        out[name] = SurfacePoint("skin", hit[0], hit[1])
+        source[name] = "given" if name in given else "fit"
+    return out, source
+
+
+def retarget(template: FaceModel, target: TargetMesh, say: Callable[[str], None] | None = None) -> Retarget:
+    """Bind `target` to `template` (module docstring). Raises RetargetError when the target
+    cannot be animated (too few feature points, no head found at them)."""
+    from fae.adapt.calibration import apply_transform
+    from fae.adapt.query import MeshQuery
+    from fae.adapt.workflow import AdaptRefused, FacePairsUnavailable, adapt_scan
+    from fae.animate.faptables import fapu_of
+    from fae.mpeg4.fapu import fapu0_from_positions, fapu_from_fapu0
+
+    say = say or (lambda msg: None)
+    names = usable_landmarks(template, target.landmarks)
+    if len(names) < MIN_FEATURE_POINTS:
+        raise RetargetError(
+            f"{target.landmarks_path}: {len(names)} usable feature points on the template's skin "
+            f"({', '.join(sorted(names)) or 'none'}); at least {MIN_FEATURE_POINTS} expected (MPEG-4 names such "
+            "as 3.7, 3.11, 8.3, 8.4, 9.3, 2.1, or 68 iBUG points)")
+    V = np.asarray(target.vertices, dtype=np.float64)
+    F = np.asarray(target.faces, dtype=np.int64)
+    n = len(V)
+    label = welded_components(V, F)
+    sizes = np.bincount(label)
+    biggest = int(np.argmax(sizes))
+    piece = (sizes > MAX_PART_SHARE * n)
+    piece[biggest] = True
+    candidate = ~piece[label]  # vertices of small pieces: eyes, teeth, or bits of skin
+
+    def no_pairs(part_V, part_F):
+        raise FacePairsUnavailable("the feature points given stand in for a face-landmark model", fatal=False)
+
+    fit_index, fit_F = _sub_mesh(F, ~candidate)
+    try:
+        fitted, fit_report, _ = adapt_scan(template, V[fit_index], fit_F, no_pairs,
+                                           {k: target.landmarks[k] for k in names}, scan_name=target.path,
+                                           landmarks_name=target.landmarks_path, say=say)
+    except AdaptRefused as exc:
+        raise RetargetError(str(exc)) from None
+    for line in fit_report.get("verdict", []):
+        say(f"warning: the template's fit to {target.path}: {line}")
+    T = np.linalg.inv(fitted.scan_transform)
+    Y = apply_transform(T, V)
+
+    # the small pieces: rigid parts where they sit on the fitted head's eyes, teeth, tongue
+    parts_at: dict[str, tuple[str, np.ndarray, np.ndarray]] = {}  # target part -> (template part, V, F)
+    part_index: dict[str, np.ndarray] = {}
+    part_bone: dict[str, str] = {}
+    queries = {p: MeshQuery(*fitted.mesh(p)) for p in RIGID_PARTS if p in fitted.parts}
+    for c in np.unique(label[candidate]):
+        members = label == c
+        Yc = Y[members]
+        size = float(np.linalg.norm(np.ptp(Yc, axis=0)))
+        best, best_d = None, np.inf
+        for p, q in queries.items():
+            d = float(np.median(q.closest_points(Yc)[1]))
+            if d < best_d:
+                best, best_d = p, d
+        if best is None or best_d > max(PART_REACH * size, PART_REACH_MIN):
+            candidate[members] = False  # skin after all (a stray sliver, a separate ear...)
+            continue
+        name = best if best not in part_index else f"{best}_{sum(k.startswith(best) for k in part_index)}"
+        idx, pf = _sub_mesh(F, members)
+        part_index[name] = idx
+        part_bone[name] = fitted.parts[best].bone
+        parts_at[name] = (best, Y[idx], pf)
+    skin_index, skin_F = _sub_mesh(F, ~candidate)
+    if len(skin_F) == 0:
+        raise RetargetError(f"{target.path}: no skin triangles left after the rigid parts (eyes, teeth) were found")
+    Ys = Y[skin_index]
+
+    # the binding: closest point of the fitted skin, and how fully each vertex follows
+    P = np.asarray(template.skin_vertices, dtype=np.float64)
+    X = np.asarray(fitted.skin_vertices, dtype=np.float64)
+    TF = np.asarray(template.skin_faces, dtype=np.int64)
+    given = {k: apply_transform(T, np.asarray(target.landmarks[k], dtype=np.float64)[None])[0]
+             for k in fit_report.get("landmarks_used", names)}
+    pins = [k for k in given if template.feature_points[k].part == "skin"]
+    X = pinned_to_points(X, TF, np.array([fitted.feature_points[k].triangle for k in pins]),
+                         np.array([fitted.feature_points[k].bary for k in pins]), np.array([given[k] for k in pins]),
+                         PIN_REACH)
+    face, bary, dist = bind_to_surface(Ys, X, TF, vertex_normals(Ys, skin_F))
+    coverage = coverage_weights(dist, COVERAGE_NEAR, COVERAGE_FAR)
+    bound = np.zeros(len(P), dtype=bool)
+    bound[TF[face[coverage > 0.5]].ravel()] = True
+    Tv, scale = frame_transforms(P, X, TF, used=bound)
+    G = gather_matrix(face, bary, coverage, TF, len(P))
+    used = np.flatnonzero(np.asarray(abs(G).sum(axis=0)).ravel() > 0)
+    G = G[:, used].tocsr()
+    nearest = TF[face, np.argmax(bary, axis=1)]
+    skin_region = np.asarray(template.skin_region, dtype=np.int32)[nearest]
+
+    # the target as a FaceModel
+    U = np.einsum("kj,kjd->kd", bary, P[TF[face]])
+    feature_points, fp_source = _target_feature_points(template, fitted, given, Ys, U, skin_F, skin_region, parts_at)
+    uv = np.zeros((len(skin_index), 2), np.float32) if target.uv is None else target.uv[skin_index]
+    model = FaceModel(
+        skin_vertices=Ys, skin_faces=skin_F.astype(np.int32), skin_uv=uv,
+        skin_color=np.asarray(template.skin_color, np.float32), skin_mirror=np.arange(len(Ys), dtype=np.int32),
+        skin_region=skin_region, region_names=list(template.region_names), skin_thickness=np.zeros(len(Ys)),
+        layer_params={},
+        parts={k: Part(vertices=v, faces=f.astype(np.int32), color=np.asarray(fitted.parts[src].color, np.float32),
+                       bone=part_bone[k]) for k, (src, v, f) in parts_at.items()},
+        jaw_pivot=np.asarray(fitted.jaw_pivot, np.float64), jaw_axis=np.asarray(fitted.jaw_axis, np.float64),
+        eye_centers={k: np.asarray(v, np.float64) for k, v in fitted.eye_centers.items()},
+        feature_points=feature_points, muscles=[], scan_transform=np.asarray(fitted.scan_transform),
+        meta={"name": Path(target.path).stem, "generator": "fae motion transfer", "source": Path(target.path).name})
+
+    template_fapu = fapu_of(template)
+    try:
+        target_fapu = fapu_of(model)
+    except (KeyError, ValueError):  # a target without eyes' or mouth's points: the fitted head's
+        target_fapu = fapu_from_fapu0(fapu0_from_positions(fitted.feature_point_positions()))
+    ratio = _fapu_ratio(template_fapu, target_fapu)
+    rest_fp = template.feature_point_positions()
+    fitted_fp = fitted.feature_point_positions()
+    anchors = {"head": (rest_fp["7.1"], fitted_fp["7.1"]) if "7.1" in rest_fp else
+               (np.asarray(template.jaw_pivot), np.asarray(fitted.jaw_pivot)),
+               "jaw": (np.asarray(template.jaw_pivot), np.asarray(fitted.jaw_pivot))}
+    anchors["tongue"] = anchors["jaw"]
+    for eye in ("eye_l", "eye_r"):
+        if eye in template.eye_centers and eye in fitted.eye_centers:
+            anchors[eye] = (np.asarray(template.eye_centers[eye]), np.asarray(fitted.eye_centers[eye]))
+        else:
+            anchors[eye] = anchors["head"]
+    face_regions = [template.region_names.index(r) for r in ("forehead", "nose", "cheek_l", "cheek_r", "lip_upper",
+                                                              "lip_lower", "chin") if r in template.region_names]
+    in_face = np.isin(skin_region, face_regions) & (coverage > 0.5)
+    local_scale = float(np.median(scale[nearest[in_face]][:, [0, 2]])) if in_face.any() else float("nan")
+    report = {
+        "target": target.path, "vertices": n, "skin_vertices": int(len(skin_index)),
+        "parts": {k: {"template_part": parts_at[k][0], "vertices": int(len(v))} for k, v in part_index.items()},
+        "landmarks_used": list(fit_report.get("landmarks_used", names)),
+        "fit": {"errors": fit_report.get("errors"), "folded_triangles": fit_report.get("folded_triangles"),
+                "verdict": fit_report.get("verdict", []), "seconds": fit_report.get("seconds")},
+        "coverage": {"full": int((coverage >= 1.0).sum()), "partial": int(((coverage > 0) & (coverage < 1)).sum()),
+                     "none": int((coverage <= 0).sum())},
+        "fapu_template": template_fapu, "fapu_target": target_fapu, "fapu_ratio": ratio,
+        "local_scale_median_face": local_scale,
+        "feature_points": fp_source,
+    }
+    chin = fitted_fp["2.1"][1] if "2.1" in fitted_fp else float(Ys[:, 1].min())
+    neck = coverage_weights(chin - Ys[:, 1], *NECK_FADE)
+    return Retarget(model=model, skin_index=skin_index, head_weight=coverage * neck, part_index=part_index, used=used,
+                    frame_transform=np.ascontiguousarray(Tv[used]), gather=G, coverage=coverage,
+                    anchors=anchors, scale=ratio, report=report, vertex_count=n)
+
+
+class RetargetPlayer:
+    """Plays FAP frames on a target through a Player of the template (module docstring).
+
+    face         the target's FaceModel (Retarget.model): what verify_faps and the renderer read
+    step(frame, dt=None) -> (k, 3) the target's skin, face frame, metres
+    play(stream, fps=None) -> PlayedFrame per frame (skin and bone poses of the target)
+    reset()
+    """
+
+    def __init__(self, rt: Retarget, player):
+        self.retarget = rt
+        self.player = player
+        self.face = rt.model
+        self.fps = player.fps
+        self._rest = np.asarray(rt.model.skin_vertices, dtype=np.float64)
+        self.reset()
+
+    def reset(self) -> None:
+        """Back to the neutral face; the template's neutral skin (the motion's zero) is taken
+        from the template player itself, so a neutral frame leaves the target at rest exactly."""
+        from fae.mpeg4.faps import FAP_COUNT
+
+        p = self.player
+        p.reset()
+        self._neutral = np.asarray(p.step(np.zeros(FAP_COUNT), dt=1.0 / self.fps), dtype=np.float64)[self.retarget.used]
+        p.reset()
+        self.bone_transforms = {b: np.eye(4) for b in ("head", "jaw", "eye_l", "eye_r", "tongue")}
+        self.pupil_scale = dict(p.pupil_scale)
+        self.values = p.values
+
+    def step(self, frame, dt: float | None = None) -> np.ndarray:
+        """Advance the template one frame (see Player.step) and return the target's skin (k, 3)."""
+        skin = self.player.step(frame, dt=dt)
+        out, self.bone_transforms = self.carry(skin, self.player.bone_transforms)
+        self.pupil_scale = dict(self.player.pupil_scale)
+        self.values = self.player.values
+        return out
+
+    def carry(self, skin: np.ndarray, bones: dict[str, np.ndarray]) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        """The transfer alone: the template's skin (V, 3) and bone poses of one frame -> the
+        target's skin (k, 3) and bone poses (face frame, metres)."""
+        rt = self.retarget
+        H = bones["head"]
+        moved = skin[rt.used]
+        still = np.array_equal(H, np.eye(4))
+        if not still:  # the head pose off: motion in the head's own frame
+            moved = (moved - H[:3, 3]) @ H[:3, :3]
+        out = self._rest + rt.displacements(moved - self._neutral)
+        target_bones = {"head": H if still else rt.bone_pose("head", H)}
+        for bone, M in bones.items():
+            if bone != "head":
+                target_bones[bone] = rt.bone_pose(bone, M, H)
+        if not still:
+            Ht = target_bones["head"]
+            out += rt.head_weight[:, None] * ((out @ Ht[:3, :3].T + Ht[:3, 3]) - out)
+        return out, target_bones
+
+    def play(self, stream, fps: float | None = None) -> Iterator:
+        """Play a FapStream (resampled to `fps`, None: its own) or an iterable of DenseFrames;
+        yields fae.animate.player.PlayedFrame of the target."""
+        from fae.animate.player import PlayedFrame
+
+        if hasattr(stream, "header"):
+            from fae.io.frames import dense_frames
+
+            rate = float(fps or stream.header.fps)
+            frames: Iterable = dense_frames(stream, fps=fps)
+        else:
+            rate = float(fps or self.fps)
+            frames = stream
+        if rate != self.fps:
+            self.fps = rate
+            self.player.fps = rate
+            self.reset()
+        for i, frame in enumerate(frames):
+            skin = self.step(frame, dt=1.0 / rate)
+            yield PlayedFrame(index=int(getattr(frame, "index", i)), time=float(getattr(frame, "time", i / rate)),
+                              skin_vertices=skin, bone_transforms={k: v.copy() for k, v in self.bone_transforms.items()},
+                              pupil_scale=dict(self.pupil_scale), values=np.array(self.values, copy=True))
