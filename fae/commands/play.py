@@ -1,4 +1,9 @@
-"""`fae play STREAM.fap [--head HEAD.glb] -o OUT.mp4`: animate a head and encode the video.
+"""`fae play STREAM.fap [--head HEAD.glb | --head MESH --landmarks LM] -o OUT.mp4`: animate a head and encode the video.
+
+With --landmarks, --head is any mesh (OBJ, PLY, STL, OFF, glTF: an artist's head, a scan)
+and LM its MPEG-4 feature points (FDP JSON or CSV, menpo .ljson or CSV with iBUG-68): the
+template is played and its motion carried over to the mesh, which keeps its own topology
+(fae.animate.retarget; a few seconds of set-up for the template's fit to it).
 
 The shipped generic head is used when --head is absent; `--engine fdt` moves the skin by
 the head's FaceDefTables baked from its physics (`fae bake`) instead of simulating it. The video has the stream's frame
@@ -24,7 +29,11 @@ def register(subparsers) -> None:
         description="Play a .fap stream on a head (the shipped generic head unless --head) and "
         "write an H.264 mp4 at the stream's frame rate. The file appears only when complete.")
     parser.add_argument("stream", metavar="STREAM.fap", help="the FAP stream to play")
-    parser.add_argument("--head", metavar="HEAD.glb", help="FaceModel .glb (default: the shipped generic head)")
+    parser.add_argument("--head", metavar="HEAD", help="FaceModel .glb (default: the shipped generic head), or with "
+                        "--landmarks any mesh (OBJ, PLY, STL, OFF, glTF) animated by motion transfer")
+    parser.add_argument("--landmarks", metavar="LM", help="feature points of the --head mesh (JSON {\"9.3\": [x, y, z] "
+                        "or vertex index}, CSV name,x,y,z, or 68 iBUG points as menpo .ljson or CSV): the template's "
+                        "motion is carried over to the mesh, which keeps its own topology")
     parser.add_argument("-o", "--output", required=True, metavar="OUT.mp4", help="the video to write")
     add_view_arguments(parser, "640x480")
     parser.add_argument("--fps", type=float, default=None, help="resample to this frame rate (default: the stream's)")
@@ -59,11 +68,29 @@ def run(args: argparse.Namespace) -> int:
             frames_dir.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             return fail("play", f"{frames_dir}: cannot create the frames folder ({exc.strerror or exc})")
+    retargeted = None
     try:
         stream = read_fap(args.stream)
-        model, _ = load_head(args.head)
+        if args.landmarks:
+            if not args.head:
+                return fail("play", f"--landmarks {args.landmarks}: give the mesh they belong to with --head MESH")
+            template, _ = load_head(None)
+        else:
+            problem = _mesh_without_landmarks(args.head)
+            if problem:
+                return fail("play", problem)
+            model, _ = load_head(args.head)
     except (FapFormatError, FaceModelError) as exc:
         return fail("play", str(exc))
+    if args.landmarks:
+        from fae.animate.retarget import RetargetError, read_target, retarget
+
+        try:
+            retargeted = retarget(template, read_target(args.head, args.landmarks),
+                                  say=lambda msg: print(f"fae play: {msg}", file=sys.stderr))
+        except RetargetError as exc:
+            return fail("play", str(exc))
+        model = retargeted.model
 
     from fae.animate.player import Player
     from fae.io.frames import dense_frames
@@ -84,10 +111,15 @@ def run(args: argparse.Namespace) -> int:
             if args.engine == "fdt":
                 from fae.animate.bake import has_baked_tables
 
-                if not has_baked_tables(model):
+                if not has_baked_tables(model if retargeted is None else template):
                     print("fae play: the head has no baked FaceDefTables; baking them first (minutes; "
                           "`fae bake` stores them)", file=sys.stderr)
-            player = Player(model, device="cpu", engine=args.engine)
+            if retargeted is not None:
+                from fae.animate.retarget import RetargetPlayer
+
+                player = RetargetPlayer(retargeted, Player(template, device="cpu", engine=args.engine))
+            else:
+                player = Player(model, device="cpu", engine=args.engine)
             frames = dense_frames(stream, fps=args.fps, max_hold=args.max_hold)
             timings = render_video(player.play(frames, fps=fps), renderer, args.output, fps,
                                    frames_dir=frames_dir,
@@ -106,3 +138,14 @@ def run(args: argparse.Namespace) -> int:
     print(f"{args.output}: {timings.frames} frames at {fps:g} fps, {width}x{height} "
           f"({timings.fps:.1f} frames/s)", file=sys.stderr)
     return 0
+
+
+MESH_SUFFIXES = (".obj", ".ply", ".stl", ".off")
+
+
+def _mesh_without_landmarks(head: str | None) -> str | None:
+    """Why --head cannot be played without --landmarks: a plain mesh is not a FaceModel."""
+    if head and Path(head).suffix.lower() in MESH_SUFFIXES:
+        return (f"{head}: a mesh, not a FaceModel .glb; to animate it by motion transfer give its feature points "
+                "with --landmarks LM (FDP JSON or CSV, or 68 iBUG points as .ljson or CSV)")
+    return None
