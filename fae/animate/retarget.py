@@ -52,6 +52,7 @@ import scipy.sparse as sp
 from fae.adapt.binding import (bind_to_surface, coverage_weights, frame_transforms, gather_matrix,
                                pinned_to_points, welded_components)
 from fae.io.facemodel import FaceModel, Part, SurfacePoint
+from fae.adapt.geometry import coincident_groups
 from fae.mesh import vertex_normals
 
 MIN_FEATURE_POINTS = 8  # usable feature points of the template's skin a target must have
@@ -363,7 +364,11 @@ def retarget(template: FaceModel, target: TargetMesh, say: Callable[[str], None]
     X = pinned_to_points(X, TF, np.array([fitted.feature_points[k].triangle for k in pins]),
                          np.array([fitted.feature_points[k].bary for k in pins]), np.array([given[k] for k in pins]),
                          PIN_REACH)
-    face, bary, dist = bind_to_surface(Ys, X, TF, vertex_normals(Ys, skin_F))
+    # normals shared across the mesh's texture seams: both copies of a split vertex bind to
+    # the same point, or the seam opens into a crack as soon as the face moves
+    seams = coincident_groups(Ys)[1]
+    NY = vertex_normals(Ys, skin_F, corner_index=seams[skin_F].ravel())[seams]
+    face, bary, dist = bind_to_surface(Ys, X, TF, NY)
     coverage = coverage_weights(dist, COVERAGE_NEAR, COVERAGE_FAR)
     bound = np.zeros(len(P), dtype=bool)
     bound[TF[face[coverage > 0.5]].ravel()] = True

@@ -69,6 +69,7 @@ def run(args: argparse.Namespace) -> int:
         except OSError as exc:
             return fail("play", f"{frames_dir}: cannot create the frames folder ({exc.strerror or exc})")
     retargeted = None
+    normal_groups = None
     try:
         stream = read_fap(args.stream)
         if args.landmarks:
@@ -91,6 +92,9 @@ def run(args: argparse.Namespace) -> int:
         except RetargetError as exc:
             return fail("play", str(exc))
         model = retargeted.model
+        from fae.adapt.geometry import coincident_groups
+
+        normal_groups = coincident_groups(model.skin_vertices)[1]  # a scan's texture seams split its vertices
 
     from fae.animate.player import Player
     from fae.io.frames import dense_frames
@@ -107,7 +111,7 @@ def run(args: argparse.Namespace) -> int:
         progress = tqdm(total=expected or None, unit="frame", desc=Path(args.output).name, file=sys.stderr)
     try:
         with FaceRenderer(model, size=(width, height), view=args.view, supersample=args.supersample,
-                          show_bones=args.show_bones) as renderer:
+                          show_bones=args.show_bones, normal_groups=normal_groups) as renderer:
             if args.engine == "fdt":
                 from fae.animate.bake import has_baked_tables
 

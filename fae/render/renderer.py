@@ -329,13 +329,16 @@ class FaceRenderer:
     show_bones   also draw the cranium and mandible (hidden under the skin on a real face)
     camera       a CameraView to use instead of the `view` preset framed on this head (to
                  draw two heads, or a head and a scan, from one camera)
+    normal_groups  (V,) int labels: skin vertices with the same label share one normal (a
+                 mesh split along its texture seams: each side of a seam lit by its own
+                 triangles alone shows the seam as a crease); None: every vertex its own
 
     Use as a context manager or call `close()` to free the GL context.
     """
 
     def __init__(self, model: FaceModel, size: tuple[int, int] = (640, 480), view: str = "front",
                  supersample: int = 1, background=BACKGROUND, show_bones: bool = False,
-                 camera: CameraView | None = None):
+                 camera: CameraView | None = None, normal_groups: np.ndarray | None = None):
         width, height = (int(s) for s in size)
         if width <= 0 or height <= 0:
             raise ValueError(f"image size {width}x{height}: expected positive width and height")
@@ -362,8 +365,14 @@ class FaceRenderer:
         nv = rest.shape[0]
         self._skin_rest = rest
         self._skin_faces = faces
-        self._corner_index = faces.ravel()
-        self._skin_rest_normals = per_vertex_normals(rest, faces, self._corner_index)
+        self._normal_groups = None
+        if normal_groups is not None:
+            groups = np.asarray(normal_groups, dtype=np.int64)
+            if groups.shape != (rest.shape[0],) or (len(groups) and (groups.min() < 0 or groups.max() >= len(groups))):
+                raise ValueError(f"normal_groups: expected ({rest.shape[0]},) labels in [0, {rest.shape[0]})")
+            self._normal_groups = groups
+        self._corner_index = faces.ravel() if self._normal_groups is None else self._normal_groups[faces].ravel()
+        self._skin_rest_normals = self._skin_normals(rest)
 
         # A textured skin: its texture coordinates wrap around the head, so the vertices of
         # the triangles that cross the seam are drawn twice (copies with u + 1, `_seam_source`),
@@ -534,7 +543,7 @@ class FaceRenderer:
             V = np.asarray(skin_vertices, dtype=np.float64)
             if V.shape != self._skin_rest.shape:
                 raise ValueError(f"skin_vertices: expected shape {self._skin_rest.shape}, got {V.shape}")
-            N = per_vertex_normals(V, self._skin_faces, self._corner_index)
+            N = self._skin_normals(V)
         out = self._dynamic
         nv = V.shape[0]
         out[:nv, :3] = V
@@ -558,6 +567,11 @@ class FaceRenderer:
                 raise ValueError(f"bone_transforms[{bone!r}]: expected a (4, 4) matrix, got shape {T.shape}")
             out[where, :3] = pv @ T[:3, :3].T + T[:3, 3]
             out[where, 3:] = pn @ T[:3, :3].T  # rigid: rotation only
+
+    def _skin_normals(self, V: np.ndarray) -> np.ndarray:
+        """(V, 3) unit normals of the skin at positions V, shared within normal_groups."""
+        N = per_vertex_normals(V, self._skin_faces, self._corner_index)
+        return N if self._normal_groups is None else N[self._normal_groups]
 
     def render(self, skin_vertices: np.ndarray | None = None,
                bone_transforms: dict[str, np.ndarray] | None = None,
