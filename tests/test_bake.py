@@ -12,7 +12,7 @@ import pytest
 
 from fae.animate.bake import THRESHOLD, bake_tables, baked_model, has_baked_tables, settled_skin, table_borders
 from fae.animate.calibrate import calibrate
-from fae.animate.player import Player
+from fae.animate.player import Player, playable_head
 from fae.io.facemodel_gltf import read_facemodel, structural_problems, write_facemodel
 from synthetic_head import synthetic_head
 
@@ -27,7 +27,7 @@ def small_head():
 
 @pytest.fixture(scope="module")
 def physics():
-    return Player(small_head())
+    return Player(playable_head(small_head()))
 
 
 @pytest.fixture(scope="module")
@@ -37,7 +37,7 @@ def baked(physics):
 
 @pytest.fixture(scope="module")
 def fdt(baked):
-    return Player(baked, engine="fdt")
+    return Player(playable_head(baked, engine="fdt"))
 
 
 def run_command(name: str, argv: list[str]) -> int:
@@ -115,7 +115,7 @@ def test_the_fdt_engine_keeps_the_rigid_poses_and_the_head_rotation(physics, fdt
 def test_the_physics_engine_does_not_add_baked_tables(physics, baked):
     """A baked head simulates as the head it was baked from: its tables are the physics'
     own copy, not a motion of their own."""
-    other = Player(baked)
+    other = Player(playable_head(baked))
     values = one_fap(12, 300.0)
     values[64] = 400.0  # an ear: its derived table still applies
     physics.reset()
@@ -135,7 +135,7 @@ def test_a_baked_head_round_trips_through_the_glb(tmp_path, baked, fdt):
     for a, b in zip(mine, theirs):
         assert np.array_equal(a.vertices, b.vertices) and np.array_equal(a.borders, b.borders)
         assert np.array_equal(a.displacements, b.displacements)
-    again = Player(back, engine="fdt")
+    again = Player(playable_head(back, engine="fdt"))
     values = one_fap(5, 500.0)
     values[11] = -250.0
     fdt.reset()
@@ -159,8 +159,8 @@ def test_the_fdt_engine_adds_fap_tables_together(fdt):
     assert np.abs(fdt.step(both) - rest - (a + b)).max() < 1e-12
 
 
-def test_spawned_fdt_players_step_independently(fdt):
-    a, b = fdt.spawn(), fdt.spawn()
+def test_fdt_players_of_one_head_step_independently(fdt):
+    a, b = Player(fdt.head), Player(fdt.head)
     sa = a.step(one_fap(12, 400.0))
     sb = b.step(one_fap(19, 500.0))
     assert np.abs(sa - a.step(one_fap(12, 400.0))).max() == 0.0
@@ -169,7 +169,7 @@ def test_spawned_fdt_players_step_independently(fdt):
 
 def test_an_unknown_engine_is_refused(baked):
     with pytest.raises(ValueError, match="engine"):
-        Player(baked, engine="magic")
+        Player(playable_head(baked, engine="magic"))
 
 
 def test_fae_bake_writes_a_baked_head_and_never_the_input(tmp_path, physics, capsys):
@@ -222,10 +222,10 @@ def test_on_the_shipped_head_one_fap_at_its_borders_plays_as_the_physics(tmp_pat
     round-trips through its .glb."""
     from fae.data import shipped_head_path
 
-    physics = Player(read_facemodel(shipped_head_path()))
+    physics = Player(playable_head(read_facemodel(shipped_head_path())))
     path = tmp_path / "baked.glb"
     write_facemodel(baked_model(physics.face, bake_tables(physics, (3, 12), intervals_per_side=2)), path)
-    fdt = Player(read_facemodel(path), engine="fdt")
+    fdt = Player(playable_head(read_facemodel(path), engine="fdt"))
     assert sorted(t.fap for t in fdt.tables if t.source == "physics") == [3, 12]
     for fap in (3, 12):
         for b in table_borders(fap, 2):

@@ -75,13 +75,13 @@ def test_three_js_plays_the_exported_expressions(tmp_path):
     from playwright.sync_api import sync_playwright
 
     from fae.animate.bake import baked_model, bake_tables
-    from fae.animate.player import Player
+    from fae.animate.player import Player, playable_head
     from fae.data import shipped_head_path
     from fae.io.facemodel_gltf import read_facemodel, write_facemodel
     from fae.net.view import find_three
     from test_export_gltf import run_command
 
-    physics = Player(read_facemodel(shipped_head_path()))
+    physics = Player(playable_head(read_facemodel(shipped_head_path())))
     head = tmp_path / "baked.glb"
     write_facemodel(baked_model(physics.face, bake_tables(physics, (3, 12, 13, 31, 32), intervals_per_side=2)), head)
     assert run_command("export", [str(head), str(REPO / "fap_streams" / "expressions.fap"),

@@ -13,7 +13,7 @@ import pytest
 
 from fae.animate.bake import bake_tables, baked_model
 from fae.animate.morphs import MorphWeights, displacement, morph_targets
-from fae.animate.player import Player
+from fae.animate.player import Player, playable_head
 from fae.io.facemodel_gltf import write_facemodel
 from test_bake import FAPS, small_head
 from test_facemodel_gltf import validate
@@ -47,7 +47,7 @@ def moving_stream(path: Path, frames: int = 30) -> Path:
 
 @pytest.fixture(scope="module")
 def baked_file(tmp_path_factory):
-    physics = Player(small_head())
+    physics = Player(playable_head(small_head()))
     path = tmp_path_factory.mktemp("export") / "baked.glb"
     write_facemodel(baked_model(physics.face, bake_tables(physics, FAPS)), path)
     return path
@@ -92,7 +92,7 @@ def node_matrix(node) -> np.ndarray:
 def test_morph_targets_reproduce_the_tables_exactly(baked_file):
     from fae.io.facemodel_gltf import read_facemodel
 
-    player = Player(read_facemodel(baked_file), engine="fdt")
+    player = Player(playable_head(read_facemodel(baked_file), engine="fdt"))
     targets = morph_targets(player.tables)
     mw = MorphWeights(targets)
     rng = np.random.default_rng(1)
@@ -153,7 +153,7 @@ def test_the_animation_matches_the_players_fdt_output(exported, baked_file):
     targets = np.stack([accessor_values(gltf, blob, t["POSITION"]) for t in prim.targets])  # (T, V, 3)
     weights = keys[(skin_node, "weights")].reshape(len(times), len(targets))
 
-    player = Player(read_facemodel(baked_file), engine="fdt")
+    player = Player(playable_head(read_facemodel(baked_file), engine="fdt"))
     played = list(player.play(dense_frames(read_fap(stream))))
     assert len(played) == len(times)
     parents = {"head": None, "eye_l": "head", "eye_r": "head", "jaw": "head", "tongue": "jaw"}
@@ -209,7 +209,7 @@ def test_the_shipped_head_exports_expressions_for_the_validator(tmp_path):
     from fae.io.facemodel_gltf import read_facemodel
 
     face = read_facemodel(shipped_head_path())
-    physics = Player(face)
+    physics = Player(playable_head(face))
     head = tmp_path / "baked.glb"
     write_facemodel(baked_model(physics.face, bake_tables(physics, (3, 12, 13, 31, 32), intervals_per_side=2)), head)
     out = tmp_path / "expressions.glb"

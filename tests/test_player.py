@@ -7,7 +7,7 @@ import pytest
 
 from fae.animate.calibrate import calibrate
 from fae.animate.faptables import FAP_LIMITS
-from fae.animate.player import Player
+from fae.animate.player import Player, playable_head
 from synthetic_head import synthetic_head
 
 pytestmark = pytest.mark.slow
@@ -15,7 +15,7 @@ pytestmark = pytest.mark.slow
 
 @pytest.fixture(scope="module")
 def player():
-    return Player(calibrate(synthetic_head(personalized=False, subdivisions=4, complete=False), passes=0))
+    return Player(playable_head(calibrate(synthetic_head(personalized=False, subdivisions=4, complete=False), passes=0)))
 
 
 def test_zero_faps_keep_the_face_at_rest(player):
@@ -52,11 +52,11 @@ def test_a_left_fap_moves_the_left_side_only(player):
     assert d[x < -0.01].max() < 0.15 * d[x > 0].max()
 
 
-def test_spawned_players_share_the_model_and_step_independently(player):
-    """Players spawned from one share its static arrays but not their state: two streams on
-    two spawns give what each gives alone, interleaved, and the first is left as it was."""
+def test_players_of_one_head_share_its_arrays_and_step_independently(player):
+    """Players of one PlayableHead share its static arrays but not their state: two streams
+    on two players give what each gives alone, interleaved, and the first is left as it was."""
     player.reset()
-    a, b = player.spawn(), player.spawn()
+    a, b = Player(player.head), Player(player.head)
     assert a.sim is player.sim and a.state is not b.state and a.control is not b.control
     va, vb = np.zeros(68), np.zeros(68)
     va[11] = 300.0  # raise_l_cornerlip
@@ -64,7 +64,7 @@ def test_spawned_players_share_the_model_and_step_independently(player):
     for _ in range(5):
         ska = a.step(va, dt=1 / 25)
         skb = b.step(vb, dt=1 / 25)
-    alone = player.spawn()
+    alone = Player(player.head)
     for _ in range(5):
         ref = alone.step(va, dt=1 / 25)
     assert np.abs(ska - ref).max() < 1e-7

@@ -12,7 +12,7 @@ import pytest
 from fae.data import shipped_head_path
 from fae.animate.calibrate import calibrate
 from fae.animate.faptables import FAP_LIMITS, fapu_of
-from fae.animate.player import Player
+from fae.animate.player import Player, playable_head
 from fae.animate.verify import passed_fraction, verify_faps
 from fae.cli import main
 from fae.io.facemodel import FaceDefTable
@@ -32,7 +32,7 @@ def face():
 
 @pytest.fixture(scope="module")
 def player(face):
-    return Player(face)
+    return Player(playable_head(face))
 
 
 def settle(player, values, frames=25):
@@ -155,7 +155,7 @@ def test_face_def_tables_move_their_vertices_piecewise_linearly(face):
     D[0, :, 1] = 1e-5   # metres per unit below 0
     D[1, :, 2] = 2e-5   # and above
     with_table.face_def_tables = [FaceDefTable(29, "skin", idx, np.array([-100.0, 0.0, 300.0]), D)]
-    p = Player(with_table)
+    p = Player(playable_head(with_table))
     v = np.zeros(68)
     v[28] = 150.0
     moved = p.step(v, dt=1 / 25) - face.skin_vertices

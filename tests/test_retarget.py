@@ -25,7 +25,7 @@ import pytest
 
 from fae.adapt.calibration import apply_transform
 from fae.adapt.nonrigid import folded_triangles
-from fae.animate.player import Player
+from fae.animate.player import Player, playable_head
 from fae.animate.retarget import RetargetError, RetargetPlayer, read_target, retarget
 from fae.animate.verify import passed_fraction, verify_faps
 from fae.commands.common import load_head
@@ -111,11 +111,11 @@ def folded_share(model, frames, coverage=None) -> float:
 def template_folds(template):
     """The template's own folded share of the face over expressions.fap (its skin creases a
     little at the brows: the transfer can carry no less)."""
-    return folded_share(template, list(Player(template).play(read_fap(f"{STREAMS}/expressions.fap"))))
+    return folded_share(template, list(Player(playable_head(template)).play(read_fap(f"{STREAMS}/expressions.fap"))))
 
 
 def check_target(template, rt, template_folds, min_pass=0.8, fold_factor=1.25):
-    player = RetargetPlayer(rt, Player(template))
+    player = RetargetPlayer(rt, Player(playable_head(template)))
     report = verify_faps(player, tolerance=0.25)
     assert passed_fraction(report) >= min_pass, [(r["fap"], round(r["ratio"], 2)) for r in report if not r["ok"]]
     frames = list(player.play(read_fap(f"{STREAMS}/expressions.fap")))
@@ -147,7 +147,7 @@ def test_synthetic_target_moves_like_the_template(template, synthetic, template_
 
 def test_eyes_follow_the_gaze(template, synthetic):
     _, _, _, rt = synthetic
-    player = RetargetPlayer(rt, Player(template))
+    player = RetargetPlayer(rt, Player(playable_head(template)))
     values = np.zeros(68)
     values[22] = 20000  # yaw_l_eyeball: 0.2 rad
     player.step(values)

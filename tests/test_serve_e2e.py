@@ -8,7 +8,6 @@ a lock-step client checks that served poses are exactly the Player's.
 from __future__ import annotations
 
 import asyncio
-import hashlib
 import os
 import signal
 import subprocess
@@ -35,22 +34,9 @@ def run(coro, timeout: float = 120.0):
 
 
 @pytest.fixture(scope="module")
-def head(request) -> Path:
-    """The shipped head, or (while it carries no FAP mapping) a calibrated copy of it kept in
-    pytest's cache, so that calibration is paid once, not by every server started here."""
-    from fae.io.facemodel_gltf import read_facemodel, write_facemodel
-    from fae.net.faces import playable_model
-
-    if not SHIPPED_HEAD.is_file():
-        pytest.skip(f"{SHIPPED_HEAD} not present")
-    model = read_facemodel(SHIPPED_HEAD)
-    if model.fap_mapping:
-        return SHIPPED_HEAD
-    digest = hashlib.sha256(SHIPPED_HEAD.read_bytes()).hexdigest()[:16]
-    cached = Path(request.config.cache.mkdir("fae-serve-heads")) / f"generic_head-{digest}.glb"
-    if not cached.is_file():
-        write_facemodel(playable_model(model), cached)
-    return cached
+def head() -> Path:
+    """The shipped head: package data, calibrated (test_play checks that it is)."""
+    return SHIPPED_HEAD
 
 
 class ServeProcess:
@@ -300,7 +286,7 @@ def test_record_keeps_the_time_of_an_xface_client_that_uploads_a_pose_each_secon
 def test_served_poses_are_the_players_own_when_the_client_waits_for_each_ack(head):
     """A client that sends one frame per ack never gets frames coalesced: every served pose
     is exactly what the Player computes stepping the same frames directly."""
-    from fae.animate.player import Player
+    from fae.animate.player import Player, playable_head
     from fae.io.facemodel_gltf import read_facemodel
     from fae.io.frames import dense_frames
     from fae.io.fap import read_fap
@@ -315,7 +301,7 @@ def test_served_poses_are_the_players_own_when_the_client_waits_for_each_ack(hea
     frames = frames[:12]
 
     async def main():
-        server = FapServer(player_face_factory(model), port=0)
+        server = FapServer(player_face_factory(playable_head(model)), port=0)
         await server.start()
         sub = server.subscribe(maxsize=100)
         reader, writer = await asyncio.open_connection("127.0.0.1", server.port)
@@ -336,7 +322,7 @@ def test_served_poses_are_the_players_own_when_the_client_waits_for_each_ack(hea
 
     acks, events = run(main())
     assert acks == [f"ok {v.split()[0]} {k}" for k, (_, v) in enumerate(frames, 1)]
-    player = Player(model)
+    player = Player(playable_head(model))
     direct = [player.step(f, dt=1 / 25) for f, _ in zip(dense_frames(read_fap(path)), frames)]
     assert all(isinstance(e, FrameEvent) for e in events)
     for event, skin in zip(events, direct):
@@ -367,15 +353,15 @@ def test_ten_clients_starting_at_once_are_all_served_by_the_real_player(head):
     assert code == 0 and "Traceback" not in err, err
 
 
-def test_the_face_factory_spawns_every_face_from_a_player_it_is_given(head):
-    """`fae serve` on a head without a mapping calibrates it with one Player, which then
-    serves as the template of every client's face (no second build)."""
-    from fae.animate.player import Player
+def test_every_face_shares_the_heads_static_arrays_and_has_its_own_state(head):
+    """`fae serve` builds the head once (playable_head); every client's face is a Player of
+    it: the same skin model, its own state."""
+    from fae.animate.player import playable_head
     from fae.io.facemodel_gltf import read_facemodel
     from fae.net.faces import player_face_factory
 
-    player = Player(read_facemodel(head))
-    factory = player_face_factory(player.face, first=player)
+    playable = playable_head(read_facemodel(head))
+    factory = player_face_factory(playable)
     faces = [factory(), factory()]
-    assert all(f.player.sim is player.sim and f.player is not player for f in faces)
-    assert faces[0].player is not faces[1].player
+    assert all(f.player.sim is playable.sim for f in faces)
+    assert faces[0].player is not faces[1].player and faces[0].player.state is not faces[1].player.state

@@ -19,11 +19,11 @@ import numpy as np
 from fae.io.facemodel_gltf import read_facemodel
 from fae.io.fap import read_fap
 from fae.io.frames import dense_frames
-from fae.animate.player import Player
+from fae.animate.player import Player, playable_head
 
-base = Player(read_facemodel(sys.argv[1]))
+base = Player(playable_head(read_facemodel(sys.argv[1])))
 frames = list(dense_frames(read_fap(sys.argv[2])))[40:52]
-faces = [base.spawn() for _ in range(4)]
+faces = [Player(base.head) for _ in range(4)]
 start = threading.Barrier(len(faces))
 out = [None] * len(faces)
 
@@ -36,7 +36,7 @@ for t in threads:
     t.start()
 for t in threads:
     t.join()
-alone = base.spawn()
+alone = Player(base.head)
 expected = np.array([alone.step(f, dt=0.04) for f in frames])
 moved = float(np.abs(expected[-1] - expected[0]).max())
 worst = max(float(np.abs(o - expected).max()) for o in out)
@@ -47,7 +47,7 @@ sys.exit(0 if moved > 1e-4 and worst < 1e-6 else 1)
 
 @pytest.mark.slow
 def test_faces_step_in_threads_from_their_first_frame():
-    """Four spawned faces' first steps at once crashed the interpreter (Warp's kernels
+    """Four faces' first steps at once crashed the interpreter (Warp's kernels
     entered for the first time by several threads) in every run before the fix."""
     head = shipped_head_path()
     stream = ROOT / "fap_streams" / "expressions.fap"

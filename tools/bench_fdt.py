@@ -53,7 +53,7 @@ def main(argv=None) -> int:
 
     from fae.animate.bake import settled_skin
     from fae.animate.faptables import FAP_LIMITS, FAP_NAME
-    from fae.animate.player import Player
+    from fae.animate.player import Player, playable_head
     from fae.data import shipped_head_path
     from fae.io.facemodel_gltf import read_facemodel
     from fae.io.fap import read_fap
@@ -61,10 +61,10 @@ def main(argv=None) -> int:
 
     face = read_facemodel(args.head or shipped_head_path())
     t0 = time.perf_counter()
-    fdt = Player(face, engine="fdt")
+    fdt = Player(playable_head(face, engine="fdt"))
     print(f"head: {args.head or shipped_head_path().name}; fdt Player ready in {time.perf_counter() - t0:.1f} s "
           f"({len(fdt.tables)} tables, {fdt.facedef.entry_count} vertex entries)")
-    physics = Player(fdt.face)
+    physics = Player(playable_head(fdt.face))
     rest = np.asarray(face.skin_vertices)
     totals = []
     for path in args.streams or default_streams():

@@ -41,7 +41,7 @@ from fae.data import shipped_head_path  # noqa: E402
 def load_head_and_frames(head: Path, stream_path: Path, n: int):
     """(model, label, frame source factory) for the benchmark."""
     try:
-        from fae.animate.player import Player
+        from fae.animate.player import Player, playable_head
     except ImportError:
         Player = None
     if head.is_file() and Player is not None:
@@ -50,7 +50,7 @@ def load_head_and_frames(head: Path, stream_path: Path, n: int):
 
         model = read_facemodel(head)
         t = time.perf_counter()
-        player = Player(model, device="cpu")
+        player = Player(playable_head(model, device="cpu"))
         note = "" if model.fap_mapping else f" (calibrated on load, {time.perf_counter() - t:.0f} s)"
 
         def source():

@@ -73,7 +73,7 @@ def main(argv=None) -> int:
     ap.add_argument("--naive-frames", type=int, default=5, help="frames the baseline is timed over")
     args = ap.parse_args(argv)
 
-    from fae.animate.player import Player
+    from fae.animate.player import Player, playable_head
     from fae.animate.retarget import RetargetPlayer, read_target, retarget
     from fae.commands.common import load_head
     from fae.io.fap import read_fap
@@ -84,7 +84,7 @@ def main(argv=None) -> int:
         t = time.perf_counter()
         rt = retarget(template, read_target(mesh, lm))
         setup = time.perf_counter() - t
-    player = RetargetPlayer(rt, Player(template))
+    player = RetargetPlayer(rt, Player(playable_head(template)))
     t = time.perf_counter()
     recorded = [(f.skin_vertices, f.bone_transforms)
                 for f in player.player.play(read_fap(REPO / "fap_streams" / "expressions.fap"))][:args.frames]

@@ -53,7 +53,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
 
     from fae.data import shipped_head_path
-    from fae.animate.player import Player
+    from fae.animate.player import Player, playable_head
     from fae.io.fap import read_fap
     from fae.io.facemodel_gltf import read_facemodel
     from fae.io.frames import dense_frames
@@ -63,15 +63,15 @@ def main(argv=None) -> int:
 
     face = read_facemodel(args.head or shipped_head_path())
     t0 = time.perf_counter()
-    player = Player(face)
+    player = Player(playable_head(face))
     print(f"head: {args.head or shipped_head_path().name}, {player.sim.particle_count} particles, "
           f"{player.sim.spring_count} springs; Player ready in {time.perf_counter() - t0:.1f} s")
     ref = ReferenceSolver(player.sim)
     bare = copy.copy(face)
     bare.layer_params = {**(face.layer_params or {}), "fold_passes": 0}
-    unguarded = Player(bare)
+    unguarded = Player(playable_head(bare))
     t0 = time.perf_counter()
-    fdt = Player(face, engine="fdt")
+    fdt = Player(playable_head(face, engine="fdt"))
     print(f"fdt Player ready in {time.perf_counter() - t0:.1f} s ({len(fdt.tables)} FaceDefTables, "
           f"{fdt.facedef.entry_count} vertex entries)")
 

@@ -168,8 +168,9 @@ def main() -> int:
         if model is None:
             print(f"bench_serve: {args.head} not found (use --face linear to measure the protocol alone)", file=sys.stderr)
             return 2
+        from fae.animate.player import playable_head
         from fae.net.faces import player_face_factory
-        factory, what = player_face_factory(model), f"Player on {Path(args.head).name} ({model.skin_vertex_count} skin vertices)"
+        factory, what = player_face_factory(playable_head(model)), f"Player on {Path(args.head).name} ({model.skin_vertex_count} skin vertices)"
     else:
         n = args.vertices or (model.skin_vertex_count if model is not None else 20000)
         factory, what = (lambda: LinearFace(n)), f"linear face, {n} vertices (protocol cost only)"

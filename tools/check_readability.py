@@ -64,11 +64,11 @@ def measure(points: np.ndarray, rest: np.ndarray, what: str, side: str) -> float
 def readability(face, faps=None, steps: int = 6, size: int = 640) -> dict[int, dict]:
     """Per FAP: {"what", "values", "measures", "r"} (see module docstring)."""
     from fae.animate.faptables import FAP_LIMITS
-    from fae.animate.player import Player
+    from fae.animate.player import Player, playable_head
     from fae.render.landmarks import detect_pixels
     from fae.render.renderer import FaceRenderer
 
-    player = Player(face)
+    player = Player(playable_head(face))
     out = {}
     with FaceRenderer(player.face, size=(size, size), view="front") as renderer:
         def points_at(values: np.ndarray) -> np.ndarray | None:

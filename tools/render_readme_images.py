@@ -38,12 +38,12 @@ MAX_BYTES = 300_000
 def demo_frames(model, stream_path: Path, count: int):
     """`count` PlayedFrames spread evenly over the stream (the most expressive moments of each
     expression are in the middle of its segment, so frames are taken at segment centres)."""
-    from fae.animate.player import Player
+    from fae.animate.player import Player, playable_head
 
     stream = read_fap(stream_path)
     total = sum(1 for _ in stream)
     wanted = {int((k + 0.5) * total / count) for k in range(count)}
-    player = Player(model, device="cpu")
+    player = Player(playable_head(model, device="cpu"))
     return [f for f in player.play(stream) if f.index in wanted or len(wanted) == 0][:count]
 
 

@@ -5,16 +5,18 @@ the frame's own; clamp (fae.animate.faptables); one matmul to muscle/field activ
 the jaw pose (fae.animate.controls); one solver step of the skin in the head's frame
 (fae.sim); FaceDefTable offsets added (a frame that repeats the previous one on skin that has
 settled skips the solver); then the head pose (rotation about 7.1) carries
-skin and parts. On load, a head without a calibrated `fap_mapping` is calibrated
-(fae.animate.calibrate, tens of seconds); shipped heads carry theirs.
+skin and parts. What all faces of one head share is a PlayableHead, built once; a head
+without a calibrated `fap_mapping` is calibrated by `playable_head` (fae.animate.calibrate,
+tens of seconds; shipped heads carry theirs), never by a constructor.
 
-The "fdt" engine (`Player(model, engine="fdt")`) moves the skin through the head's
+The "fdt" engine (`playable_head(model, engine="fdt")`) moves the skin through the head's
 FaceDefTables baked from this physics (fae.animate.bake; a head without them is baked on
 load, minutes) and nothing else: per frame one multiply-add per non-zero FAP's table, no
 solver, no settling; the rigid poses are the same. It is exact for one FAP alone at a
 table's borders, settled, and adds FAPs up where the physics does not (docs/architecture.md).
 
-    player = Player(model, device="cpu", engine="physics")   # or engine="fdt"
+    head = playable_head(model, device="cpu", engine="physics")  # once per head; or engine="fdt"
+    player = Player(head)                                        # one per face, milliseconds
     positions = player.step(values_or_denseframe, dt=None)   # (V, 3) float64 metres
     for f in player.play(stream, fps=None): f.index, f.time, f.skin_vertices, f.bone_transforms
     player.reset()
@@ -22,7 +24,6 @@ table's borders, settled, and adds FAPs up where the physics does not (docs/arch
 
 from __future__ import annotations
 
-import copy
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 
@@ -71,63 +72,97 @@ class PlayedFrame:
     values: np.ndarray | None = None
 
 
-class Player:
-    """Plays FAP frames on a FaceModel (see module docstring).
+class PlayableHead:
+    """What every face of one head shares, built once: the calibrated model (`face`), its
+    FAPU, the skin's static simulation model (`sim`, None for "fdt"), the FAP controls, the
+    FaceDefTables this engine adds (`tables`: authored and ear tables for "physics", the
+    baked ones and those of FAPs not baked for "fdt") and their static arrays. Any number
+    of Players step from one PlayableHead (a server's clients), each with its own state.
 
-    engine  "physics" or "fdt"
-    tables  the FaceDefTables this engine adds to the skin: authored and ear tables
-            ("physics"), the baked ones and those of FAPs not baked ("fdt")
+    The constructor never calibrates or bakes: it refuses a model without a fitting FAP
+    mapping (MappingMismatch) or, for "fdt", without baked tables (ValueError).
+    `playable_head(model)` does that set-up, explicitly.
     """
 
     def __init__(self, model, device: str = "cpu", engine: str = "physics"):
         if engine not in ENGINES:
             raise ValueError(f"engine: expected one of {', '.join(ENGINES)}, got {engine!r}")
+        FapControls(model)  # MappingMismatch: calibrate first (playable_head does)
+        if engine == "fdt" and not has_baked_tables(model):
+            raise ValueError("engine 'fdt': the head has no baked FaceDefTables (playable_head bakes them, "
+                             "`fae bake` stores them)")
+        self.face = model
+        self.device = device
         self.engine = engine
-        face = model
-        try:
-            FapControls(face)
-        except MappingMismatch:
-            face = calibrate(face, device=device)
-        if engine == "fdt" and not has_baked_tables(face):
-            face = baked_model(face, bake_tables(Player(face, device=device)))
-        self.face = face
-        self.fapu = fapu_of(face)
-        graph = edge_length_graph(face)
-        self.rig = RigidRig(face, self.fapu)
-        authored = [t for t in face.face_def_tables if t.source == "authored"] + ear_tables(face, self.fapu, graph)
+        self.fapu = fapu_of(model)
+        graph = edge_length_graph(model)
+        authored = [t for t in model.face_def_tables if t.source == "authored"] + ear_tables(model, self.fapu, graph)
         if engine == "fdt":
-            baked = [t for t in face.face_def_tables if t.source == "physics"]
+            baked = [t for t in model.face_def_tables if t.source == "physics"]
             covered = {(t.fap, t.part) for t in baked}
             self.tables = baked + [t for t in authored if (t.fap, t.part) not in covered]
             self.sim = None
-            self.controls = FapControls(face)
-            self._rest_skin = np.asarray(face.skin_vertices, dtype=np.float64)
+            self.controls = FapControls(model)
+            self.rest_skin = np.asarray(model.skin_vertices, dtype=np.float64)
         else:
-            self.sim = skin_model(face, device=device, fields=pull_fields(face, self.fapu, graph))
-            self.controls = FapControls(face, self.sim)
+            self.sim = skin_model(model, device=device, fields=pull_fields(model, self.fapu, graph))
+            self.controls = FapControls(model, self.sim)
             self.tables = authored
-            self.solver = SkinSolver(self.sim)
-            self.skin = SkinOutput(self.sim)
-        self.facedef = FaceDefOffsets(self.tables, face.skin_vertex_count)
+            self.rest_skin = None
+        self.facedef = FaceDefOffsets(self.tables, model.skin_vertex_count)  # each Player spawns its own buffers
+
+
+def needs_calibration(model) -> bool:
+    """Whether `model` lacks a FAP mapping that fits it (playable_head then calibrates it)."""
+    try:
+        FapControls(model)
+    except MappingMismatch:
+        return True
+    return False
+
+
+def playable_head(model, device: str = "cpu", engine: str = "physics") -> PlayableHead:
+    """The PlayableHead of `model`, after the set-up it lacks: a head without a calibrated
+    FAP mapping that fits is calibrated (fae.animate.calibrate, tens of seconds; store the
+    result in its .glb to skip this), and for engine "fdt" a head without baked tables is
+    baked (fae.animate.bake, minutes)."""
+    if engine not in ENGINES:
+        raise ValueError(f"engine: expected one of {', '.join(ENGINES)}, got {engine!r}")
+    if needs_calibration(model):
+        model = calibrate(model, device=device)
+    if engine == "fdt" and not has_baked_tables(model):
+        model = baked_model(model, bake_tables(Player(PlayableHead(model, device=device))))
+    return PlayableHead(model, device=device, engine=engine)
+
+
+class Player:
+    """Plays FAP frames on one face of a PlayableHead (see module docstring): the state,
+    control, solver, FaceDefTable buffers and rigid-pose caches of this face alone. Building
+    one is cheap (milliseconds): the head's static arrays are shared."""
+
+    def __init__(self, head: PlayableHead):
+        if not isinstance(head, PlayableHead):
+            raise TypeError(f"Player: expected a PlayableHead, got {type(head).__name__} "
+                            "(fae.animate.player.playable_head(model) builds one, calibrating what it lacks)")
+        self.head = head
+        self.rig = RigidRig(head.face, head.fapu)
+        self.facedef = head.facedef.spawn()
+        if head.sim is not None:
+            self.solver = SkinSolver(head.sim)
+            self.skin = SkinOutput(head.sim)
+            self.state, self.control, self._rest = head.sim.state(), head.sim.control(), head.sim.state()
         self._R = np.tile(np.eye(3), (2, 1, 1))
         self._t = np.zeros((2, 3))
         self.fps = DEFAULT_FPS
         self.reset()
 
-    def spawn(self) -> "Player":
-        """A new Player of the same head at rest, sharing this one's static arrays (the
-        SkinModel, controls, FaceDefTables): milliseconds instead of a new build, and one
-        copy of the model's memory for any number of faces (a server's clients)."""
-        other = copy.copy(self)
-        other.rig = RigidRig(self.face, self.fapu)
-        other._R, other._t = self._R.copy(), self._t.copy()
-        other.facedef = self.facedef.spawn()
-        if self.sim is not None:
-            other.solver = SkinSolver(self.sim)
-            other.skin = SkinOutput(self.sim)
-            del other.state, other.control, other._rest
-        other.reset()
-        return other
+    # what the head shares, read through the player
+    face = property(lambda self: self.head.face)
+    fapu = property(lambda self: self.head.fapu)
+    sim = property(lambda self: self.head.sim)
+    controls = property(lambda self: self.head.controls)
+    tables = property(lambda self: self.head.tables)
+    engine = property(lambda self: self.head.engine)
 
     @property
     def fap_mapping(self) -> dict[str, np.ndarray]:
@@ -137,8 +172,6 @@ class Player:
     def reset(self) -> None:
         """Back to the neutral face at rest (in place: the solver's recorded launches stay valid)."""
         if self.sim is not None:
-            if not hasattr(self, "state"):
-                self.state, self.control, self._rest = self.sim.state(), self.sim.control(), self.sim.state()
             self.state.assign(self._rest)
             self.control.set(muscle_activation=np.zeros(self.sim.muscle_count),
                              bone_rotation=np.tile(np.eye(3), (2, 1, 1)), bone_translation=np.zeros((2, 3)))
@@ -204,7 +237,7 @@ class Player:
         """The "fdt" engine's frame: rest skin + FaceDefTable offsets, carried by the head pose."""
         _, jaw = self.controls.controls(v)
         bones = self.rig.poses(v, self.rig.jaw(*jaw))
-        skin = self.facedef.displaced(v, self._rest_skin, bones["head"])
+        skin = self.facedef.displaced(v, self.head.rest_skin, bones["head"])
         self.bone_transforms = bones
         self.pupil_scale = self.rig.pupil_scale(v)
         self.values = v

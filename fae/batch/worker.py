@@ -79,14 +79,14 @@ def _head_setup(head_sha256: str, head_bytes: bytes, head_name: str) -> tuple[_H
     if head_sha256 in heads:
         heads.move_to_end(head_sha256)
         return heads[head_sha256], True
-    from fae.animate.player import Player
+    from fae.animate.player import Player, playable_head
     from fae.io.facemodel_gltf import FaceModelError, facemodel_from_glb
 
     try:
         model = facemodel_from_glb(head_bytes, name=head_name)
     except FaceModelError as exc:
         raise JobFailed(str(exc)) from None
-    setup = _HeadSetup(model, Player(model, device="cpu"))
+    setup = _HeadSetup(model, Player(playable_head(model, device="cpu")))
     while len(heads) >= MAX_CACHED_HEADS:
         heads.popitem(last=False)[1].close()
     heads[head_sha256] = setup

@@ -61,9 +61,9 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     with contextlib.redirect_stdout(sys.stderr):  # Warp's banner and kernel-load lines
         from fae.animate.bake import bake_tables, baked_model
-        from fae.animate.player import Player
+        from fae.animate.player import Player, playable_head
 
-        player = Player(face)
+        player = Player(playable_head(face))
 
         def progress(done: int, total: int) -> None:
             if sys.stderr.isatty():

@@ -61,9 +61,9 @@ def run(args: argparse.Namespace) -> int:
               "`fae bake` stores them)", file=sys.stderr)
     with contextlib.redirect_stdout(sys.stderr):  # Warp's banner and kernel-load lines
         from fae.animate.morphs import keyframes, morph_targets
-        from fae.animate.player import Player
+        from fae.animate.player import Player, playable_head
 
-        player = Player(model, engine="fdt")
+        player = Player(playable_head(model, engine="fdt"))
         targets = morph_targets(player.tables)
         frames = None
         fps = None

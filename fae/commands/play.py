@@ -96,7 +96,7 @@ def run(args: argparse.Namespace) -> int:
 
         normal_groups = coincident_groups(model.skin_vertices)[1]  # a scan's texture seams split its vertices
 
-    from fae.animate.player import Player
+    from fae.animate.player import Player, playable_head
     from fae.io.frames import dense_frames
     from fae.render.play import render_video
     from fae.render.renderer import FaceRenderer
@@ -121,9 +121,10 @@ def run(args: argparse.Namespace) -> int:
             if retargeted is not None:
                 from fae.animate.retarget import RetargetPlayer
 
-                player = RetargetPlayer(retargeted, Player(template, device="cpu", engine=args.engine))
+                player = RetargetPlayer(retargeted,
+                                        Player(playable_head(template, device="cpu", engine=args.engine)))
             else:
-                player = Player(model, device="cpu", engine=args.engine)
+                player = Player(playable_head(model, device="cpu", engine=args.engine))
             frames = dense_frames(stream, fps=args.fps, max_hold=args.max_hold)
             timings = render_video(player.play(frames, fps=fps), renderer, args.output, fps,
                                    frames_dir=frames_dir,

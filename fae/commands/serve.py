@@ -51,12 +51,13 @@ def register(subparsers) -> None:
     parser.set_defaults(func=run)
 
 
-async def _serve(args, model, player=None) -> int:
+async def _serve(args, head) -> int:
     from fae.net.faces import player_face_factory
 
+    model = head.face
     limits = ServerLimits(idle_timeout=args.idle_timeout, max_clients=args.max_clients,
                           max_per_address=args.max_per_address)
-    server = FapServer(player_face_factory(model, args.device, first=player), args.host, args.port,
+    server = FapServer(player_face_factory(head), args.host, args.port,
                        fap_dir=args.fap_dir, spare_faces=1, limits=limits)
     recorder = None
     if args.record:
@@ -129,20 +130,18 @@ def run(args) -> int:
     except FaceModelError as exc:
         return fail("serve", f"--head {exc}")
     args.head = str(head)
-    player = None
-    if not model.fap_mapping:  # calibrate once here, not in every client's face
-        from fae.animate.player import Player
+    from fae.animate.player import needs_calibration, playable_head
 
-        print(f"fae serve: {args.head} carries no FAP mapping; calibrating it once (tens of seconds)",
+    if needs_calibration(model):
+        print(f"fae serve: {args.head} carries no FAP mapping that fits; calibrating it once (tens of seconds)",
               file=sys.stderr, flush=True)
-        try:
-            player = Player(model, device=args.device)  # the template of every client's face
-        except (RuntimeError, ValueError) as exc:
-            print(f"fae serve: --head {args.head}: cannot animate it: {exc}", file=sys.stderr)
-            return 2
-        model = player.face
     try:
-        return asyncio.run(_serve(args, model, player))
+        playable = playable_head(model, device=args.device)  # shared by every client's face
+    except (RuntimeError, ValueError) as exc:
+        print(f"fae serve: --head {args.head}: cannot animate it: {exc}", file=sys.stderr)
+        return 2
+    try:
+        return asyncio.run(_serve(args, playable))
     except OSError as exc:
         print(f"fae serve: cannot listen on {args.host}:{args.port}: {exc}", file=sys.stderr)
         return 2

@@ -61,10 +61,10 @@ def run(args) -> int:
     import contextlib
 
     with contextlib.redirect_stdout(sys.stderr):  # Warp's banner and kernel-load lines: stdout is the report's
-        from fae.animate.player import Player
+        from fae.animate.player import Player, playable_head
         from fae.animate.verify import TOLERANCE, passed_fraction, verify_faps
 
-        player = Player(face)
+        player = Player(playable_head(face))
         try:
             report = verify_faps(player, faps)
         except ValueError as exc:

@@ -50,10 +50,10 @@ def run(args) -> int:
             return fail("verify-skin", f"{s}: cannot read ({exc.strerror or exc})")
 
     with contextlib.redirect_stdout(sys.stderr):  # Warp's banner and kernel-load lines: stdout is the report's
-        from fae.animate.player import Player
+        from fae.animate.player import Player, playable_head
         from fae.animate.skin_check import SkinCheck, check_stream, default_streams
 
-        player = Player(face)
+        player = Player(playable_head(face))
         check = SkinCheck(player.face)
         if not loaded:
             loaded = default_streams()

@@ -184,19 +184,16 @@ class FacePool:
 
 
 class PlayerFace:
-    """A FaceModel animated by fae's Player (fae.animate.player), as a FrameConsumer.
+    """One face of a head animated by fae's Player (fae.animate.player), as a FrameConsumer.
 
-    model   the head (shared read-only between faces); give it a calibrated fap_mapping
-            (see :func:`playable_model`), or every face calibrates it again on build
-    device  Warp device ("cpu" or "cuda:0")
-    player  a Player to use (one spawned from another, see `player_face_factory`), or None
-            to build one
+    head    a fae.animate.player.PlayableHead, shared read-only between faces (built once
+            with `playable_head(model)`, which calibrates a head that needs it)
     """
 
-    def __init__(self, model, device: str = "cpu", player=None) -> None:
+    def __init__(self, head) -> None:
         from fae.animate.player import Player
 
-        self.player = player if player is not None else Player(model, device=device)
+        self.player = Player(head)
 
     def step(self, frame: DenseFrame, dt: float) -> Pose:
         skin = self.player.step(frame, dt=dt)
@@ -208,32 +205,14 @@ class PlayerFace:
         self.player.reset()
 
 
-def playable_model(model, device: str = "cpu"):
-    """`model` with the FAP mapping its Players use: itself when it carries one that fits,
-    else a copy holding the mapping calibrated now (tens of seconds, once).
-
-    Building one Player here also compiles (or loads) the simulation kernels, so the
-    first client does not wait for them. (`fae serve` keeps that Player as its faces'
-    template instead, see `player_face_factory`.)
-    """
-    from fae.animate.player import Player
-
-    return Player(model, device=device).face  # the model itself, or its calibrated copy
-
-
-def player_face_factory(model, device: str = "cpu", first=None) -> FaceFactory:
-    """A factory building a new PlayerFace on `model` for each stream. The first face builds
-    the head's simulation (seconds; or `first`, a Player of `model` already built, is used);
-    every later one spawns from it (milliseconds), sharing its static arrays."""
-    template: list = [] if first is None else [first]
+def player_face_factory(head) -> FaceFactory:
+    """A factory building a new PlayerFace of `head` (a PlayableHead) for each stream:
+    milliseconds, the head's static arrays shared. Faces are built one at a time (a
+    Player's first launches are recorded, fae.sim.launch)."""
     lock = threading.Lock()
 
     def build() -> PlayerFace:
-        from fae.animate.player import Player
-
         with lock:
-            if not template:
-                template.append(Player(model, device=device))
-            return PlayerFace(model, device, template[0].spawn())
+            return PlayerFace(head)
 
     return build
