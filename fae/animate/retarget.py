@@ -7,7 +7,7 @@ carried over to the target:
 
     target = read_target("bust.obj", "bust_landmarks.json")   # mesh + MPEG-4 feature points
     rt = retarget(template, target)                            # once: seconds (a fit)
-    player = RetargetPlayer(rt, Player(template))
+    player = RetargetPlayer(rt, Player(playable_head(template)))
     for f in player.play(stream): f.skin_vertices, f.bone_transforms   # the target's
 
 Once per target (`retarget`): the template is fitted to the target from its feature
