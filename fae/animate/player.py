@@ -72,6 +72,16 @@ class PlayedFrame:
     values: np.ndarray | None = None
 
 
+def stream_frames(stream, fps: float | None, default_fps: float) -> tuple[Iterable, float]:
+    """(frames, frames per second) to play: a FapStream's dense frames resampled to `fps`
+    (None: its own rate), or an iterable of DenseFrames as it is, at `fps` or `default_fps`."""
+    if hasattr(stream, "header"):
+        from fae.io.frames import dense_frames
+
+        return dense_frames(stream, fps=fps), float(fps or stream.header.fps)
+    return stream, float(fps or default_fps)
+
+
 class PlayableHead:
     """What every face of one head shares, built once: the calibrated model (`face`), its
     FAPU, the skin's static simulation model (`sim`, None for "fdt"), the FAP controls, the
@@ -246,14 +256,7 @@ class Player:
 
     def play(self, stream, fps: float | None = None) -> Iterator[PlayedFrame]:
         """Play a FapStream (resampled to `fps`, None: its own) or an iterable of DenseFrames."""
-        if hasattr(stream, "header"):
-            from fae.io.frames import dense_frames
-
-            rate = float(fps or stream.header.fps)
-            frames: Iterable = dense_frames(stream, fps=fps)
-        else:
-            rate = float(fps or self.fps)
-            frames = stream
+        frames, rate = stream_frames(stream, fps, self.fps)
         self.fps = rate
         for i, frame in enumerate(frames):
             skin = self.step(frame, dt=1.0 / rate)

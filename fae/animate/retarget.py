@@ -41,7 +41,7 @@ measures the target's own FAP response against value x the target's FAPU.
 from __future__ import annotations
 
 import os
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -495,16 +495,9 @@ class RetargetPlayer:
     def play(self, stream, fps: float | None = None) -> Iterator:
         """Play a FapStream (resampled to `fps`, None: its own) or an iterable of DenseFrames;
         yields fae.animate.player.PlayedFrame of the target."""
-        from fae.animate.player import PlayedFrame
+        from fae.animate.player import PlayedFrame, stream_frames
 
-        if hasattr(stream, "header"):
-            from fae.io.frames import dense_frames
-
-            rate = float(fps or stream.header.fps)
-            frames: Iterable = dense_frames(stream, fps=fps)
-        else:
-            rate = float(fps or self.fps)
-            frames = stream
+        frames, rate = stream_frames(stream, fps, self.fps)
         if rate != self.fps:
             self.fps = rate
             self.player.fps = rate

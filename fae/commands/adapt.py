@@ -167,20 +167,10 @@ def _face_pairs(template):
 
 
 def _finish(args, model, report, V, F, keep, started, start_mapping=None) -> int:
-    from fae.io.atomic import atomic_open, atomic_path
-    from fae.io.facemodel_gltf import write_facemodel
-
     from fae.commands.adapt_checks import implausible_fit
 
     verdict = report["verdict"] = report.get("verdict", []) + implausible_fit(report)
-    for why in verdict:
-        _say(f"{args.scan}: {why}")
-    if verdict and not args.force:
-        _say(f"not writing {args.output}: the head is not to be trusted (--force writes it anyway; "
-             "--landmarks may help)")
-        if args.report:
-            with atomic_open(args.report, "w") as fh:
-                json.dump(_json_safe(report), fh, indent=1, allow_nan=False)
+    if _refused(args, args.scan, verdict, report, "; --landmarks may help"):
         return 2
     model = _calibrated(args, model, report, start_mapping)
     picture = None
@@ -193,6 +183,37 @@ def _finish(args, model, report, V, F, keep, started, start_mapping=None) -> int
             _say(f"cannot draw {args.compare} ({exc}); is OSMesa installed (make install)?")
             return 2
     report["total_seconds"] = time.perf_counter() - started
+    _write_outputs(args, model, report, picture)
+    e = report["errors"]
+    part = report["head_part"]
+    print(f"{args.output}: head part {part['head_vertices']} of {part['scan_vertices']} scan vertices; face skin->scan "
+          f"RMS {e['face_to_scan_rms_rel'] * 100:.3f} % of the head diagonal ({e['face_coverage'] * 100:.0f} % "
+          f"covered), scan->skin RMS {e['scan_to_skin_rms_rel'] * 100:.3f} % ({e['scan_coverage'] * 100:.0f} % "
+          f"covered); {report['folded_triangles']['visible']} folded triangles; {report['total_seconds']:.1f} s")
+    return 0
+
+
+def _refused(args, source: str, verdict: list[str], report: dict, hint: str = "") -> bool:
+    """Say each reason the head is not to be trusted; True when nothing is to be written
+    (a verdict without --force), after writing the report when asked for."""
+    from fae.io.atomic import atomic_open
+
+    for why in verdict:
+        _say(f"{source}: {why}")
+    if not verdict or args.force:
+        return False
+    _say(f"not writing {args.output}: the head is not to be trusted (--force writes it anyway{hint})")
+    if args.report:
+        with atomic_open(args.report, "w") as fh:
+            json.dump(_json_safe(report), fh, indent=1, allow_nan=False)
+    return True
+
+
+def _write_outputs(args, model, report: dict, picture) -> None:
+    """The head (-o), the report (--report) and the picture (--compare), each atomically."""
+    from fae.io.atomic import atomic_open, atomic_path
+    from fae.io.facemodel_gltf import write_facemodel
+
     write_facemodel(model, args.output)
     if args.report:
         with atomic_open(args.report, "w") as fh:
@@ -202,13 +223,6 @@ def _finish(args, model, report, V, F, keep, started, start_mapping=None) -> int
 
         with atomic_path(args.compare) as tmp:
             write_png(tmp, picture)
-    e = report["errors"]
-    part = report["head_part"]
-    print(f"{args.output}: head part {part['head_vertices']} of {part['scan_vertices']} scan vertices; face skin->scan "
-          f"RMS {e['face_to_scan_rms_rel'] * 100:.3f} % of the head diagonal ({e['face_coverage'] * 100:.0f} % "
-          f"covered), scan->skin RMS {e['scan_to_skin_rms_rel'] * 100:.3f} % ({e['scan_coverage'] * 100:.0f} % "
-          f"covered); {report['folded_triangles']['visible']} folded triangles; {report['total_seconds']:.1f} s")
-    return 0
 
 
 def _calibrated(args, model, report: dict, start_mapping: dict | None = None):
@@ -250,8 +264,6 @@ def _run_paper(args, template, V, F, landmarks) -> int:
     from tqdm import tqdm
 
     from fae.adapt.transfer import adapt_facemodel
-    from fae.io.atomic import atomic_open
-    from fae.io.facemodel_gltf import write_facemodel
 
     bar = tqdm(total=args.levels + 6, desc="adapt", unit="level", file=sys.stderr)
 
@@ -279,19 +291,10 @@ def _run_paper(args, template, V, F, landmarks) -> int:
     from fae.commands.adapt_checks import implausible_fit
 
     verdict = report["verdict"] = implausible_fit(report)
-    for why in verdict:
-        _say(f"{args.scan}: {why}")
-    if verdict and not args.force:
-        _say(f"not writing {args.output}: the head is not to be trusted (--force writes it anyway)")
-        if args.report:
-            with atomic_open(args.report, "w") as fh:
-                json.dump(_json_safe(report), fh, indent=1, allow_nan=False)
+    if _refused(args, args.scan, verdict, report):
         return 2
     model = _calibrated(args, model, report, template.fap_mapping)
-    write_facemodel(model, args.output)
-    if args.report:
-        with atomic_open(args.report, "w") as fh:
-            json.dump(_json_safe(report), fh, indent=1, allow_nan=False)
+    _write_outputs(args, model, report, None)
     if args.plot:
         write_plot(report, args.plot)
     f = report["final"]
@@ -371,8 +374,7 @@ def _run_photo(args) -> int:
     from fae.adapt.photo import PhotoRefused
     from fae.commands.adapt_checks import overwritten_input
     from fae.commands.common import output_problem
-    from fae.io.atomic import atomic_open, atomic_path
-    from fae.io.facemodel_gltf import read_facemodel, write_facemodel
+    from fae.io.facemodel_gltf import read_facemodel
 
     started = time.perf_counter()
     if args.landmarks or args.method != "surface":
@@ -409,13 +411,7 @@ def _run_photo(args) -> int:
     except (RuntimeError, ImportError, OSError) as exc:  # no OpenGL to draw the template with
         _say(f"cannot render the template to find its face ({exc}); is OSMesa installed (make install)?")
         return 2
-    for why in verdict:
-        _say(f"{args.photo}: {why}")
-    if verdict and not args.force:
-        _say(f"not writing {args.output}: the head is not to be trusted (--force writes it anyway)")
-        if args.report:
-            with atomic_open(args.report, "w") as fh:
-                json.dump(_json_safe(report), fh, indent=1, allow_nan=False)
+    if _refused(args, args.photo, verdict, report):
         return 2
     model = _calibrated(args, model, report, template.fap_mapping)
     picture = None
@@ -424,15 +420,7 @@ def _run_photo(args) -> int:
 
         picture = photo_comparison_image(model, image)
     report["total_seconds"] = time.perf_counter() - started
-    write_facemodel(model, args.output)
-    if args.report:
-        with atomic_open(args.report, "w") as fh:
-            json.dump(_json_safe(report), fh, indent=1, allow_nan=False)
-    if picture is not None:
-        from fae.render.png import write_png
-
-        with atomic_path(args.compare) as tmp:
-            write_png(tmp, picture)
+    _write_outputs(args, model, report, picture)
     seen = "finds no face on it" if share is None else \
         f"sees it {share * 100:.1f} % of the eye distance from the photo's points (RMS)"
     print(f"{args.output}: head from {args.photo} ({report['eye_distance_px']:.0f} pixels between the eyes, turned "

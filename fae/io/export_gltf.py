@@ -32,7 +32,7 @@ import pygltflib
 from scipy.spatial.transform import Rotation
 
 from fae.io.atomic import atomic_path
-from fae.io.facemodel_gltf import DEFAULT_ROUGHNESS, ROUGHNESS, png_bytes, vertex_normals
+from fae.io.facemodel_gltf import DEFAULT_ROUGHNESS, ROUGHNESS, png_bytes, vertex_normals, wrapped_texture
 from fae.mesh import wrapped_seam
 
 GENERATOR = "fae scene export"
@@ -161,12 +161,7 @@ class _SceneWriter:
         if uv is not None and image is not None:
             attributes.TEXCOORD_0 = self.accessor(np.asarray(uv, dtype=np.float32), pygltflib.FLOAT, pygltflib.VEC2,
                                                   _ARRAY_BUFFER)
-            if not self.gltf.samplers:
-                self.gltf.samplers.append(pygltflib.Sampler(magFilter=pygltflib.LINEAR,
-                                                            minFilter=pygltflib.LINEAR_MIPMAP_LINEAR,
-                                                            wrapS=pygltflib.REPEAT, wrapT=pygltflib.CLAMP_TO_EDGE))
-            self.gltf.textures.append(pygltflib.Texture(sampler=0, source=image))
-            texture = pygltflib.TextureInfo(index=len(self.gltf.textures) - 1)
+            texture = wrapped_texture(self.gltf, image)
             base = [1.0, 1.0, 1.0, 1.0]
         self.gltf.materials.append(pygltflib.Material(
             name=name, pbrMetallicRoughness=pygltflib.PbrMetallicRoughness(

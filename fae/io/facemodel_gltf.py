@@ -457,12 +457,7 @@ class _Writer:
         base = [min(max(c, 0.0), 1.0) for c in base]
         base_texture = None
         if texture is not None and uv is not None:
-            if not self.gltf.samplers:
-                self.gltf.samplers.append(pygltflib.Sampler(magFilter=pygltflib.LINEAR,
-                                                            minFilter=pygltflib.LINEAR_MIPMAP_LINEAR,
-                                                            wrapS=pygltflib.REPEAT, wrapT=pygltflib.CLAMP_TO_EDGE))
-            self.gltf.textures.append(pygltflib.Texture(sampler=0, source=texture))
-            base_texture = pygltflib.TextureInfo(index=len(self.gltf.textures) - 1)
+            base_texture = wrapped_texture(self.gltf, texture)
             base = [1.0, 1.0, 1.0, 1.0]
         material = pygltflib.Material(
             name=name,
@@ -566,6 +561,16 @@ class _Writer:
             "semi_axes": None if mu.semi_axes is None else _float_list(mu.semi_axes),
             "axes": None if mu.axes is None else [_float_list(a) for a in np.asarray(mu.axes)],
         }
+
+
+def wrapped_texture(gltf: pygltflib.GLTF2, image: int) -> pygltflib.TextureInfo:
+    """A texture of glTF image `image` in `gltf`, sampled wrapping around in u (the skin's
+    cylindrical map; fae.mesh.wrapped_seam) and clamped in v; the sampler is added once."""
+    if not gltf.samplers:
+        gltf.samplers.append(pygltflib.Sampler(magFilter=pygltflib.LINEAR, minFilter=pygltflib.LINEAR_MIPMAP_LINEAR,
+                                               wrapS=pygltflib.REPEAT, wrapT=pygltflib.CLAMP_TO_EDGE))
+    gltf.textures.append(pygltflib.Texture(sampler=0, source=image))
+    return pygltflib.TextureInfo(index=len(gltf.textures) - 1)
 
 
 def png_bytes(rgb: np.ndarray) -> bytes:
