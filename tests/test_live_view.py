@@ -205,3 +205,70 @@ def test_a_browser_watches_a_stream_sent_to_the_server(tmp_path):
     face = (slice(120, 400), slice(120, 360))  # the face, below the HUD
     assert np.abs(a[face] - b[face]).mean() > 0.5  # the face moved between the shots
     assert code == 0, log
+
+
+def textured(model):
+    """The head with a texture: red where u is in [0.25, 0.75] (the face), blue elsewhere."""
+    import copy
+
+    out = copy.deepcopy(model)
+    texture = np.zeros((64, 128, 3), np.uint8)
+    texture[:] = (30, 60, 230)
+    texture[:, 32:96] = (230, 30, 30)
+    out.skin_texture = texture
+    return out
+
+
+def test_a_textured_head_is_sent_with_its_texture_and_seam(model):
+    import base64
+    import io
+
+    from PIL import Image
+
+    from fae.mesh import wrapped_seam
+    from fae.net.view import head_message
+
+    head = textured(model)
+    skin = json.loads(head_message(head))["skin"]
+    _, seam, _ = wrapped_seam(head.skin_faces, head.skin_uv)
+    n = len(head.skin_vertices) + len(seam)
+    assert len(skin["positions"]) == 3 * n and len(skin["uv"]) == 2 * n and skin["seam"] == seam.tolist()
+    assert max(skin["faces"]) == n - 1
+    png = base64.b64decode(skin["texture"].split(",", 1)[1])
+    assert np.array_equal(np.asarray(Image.open(io.BytesIO(png)).convert("RGB")), head.skin_texture)
+    assert "texture" not in json.loads(head_message(model))["skin"]  # an untextured head as before
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(browser_problem() is not None, reason=str(browser_problem()))
+def test_a_browser_shows_a_textured_head_with_its_colours(model, tmp_path):
+    from playwright.sync_api import sync_playwright
+
+    from fae.io.facemodel_gltf import write_facemodel
+    from test_serve_e2e import ServeProcess
+
+    head = tmp_path / "textured.glb"
+    write_facemodel(textured(model), head)
+    server = ServeProcess("--live", "--http-port", "0", "--head", str(head))
+    try:
+        url = next(line.split("live view on ", 1)[1].strip() for line in server.lines if "live view on " in line)
+        with sync_playwright() as p:
+            browser = launch_chromium(p)
+            page = browser.new_page(viewport={"width": 480, "height": 480})
+            errors: list[str] = []
+            page.on("pageerror", lambda e: errors.append(str(e)))
+            page.goto(url)
+            page.wait_for_function("window.faeView && window.faeView.textureLoaded", timeout=60000)
+            page.wait_for_timeout(500)  # a frame drawn with the texture
+            shot = tmp_path / "textured.png"
+            page.screenshot(path=str(shot))
+            browser.close()
+    finally:
+        server.stop(signal.SIGTERM)
+    assert errors == []
+    from PIL import Image
+
+    image = np.asarray(Image.open(shot).convert("RGB"), dtype=float)
+    face = image[160:360, 160:320]
+    red = (face[:, :, 0] > face[:, :, 2] + 40).mean()
+    assert red > 0.5  # the face shows the texture's red, not the skin colour or blue

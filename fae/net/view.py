@@ -12,6 +12,11 @@ On /ws a page first gets the head as one JSON text message:
     {"type": "head", "skin": {"positions": [x, y, z, ...] metres, "faces": [i, j, k, ...],
      "color": [r, g, b, a]}, "parts": [{"name", "bone", "positions", "faces", "color"}]}
 
+A head with a skin texture also sends "uv" [u, v, ...], "texture" (a data: URL of the PNG)
+and "seam" [i, ...]: the skin's positions then end with copies of the vertices whose
+triangles cross the texture's seam (fae.mesh.wrapped_seam), and a page sets each copy from
+vertex seam[k] of every frame.
+
 then one binary message per frame it is shown: a little-endian uint32 n, n bytes of JSON
 {"stream", "index", "time", "fps", "step", "bones": {bone: 16 floats, column-major}},
 zero padding to a multiple of 4, then the skin's positions as float32 (V x 3, metres,
@@ -63,6 +68,18 @@ def head_message(model) -> str:
     skin = {"positions": rounded(model.skin_vertices), "faces": np.asarray(model.skin_faces).ravel().tolist(),
             "color": np.asarray(model.skin_color, dtype=float).ravel()[:4].tolist()
             if model.skin_color is not None and np.size(model.skin_color) >= 3 else [0.85, 0.65, 0.55, 1.0]}
+    if getattr(model, "skin_texture", None) is not None:
+        import base64
+
+        from fae.io.facemodel_gltf import png_bytes
+        from fae.mesh import wrapped_seam
+
+        faces, seam, uv = wrapped_seam(model.skin_faces, model.skin_uv)
+        V = np.asarray(model.skin_vertices, dtype=np.float64)
+        skin.update({"positions": rounded(np.concatenate([V, V[seam]])), "faces": faces.ravel().tolist(),
+                     "uv": np.round(uv.astype(np.float64), 5).ravel().tolist(), "seam": seam.tolist(),
+                     "texture": "data:image/png;base64," + base64.b64encode(png_bytes(model.skin_texture)).decode(),
+                     "color": [1.0, 1.0, 1.0, 1.0]})
     parts = []
     for name, part in model.parts.items():
         if name in HIDDEN_PARTS:
