@@ -101,6 +101,7 @@ def test_a_photo_stored_on_its_side_gives_the_same_head(astronaut_head, tmp_path
     photo = save(np.rot90(data.astronaut()), tmp_path / "side.png")
     out, rep = tmp_path / "side.glb", tmp_path / "side.json"
     assert main(["adapt", "--photo", photo, "-o", str(out), "--report", str(rep), "--no-calibrate"]) == 0
+    assert json.loads(rep.read_text())["photo_quarter_turns"] in (1, 3)  # looked at upright
     other = read_facemodel(out)
     assert facemodel_problems(other) == []
     # the same face: its feature points within a few millimetres of the upright photo's head
@@ -158,6 +159,19 @@ def test_a_scan_and_a_photo_together_are_refused(tmp_path, capsys):
     assert "either a scan" in capsys.readouterr().err
 
 
+def test_a_face_is_looked_at_upright_whichever_way_the_photo_is_turned():
+    from fae.render.landmarks import detect_points_any_turn, face_roll_degrees
+
+    image = data.astronaut()
+    upright, _ = detect_points_any_turn(image)
+    for k in (1, 2, 3):
+        points, turns = detect_points_any_turn(np.ascontiguousarray(np.rot90(image, k)))
+        assert (turns + k) % 4 == 0  # turned back by the quarters it was turned
+        # np.rot90 turns counter-clockwise: the eye line turns by -90 k degrees (y down)
+        off = (face_roll_degrees(points) - face_roll_degrees(upright) + 90 * k) % 360
+        assert min(off, 360 - off) < 10
+
+
 def test_points_found_on_a_turned_image_come_back_to_its_pixels():
     from fae.render.landmarks import _unturned
 
@@ -167,3 +181,35 @@ def test_points_found_on_a_turned_image_come_back_to_its_pixels():
         y, x = np.argwhere(np.rot90(image, k)[:, :, 0])[0]
         back = _unturned(np.array([[x + 0.5, y + 0.5, 0.0]]), k, (50, 30))[0]
         assert back[:2] == pytest.approx([40.5, 5.5])
+
+
+@pytest.mark.slow
+def test_a_tight_portrait_draws_its_comparison(tmp_path):
+    """The head reaches past a tightly cropped portrait's edges: the comparison picture pads
+    the photo instead of failing."""
+    photo = save(data.astronaut()[50:300, 120:330], tmp_path / "crop.png")
+    out, picture = tmp_path / "head.glb", tmp_path / "compare.png"
+    assert main(["adapt", "--photo", photo, "-o", str(out), "--no-calibrate", "--compare", str(picture)]) == 0
+    assert out.exists() and picture.stat().st_size > 10_000
+
+
+def test_photos_are_read_upright_in_8_bits_and_at_a_bounded_size(tmp_path):
+    from fae.commands.adapt import MAX_PHOTO_SIDE, read_photo
+
+    grey16 = (data.camera().astype(np.uint16) * 257)  # a 16-bit grey photo
+    Image.fromarray(grey16).save(tmp_path / "grey16.png")
+    pixels = read_photo(str(tmp_path / "grey16.png"))
+    assert pixels.shape == (512, 512, 3) and pixels.dtype == np.uint8
+    assert abs(pixels[:, :, 0].astype(int) - data.camera().astype(int)).max() <= 1  # not saturated
+    big = np.asarray(Image.fromarray(data.astronaut()).resize((3000, 3000)))
+    Image.fromarray(big).save(tmp_path / "big.jpg")
+    assert read_photo(str(tmp_path / "big.jpg")).shape == (MAX_PHOTO_SIDE, MAX_PHOTO_SIDE, 3)
+    with pytest.raises(ValueError, match="folder"):
+        read_photo(str(tmp_path))
+
+
+def test_a_decompression_bomb_is_refused_not_a_traceback(tmp_path, capsys):
+    bomb = tmp_path / "bomb.png"
+    Image.new("L", (20000, 10000)).save(bomb)  # 200 megapixels of one colour: a few hundred KB
+    assert main(["adapt", "--photo", str(bomb), "-o", str(tmp_path / "h.glb")]) == 2
+    assert "not an image fae can read" in capsys.readouterr().err

@@ -194,6 +194,25 @@ def test_bad_input_exits_2(template, synthetic, tmp_path, case):
     assert not (tmp_path / "x.mp4").exists()
 
 
+def test_a_mesh_whose_feature_points_do_not_fit_it_is_refused(tmp_path):
+    """A sphere with feature points scattered at random: the template's fit to it is not to
+    be trusted, so nothing is played (exit 2, the fit's reasons) unless --force."""
+    import trimesh
+
+    mesh = tmp_path / "sphere.obj"
+    trimesh.creation.icosphere(subdivisions=4, radius=0.1).export(mesh)
+    rng = np.random.default_rng(0)
+    names = ["2.1", "3.5", "3.6", "3.7", "3.8", "3.11", "3.12", "8.3", "8.4", "9.3", "4.1", "4.2"]
+    lm = tmp_path / "scattered.json"
+    lm.write_text(json.dumps({n: (rng.normal(size=3) * 0.05).tolist() for n in names}))
+    out = tmp_path / "x.mp4"
+    r = subprocess.run([sys.executable, "-m", "fae", "play", f"{STREAMS}/visemes.fap", "--head", str(mesh),
+                        "--landmarks", str(lm), "-o", str(out)], capture_output=True, text=True)
+    assert r.returncode == 2, r.stderr
+    assert "not to be trusted" in r.stderr and "--force" in r.stderr
+    assert not out.exists()
+
+
 def test_too_few_points_raise(template, tmp_path):
     mesh, lm, _ = make_target(template, tmp_path)
     target = read_target(mesh, lm)

@@ -258,12 +258,15 @@ def iris_from_photo(model: FaceModel, image: np.ndarray, photo: PhotoPoints, eye
     RGB colour used, or None when the head's eyes have no iris colour."""
     eye_px = pupil_distance_px(photo, eyes)
     h, w = image.shape[:2]
+    radius = IRIS_SAMPLE_SHARE * eye_px
     samples = []
     for eye in eyes:
         c = photo.points[list(eye), :2].mean(axis=0)
-        yy, xx = np.mgrid[0:h, 0:w]
-        disc = (xx + 0.5 - c[0]) ** 2 + (yy + 0.5 - c[1]) ** 2 <= (IRIS_SAMPLE_SHARE * eye_px) ** 2
-        samples.append(image[disc][:, :3].astype(np.float64))
+        x0, x1 = max(int(c[0] - radius) - 1, 0), min(int(c[0] + radius) + 2, w)
+        y0, y1 = max(int(c[1] - radius) - 1, 0), min(int(c[1] + radius) + 2, h)
+        yy, xx = np.mgrid[y0:y1, x0:x1]
+        disc = (xx + 0.5 - c[0]) ** 2 + (yy + 0.5 - c[1]) ** 2 <= radius ** 2
+        samples.append(image[y0:y1, x0:x1][disc][:, :3].astype(np.float64))
     pixels = np.vstack(samples)
     if len(pixels) < 3:
         return None

@@ -335,6 +335,7 @@ MUSCLE_MARGIN = 2e-4  # m: a muscle's line keeps this far inside the skin
 
 
 MOUTH_PARTS = ("upper_teeth", "lower_teeth", "tongue")
+MOUTH_SCALE_SPREAD = 0.05  # teeth and tongue scale within 5 % of the face's scale (busts: 0-4 %)
 MOUTH_SINK_STEP = 0.0005  # m: teeth or tongue that show through the lips move back this much at a time
 MOUTH_MAX_SINK_STEPS = 30
 MOUTH_POKE_REACH = 0.006  # m behind a tooth where the skin it pokes through is looked for
@@ -456,6 +457,11 @@ def personalize(template: FaceModel, skin: np.ndarray, T: np.ndarray, unit: str,
     model.skin_vertices = np.asarray(skin, dtype=np.float64).copy()
     fdp_new = model.feature_point_positions()
     mouth = _ratio(fdp_old, fdp_new, "8.3", "8.4") or 1.0
+    # a smile (a photo) or a pout widens the mouth, not the teeth: their scale stays within
+    # MOUTH_SCALE_SPREAD of the face's own (the outer eye corners' distance ratio)
+    face = _ratio(fdp_old, fdp_new, "3.7", "3.12")
+    if face:
+        mouth = float(np.clip(mouth, face / (1.0 + MOUTH_SCALE_SPREAD), face * (1.0 + MOUTH_SCALE_SPREAD)))
     eye_l = _ratio(fdp_old, fdp_new, "3.7", "3.11") or mouth
     eye_r = _ratio(fdp_old, fdp_new, "3.8", "3.12") or mouth
     rigid_scale = {"eye_l": eye_l, "eye_r": eye_r, "upper_teeth": mouth, "lower_teeth": mouth, "tongue": mouth}

@@ -311,18 +311,35 @@ def _run_paper(args, template, V, F, landmarks) -> int:
 MAX_RENDER_POINTS_SHARE = 0.1
 
 
+# A photo is looked at no larger than this (long side, pixels): the texture is 1024 texels
+# square, and a 36-megapixel photo would cost gigabytes for nothing.
+MAX_PHOTO_SIDE = 2048
+
+
 def read_photo(path: str):
-    """(h, w, 3) uint8 RGB pixels of an image file, turned upright by its EXIF orientation;
+    """(h, w, 3) uint8 RGB pixels of an image file, turned upright by its EXIF orientation,
+    16-bit images brought to 8 bits, scaled down to MAX_PHOTO_SIDE on its long side;
     ValueError naming the file when it is not an image."""
     import numpy as np
     from PIL import Image, ImageOps, UnidentifiedImageError
 
     try:
         with Image.open(path) as image:
-            return np.asarray(ImageOps.exif_transpose(image).convert("RGB"), dtype=np.uint8).copy()
+            image = ImageOps.exif_transpose(image)
+            if image.mode in ("I", "I;16", "I;16B", "I;16L", "I;16N"):  # 16-bit grey: keep its range
+                grey = np.asarray(image, dtype=np.float64)
+                image = Image.fromarray(np.clip(grey * 255.0 / max(float(grey.max()), 1.0), 0, 255).astype(np.uint8))
+            image = image.convert("RGB")
+            if max(image.size) > MAX_PHOTO_SIDE:
+                k = MAX_PHOTO_SIDE / max(image.size)
+                image = image.resize((max(1, round(image.size[0] * k)), max(1, round(image.size[1] * k))),
+                                     Image.LANCZOS)
+            return np.asarray(image, dtype=np.uint8).copy()
     except FileNotFoundError:
         raise ValueError(f"{path}: no such file") from None
-    except (UnidentifiedImageError, OSError) as exc:
+    except IsADirectoryError:
+        raise ValueError(f"{path}: a folder, not an image") from None
+    except (UnidentifiedImageError, OSError, Image.DecompressionBombError) as exc:
         raise ValueError(f"{path}: not an image fae can read (expected JPEG or PNG; {exc})") from exc
 
 
@@ -415,10 +432,14 @@ def _run_photo(args) -> int:
         return 2
     model = _calibrated(args, model, report, template.fap_mapping)
     picture = None
-    if args.compare:
+    if args.compare:  # drawn before anything is written: a failure here leaves nothing behind
         from fae.render.compare import photo_comparison_image
 
-        picture = photo_comparison_image(model, image)
+        try:
+            picture = photo_comparison_image(model, image)
+        except (RuntimeError, ImportError, OSError, ValueError) as exc:
+            _say(f"cannot draw {args.compare} ({exc})")
+            return 2
     report["total_seconds"] = time.perf_counter() - started
     _write_outputs(args, model, report, picture)
     seen = "finds no face on it" if share is None else \

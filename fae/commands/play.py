@@ -44,6 +44,8 @@ def register(subparsers) -> None:
                         help="physics: simulate the skin (default); fdt: move it by the head's FaceDefTables baked "
                         "from the physics (`fae bake`; a head without them is baked first, minutes)")
     parser.add_argument("--frames-dir", metavar="DIR", help="also write each frame as DIR/frame_00000.png, ...")
+    parser.add_argument("--force", action="store_true", help="with --landmarks: play the mesh even when the "
+                        "template's fit to it is not to be trusted (folds, a face far from the mesh)")
     parser.set_defaults(func=run)
 
 
@@ -91,6 +93,10 @@ def run(args: argparse.Namespace) -> int:
                                   say=lambda msg: print(f"fae play: {msg}", file=sys.stderr))
         except RetargetError as exc:
             return fail("play", str(exc))
+        verdict = retargeted.report["fit"].get("verdict") or []
+        if verdict and not args.force:
+            return fail("play", f"{args.head}: the template's fit to the mesh is not to be trusted ({'; '.join(verdict)}); "
+                        "check the feature points in --landmarks (--force plays it anyway)")
         model = retargeted.model
         from fae.adapt.geometry import coincident_groups
 

@@ -140,14 +140,15 @@ class _SceneWriter:
         self.gltf.accessors.append(acc)
         return len(self.gltf.accessors) - 1
 
-    def mesh(self, name: str, vertices, faces, color, colors=None, targets=(), uv=None, image: int | None = None
-             ) -> int:
+    def mesh(self, name: str, vertices, faces, color, colors=None, targets=(), uv=None, image: int | None = None,
+             normals: np.ndarray | None = None) -> int:
         """A mesh node (index) of one surface; uv (n, 2) and image (a glTF image index): its
-        base colour texture."""
+        base colour texture; normals (n, 3) to use instead of the mesh's own."""
         vertices = np.asarray(vertices, dtype=np.float64)
+        normals = vertex_normals(vertices, faces) if normals is None else normals
         attributes = pygltflib.Attributes(
             POSITION=self.accessor(vertices.astype(np.float32), pygltflib.FLOAT, pygltflib.VEC3, _ARRAY_BUFFER, True),
-            NORMAL=self.accessor(vertex_normals(vertices, faces).astype(np.float32), pygltflib.FLOAT, pygltflib.VEC3,
+            NORMAL=self.accessor(np.asarray(normals, dtype=np.float32), pygltflib.FLOAT, pygltflib.VEC3,
                                  _ARRAY_BUFFER))
         if colors is not None:
             c = np.asarray(colors, dtype=np.float32)
@@ -236,8 +237,9 @@ class _SceneWriter:
             factors = np.concatenate([factors, factors[source]])
         image = len(self.gltf.images)
         self.gltf.images.append(pygltflib.Image(bufferView=self.view(png_bytes(m.skin_texture)), mimeType="image/png"))
+        N = vertex_normals(V, m.skin_faces)  # of the whole skin: a copy shares its vertex's normal
         return self.mesh("skin", np.concatenate([V, V[source]]), F2, np.asarray(m.skin_color, dtype=np.float32),
-                         colors=factors, targets=targets, uv=uv2, image=image)
+                         colors=factors, targets=targets, uv=uv2, image=image, normals=np.concatenate([N, N[source]]))
 
     def animation(self, skin: int, bones: dict[str, int]) -> None:
         k = self.keyframes

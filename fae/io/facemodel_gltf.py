@@ -27,7 +27,7 @@ import pygltflib
 
 from fae.io.atomic import atomic_path
 from fae.io.facemodel import FACE_DEF_TABLE_SOURCES, PART_BONES, FaceDefTable, FaceModel, Muscle, Part, SurfacePoint
-from fae.mesh import vertex_normals
+from fae.mesh import vertex_normals, wrapped_seam
 from fae.mpeg4 import FEATURE_POINTS, fapu0_from_positions, fapu_from_fapu0
 
 EXTENSION = "FAE_face_model"
@@ -435,17 +435,19 @@ class _Writer:
         return len(self.gltf.images) - 1
 
     def mesh_node(self, name: str, vertices, faces, color, uv=None, vertex_colors=None,
-                  texture: int | None = None) -> int | None:
+                  texture: int | None = None, normals: np.ndarray | None = None) -> int | None:
         """Add the render mesh, material and node of one surface; None if it has no triangles.
-        texture: a glTF image index that becomes the material's base colour texture (with uv)."""
+        texture: a glTF image index that becomes the material's base colour texture (with uv);
+        normals (n, 3): instead of the mesh's own."""
         vertices = np.asarray(vertices, dtype=np.float64)
         faces = np.asarray(faces)
         if len(vertices) == 0 or len(faces) == 0:
             return None
         positions = vertices.astype(np.float32)
+        normals = vertex_normals(vertices, faces) if normals is None else normals
         attributes = pygltflib.Attributes(
             POSITION=self.accessor(positions, pygltflib.FLOAT, pygltflib.VEC3, _ARRAY_BUFFER, bounds=True),
-            NORMAL=self.accessor(vertex_normals(vertices, faces).astype(np.float32), pygltflib.FLOAT, pygltflib.VEC3, _ARRAY_BUFFER),
+            NORMAL=self.accessor(np.asarray(normals, dtype=np.float32), pygltflib.FLOAT, pygltflib.VEC3, _ARRAY_BUFFER),
         )
         if uv is not None:
             attributes.TEXCOORD_0 = self.accessor(np.asarray(uv, dtype=np.float32), pygltflib.FLOAT, pygltflib.VEC2, _ARRAY_BUFFER)
@@ -478,8 +480,14 @@ class _Writer:
     def glb(self) -> bytes:
         m = self.model
         texture = None if m.skin_texture is None else self.image(np.asarray(m.skin_texture))
-        skin_node = self.mesh_node("skin", m.skin_vertices, m.skin_faces, m.skin_color, uv=m.skin_uv,
-                                   texture=texture)
+        if texture is None:
+            skin_node = self.mesh_node("skin", m.skin_vertices, m.skin_faces, m.skin_color, uv=m.skin_uv)
+        else:  # viewers get the seam's triangles on their own vertex copies (fae.mesh.wrapped_seam)
+            F2, seam, uv2 = wrapped_seam(m.skin_faces, m.skin_uv)
+            V = np.asarray(m.skin_vertices, dtype=np.float64)
+            N = vertex_normals(V, m.skin_faces)
+            skin_node = self.mesh_node("skin", np.concatenate([V, V[seam]]), F2, m.skin_color, uv=uv2,
+                                       texture=texture, normals=np.concatenate([N, N[seam]]))
         part_nodes = {
             name: self.mesh_node(name, part.vertices, part.faces, part.color, vertex_colors=part.vertex_colors)
             for name, part in m.parts.items()
@@ -593,7 +601,7 @@ def png_pixels(data: bytes) -> np.ndarray:
     try:
         with Image.open(io.BytesIO(bytes(data))) as image:
             return np.asarray(image.convert("RGB"), dtype=np.uint8).copy()
-    except (UnidentifiedImageError, OSError) as exc:
+    except (UnidentifiedImageError, OSError, Image.DecompressionBombError) as exc:
         raise ValueError(f"expected a PNG or JPEG image ({exc})") from exc
 
 
@@ -783,7 +791,12 @@ class _Reader:
         s = self.get(e, "skin", f"{X}.skin", dict)
         skin_vertices = self.array(self.get(s, "vertices", f"{X}.skin.vertices", dict), f"{X}.skin.vertices")
         skin_faces = self.array(self.get(s, "faces", f"{X}.skin.faces", dict), f"{X}.skin.faces")
-        self.check_node(s.get("node"), f"{X}.skin", len(skin_vertices), len(skin_faces))
+        skin_uv = self.array(self.get(s, "uv", f"{X}.skin.uv", dict), f"{X}.skin.uv")
+        seam_copies = 0
+        if (s.get("texture") is not None and skin_uv.shape == (len(skin_vertices), 2) and skin_faces.ndim == 2
+                and skin_faces.size and 0 <= skin_faces.min() and skin_faces.max() < len(skin_vertices)):
+            seam_copies = len(wrapped_seam(skin_faces, skin_uv)[1])  # the render mesh repeats the seam's vertices
+        self.check_node(s.get("node"), f"{X}.skin", len(skin_vertices) + seam_copies, len(skin_faces))
 
         parts = {}
         for name, p in self.get(e, "parts", f"{X}.parts", dict).items():
@@ -838,7 +851,7 @@ class _Reader:
         return FaceModel(
             skin_vertices=skin_vertices,
             skin_faces=skin_faces,
-            skin_uv=self.array(self.get(s, "uv", f"{X}.skin.uv", dict), f"{X}.skin.uv"),
+            skin_uv=skin_uv,
             skin_color=self.numbers(self.get(s, "color", f"{X}.skin.color", list), f"{X}.skin.color", (4,), np.float32),
             skin_mirror=self.array(self.get(s, "mirror", f"{X}.skin.mirror", dict), f"{X}.skin.mirror"),
             skin_region=self.array(self.get(s, "region", f"{X}.skin.region", dict), f"{X}.skin.region"),

@@ -78,8 +78,10 @@ def photo_comparison_image(model: FaceModel, image: np.ndarray, height: int = 36
         head = renderer.render()
     with FaceRenderer(model, (height, height), "profile", supersample=2) as renderer:
         profile = renderer.render()
-    box = (float(x0), float(y0), float(x0 + side), float(y0 + side))
-    photo = np.asarray(Image.fromarray(np.ascontiguousarray(image[:, :, :3])).resize(
-        (height, height), Image.LANCZOS, box=box))
+    # the square may reach past the photo's edges (a tight portrait): cropped with a margin
+    # of black, then scaled
+    box = tuple(int(round(v)) for v in (x0, y0, x0 + side, y0 + side))
+    photo = np.asarray(Image.fromarray(np.ascontiguousarray(image[:, :, :3])).crop(box).resize(
+        (height, height), Image.LANCZOS))
     blend = ((photo.astype(np.uint16) + head) // 2).astype(np.uint8)
     return np.concatenate([photo, head, blend, profile], axis=1)

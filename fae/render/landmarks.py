@@ -161,17 +161,30 @@ def detect_points(image: np.ndarray) -> np.ndarray | None:
     return np.array([[p.x * w, p.y * h, p.z * w] for p in pts[:468]])
 
 
+def face_roll_degrees(points: np.ndarray) -> float:
+    """How far the face's eye line is turned from the image's x axis, degrees (0: upright;
+    the face's right eye is on the image's left)."""
+    right, left = (points[list(e), :2].mean(axis=0) for e in (EYE_POINTS[:16], EYE_POINTS[16:]))
+    d = left - right
+    return float(np.degrees(np.arctan2(d[1], d[0])))
+
+
 def detect_points_any_turn(image: np.ndarray) -> tuple[np.ndarray | None, int]:
-    """detect_points on the image as it is, else turned by a quarter, half and three
-    quarters (a photo stored on its side): (points (468, 3) in the image's own pixels, or
-    None; the quarter turns that found them, 0-3)."""
+    """detect_points on the image turned upright. MediaPipe finds a (poorer) face on a
+    photo stored on its side or upside down too, so the image is looked at in all four
+    quarter turns and the face whose eye line lies nearest to level in the image it was
+    found on wins. Returns (points (468, 3) in the image's own pixels, or None; the
+    quarter turns, 0-3, of the image they were found on)."""
     h, w = image.shape[:2]
+    best, best_roll, best_k = None, np.inf, 0
     for k in range(4):
-        points = detect_points(np.ascontiguousarray(np.rot90(image, k)))
+        points = detect_points(np.ascontiguousarray(np.rot90(image, k)) if k else image)
         if points is None:
             continue
-        return _unturned(points, k, (w, h)), k
-    return None, 0
+        roll = abs(face_roll_degrees(points))
+        if roll < best_roll:
+            best, best_roll, best_k = _unturned(points, k, (w, h)), roll, k
+    return best, best_k
 
 
 def _unturned(points: np.ndarray, quarter_turns: int, size: tuple[int, int]) -> np.ndarray:
