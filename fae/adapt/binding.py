@@ -233,3 +233,29 @@ def welded_components(V: np.ndarray, F: np.ndarray, tol: float = 1e-9) -> np.nda
     G = sp.coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n))
     _, label = connected_components(G, directed=False)
     return label.astype(np.int64)
+
+
+SEAM_NORMAL_COS = 0.5  # coincident vertices whose one-sided normals differ more than 60 degrees stay apart
+
+
+def seam_groups(V: np.ndarray, F: np.ndarray) -> np.ndarray:
+    """(n,) int64 labels, shared by the vertices of V (n, 3), F (m, 3) that are one point of
+    the surface split along a texture seam: coincident (fae.adapt.geometry.coincident_groups)
+    and, each seen from its own triangles, facing the same way (within 60 degrees). Lips
+    modelled closed but cut apart also coincide; they face each other (the upper lip's
+    underside down, the lower's top up) and keep labels of their own, so they can part."""
+    from fae.adapt.geometry import coincident_groups
+
+    V = np.asarray(V, dtype=np.float64)
+    n = len(V)
+    _, label = coincident_groups(V)
+    label = label.astype(np.int64)
+    N = vertex_normals(V, F)
+    k = int(label.max()) + 1 if n else 0
+    # each group's first vertex speaks for it; a member facing elsewhere gets its own label
+    first = np.full(k, -1, dtype=np.int64)
+    order = np.arange(n)[::-1]
+    first[label[order]] = order
+    apart = np.einsum("ij,ij->i", N, N[first[label]]) < SEAM_NORMAL_COS
+    label[apart] = k + np.arange(int(apart.sum()))
+    return label

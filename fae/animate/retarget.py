@@ -50,9 +50,8 @@ import numpy as np
 import scipy.sparse as sp
 
 from fae.adapt.binding import (bind_to_surface, coverage_weights, frame_transforms, gather_matrix,
-                               pinned_to_points, welded_components)
+                               pinned_to_points, seam_groups, welded_components)
 from fae.io.facemodel import FaceModel, Part, SurfacePoint
-from fae.adapt.geometry import coincident_groups
 from fae.mesh import vertex_normals
 
 MIN_FEATURE_POINTS = 8  # usable feature points of the template's skin a target must have
@@ -366,7 +365,7 @@ def retarget(template: FaceModel, target: TargetMesh, say: Callable[[str], None]
                          PIN_REACH)
     # normals shared across the mesh's texture seams: both copies of a split vertex bind to
     # the same point, or the seam opens into a crack as soon as the face moves
-    seams = coincident_groups(Ys)[1]
+    seams = seam_groups(Ys, skin_F)
     NY = vertex_normals(Ys, skin_F, corner_index=seams[skin_F].ravel())[seams]
     face, bary, dist = bind_to_surface(Ys, X, TF, NY)
     coverage = coverage_weights(dist, COVERAGE_NEAR, COVERAGE_FAR)
