@@ -160,6 +160,18 @@ def launch_chromium(playwright):
                                             "--ignore-gpu-blocklist"])
 
 
+def open_live_page(p, server, errors: list[str], ready: str):
+    """(browser, page) of Chromium on `server`'s live view, once `ready` (JS) holds; page
+    errors go to `errors`."""
+    url = next(line.split("live view on ", 1)[1].strip() for line in server.lines if "live view on " in line)
+    browser = launch_chromium(p)
+    page = browser.new_page(viewport={"width": 480, "height": 480})
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    page.goto(url)
+    page.wait_for_function(ready, timeout=60000)
+    return browser, page
+
+
 @pytest.mark.slow
 @pytest.mark.skipif(browser_problem() is not None, reason=str(browser_problem()))
 def test_a_browser_watches_a_stream_sent_to_the_server(tmp_path):
@@ -168,15 +180,10 @@ def test_a_browser_watches_a_stream_sent_to_the_server(tmp_path):
     from test_serve_e2e import ServeProcess
 
     server = ServeProcess("--live", "--http-port", "0")
+    errors: list[str] = []
     try:
-        url = next(line.split("live view on ", 1)[1].strip() for line in server.lines if "live view on " in line)
         with sync_playwright() as p:
-            browser = launch_chromium(p)
-            page = browser.new_page(viewport={"width": 480, "height": 480})
-            errors: list[str] = []
-            page.on("pageerror", lambda e: errors.append(str(e)))
-            page.goto(url)
-            page.wait_for_function("window.faeView && window.faeView.headLoaded", timeout=60000)
+            browser, page = open_live_page(p, server, errors, "window.faeView && window.faeView.headLoaded")
             sender = subprocess.Popen([sys.executable, "-m", "fae", "send", str(REPO / "fap_streams" / "expressions.fap"),
                                        "--port", str(server.port)], cwd=REPO,
                                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -250,15 +257,10 @@ def test_a_browser_shows_a_textured_head_with_its_colours(model, tmp_path):
     head = tmp_path / "textured.glb"
     write_facemodel(textured(model), head)
     server = ServeProcess("--live", "--http-port", "0", "--head", str(head))
+    errors: list[str] = []
     try:
-        url = next(line.split("live view on ", 1)[1].strip() for line in server.lines if "live view on " in line)
         with sync_playwright() as p:
-            browser = launch_chromium(p)
-            page = browser.new_page(viewport={"width": 480, "height": 480})
-            errors: list[str] = []
-            page.on("pageerror", lambda e: errors.append(str(e)))
-            page.goto(url)
-            page.wait_for_function("window.faeView && window.faeView.textureLoaded", timeout=60000)
+            browser, page = open_live_page(p, server, errors, "window.faeView && window.faeView.textureLoaded")
             page.wait_for_timeout(500)  # a frame drawn with the texture
             shot = tmp_path / "textured.png"
             page.screenshot(path=str(shot))
