@@ -244,6 +244,12 @@ def test_a_textured_head_is_sent_with_its_texture_and_seam(model):
     png = base64.b64decode(skin["texture"].split(",", 1)[1])
     assert np.array_equal(np.asarray(Image.open(io.BytesIO(png)).convert("RGB")), head.skin_texture)
     assert "texture" not in json.loads(head_message(model))["skin"]  # an untextured head as before
+    from fae.render.renderer import skin_colors
+
+    colors = np.asarray(json.loads(head_message(head, skin_colors(head)))["skin"]["colors"]).reshape(-1, 3)
+    assert colors.shape == (n, 3)
+    lining = np.asarray(head.skin_region) == head.region_names.index("mouth_cavity")
+    assert colors[:len(lining)][lining].max() < 0.5 and np.median(colors[:len(lining)][~lining]) == 1.0
 
 
 @pytest.mark.slow

@@ -114,3 +114,13 @@ def add_view_arguments(parser: argparse.ArgumentParser, default_size: str) -> No
                         help="render at K x size and average (anti-aliasing; costs about K^2)")
     parser.add_argument("--show-bones", action="store_true",
                         help="also draw the cranium and mandible (hidden under the skin; for checking how it sits)")
+
+
+def drawn_skin_colors(model):
+    """(V, 3) linear RGB of the skin as fae draws it (the mouth's lining darker), or None
+    when the renderer's module cannot be loaded (no OpenGL): the skin's own colour then."""
+    try:
+        from fae.render.renderer import skin_colors
+    except Exception:  # an OpenGL stack that fails to import: the colours are a nicety
+        return None
+    return skin_colors(model)

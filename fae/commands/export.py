@@ -17,7 +17,7 @@ import contextlib
 import sys
 from pathlib import Path
 
-from fae.commands.common import fail, load_head, output_problem, timing_problem
+from fae.commands.common import drawn_skin_colors, fail, load_head, output_problem, timing_problem
 from fae.io.frames import MAX_HOLD_SECONDS
 
 
@@ -77,7 +77,7 @@ def run(args: argparse.Namespace) -> int:
         except FapFormatError as exc:
             return fail("export", f"{exc} (nothing written)")
     try:
-        write_scene(args.output, player.face, targets=targets, skin_colors=_skin_colors(player.face),
+        write_scene(args.output, player.face, targets=targets, skin_colors=drawn_skin_colors(player.face),
                     keyframes=animation, name=head.stem)
     except OSError as exc:
         return fail("export", str(exc) if exc.filename is None else f"{exc.filename}: {exc.strerror}")
@@ -87,13 +87,3 @@ def run(args: argparse.Namespace) -> int:
     what = f"{len(animation.times)} frames at {fps:g} fps" if animation is not None else "no animation"
     print(f"{args.output}: glTF scene of {head.name}, {len(targets)} morph targets, {what}", file=sys.stderr)
     return 0
-
-
-def _skin_colors(model):
-    """(V, 3) linear RGB of the skin as fae draws it (the mouth's lining darker), or None
-    when the renderer's module cannot be loaded (no OpenGL): the skin's own colour then."""
-    try:
-        from fae.render.renderer import skin_colors
-    except Exception:  # an OpenGL stack that fails to import: the colours are a nicety
-        return None
-    return skin_colors(model)

@@ -14,7 +14,8 @@ import signal
 import sys
 from pathlib import Path
 
-from fae.commands.common import add_view_arguments, fail, load_head, output_problem, video_size_problem
+from fae.commands.common import (add_view_arguments, drawn_skin_colors, fail, load_head, output_problem,
+                                 video_size_problem)
 from fae.net.server import DEFAULT_HOST, DEFAULT_PORT, FapServer, ServerLimits
 
 
@@ -72,7 +73,8 @@ async def _serve(args, head) -> int:
         from fae.net.view import LiveView
 
         try:
-            view = LiveView(model, server.subscribe, args.host, args.http_port)
+            view = LiveView(model, server.subscribe, args.host, args.http_port,
+                            skin_colors=drawn_skin_colors(model))
         except FileNotFoundError as exc:
             return fail("serve", f"--live: {exc}")
     await server.start()

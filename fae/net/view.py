@@ -15,7 +15,8 @@ On /ws a page first gets the head as one JSON text message:
 A head with a skin texture also sends "uv" [u, v, ...], "texture" (a data: URL of the PNG)
 and "seam" [i, ...]: the skin's positions then end with copies of the vertices whose
 triangles cross the texture's seam (fae.mesh.wrapped_seam), and a page sets each copy from
-vertex seam[k] of every frame.
+vertex seam[k] of every frame. With the colours fae draws the skin in, it also sends
+"colors" [r, g, b, ...]: the texture's factors (1 on the skin, darker inside the mouth).
 
 then one binary message per frame it is shown: a little-endian uint32 n, n bytes of JSON
 {"stream", "index", "time", "fps", "step", "bones": {bone: 16 floats, column-major}},
@@ -60,8 +61,10 @@ def find_three() -> Path | None:
     return None
 
 
-def head_message(model) -> str:
-    """The JSON text message describing the head (see the module docstring)."""
+def head_message(model, skin_colors=None) -> str:
+    """The JSON text message describing the head (see the module docstring). skin_colors
+    (V, 3) linear RGB as fae draws the skin (fae.render.renderer.skin_colors): on a textured
+    head they become the texture's factors ("colors": 1 on the skin, darker in the mouth)."""
     def rounded(a):
         return np.round(np.asarray(a, dtype=np.float64), 6).ravel().tolist()
 
@@ -80,6 +83,10 @@ def head_message(model) -> str:
                      "uv": np.round(uv.astype(np.float64), 5).ravel().tolist(), "seam": seam.tolist(),
                      "texture": "data:image/png;base64," + base64.b64encode(png_bytes(model.skin_texture)).decode(),
                      "color": [1.0, 1.0, 1.0, 1.0]})
+        if skin_colors is not None:
+            base = np.maximum(np.asarray(model.skin_color, dtype=np.float64).ravel()[:3], 1e-3)
+            factors = np.clip(np.asarray(skin_colors, dtype=np.float64)[:, :3] / base, 0.0, 1.0)
+            skin["colors"] = np.round(np.concatenate([factors, factors[seam]]), 3).ravel().tolist()
     parts = []
     for name, part in model.parts.items():
         if name in HIDDEN_PARTS:
@@ -110,7 +117,8 @@ class LiveView:
     subscribe: a callable returning a new lossy subscription (FapServer.subscribe);
     three_dir: the three.js package folder (find_three() when None)."""
 
-    def __init__(self, model, subscribe, host: str = "127.0.0.1", port: int = 8080, three_dir: Path | None = None):
+    def __init__(self, model, subscribe, host: str = "127.0.0.1", port: int = 8080, three_dir: Path | None = None,
+                 skin_colors=None):
         self.model = model
         self.subscribe = subscribe
         self.host, self.requested_port = host, port
@@ -118,7 +126,7 @@ class LiveView:
         if self.three_dir is None:
             raise FileNotFoundError("three.js (npm package 'three') is not installed: run `make install`, or "
                                     "`npm install --prefix tools three`, or set FAE_THREE_DIR to its folder")
-        self._head = head_message(model)
+        self._head = head_message(model, skin_colors)
         self._server = None
         self._files: dict[Path, bytes] = {}  # read once: the event loop also steps the faces
         self.pages_total = 0
