@@ -33,6 +33,7 @@ FEATHER_SHARE = 0.12  # of the face's width on the photo: the outline's soft bor
 OUTLINE_SHRINK = 0.92  # the outline pulled towards its centre: its own pixels are often hair or background
 DEPTH_TOLERANCE = 0.008  # metres: skin this far behind the nearest is still seen (a grazing cheek beside the nose)
 SPREAD_TEXELS = 48.0  # Gaussian sigma of the fill's spreading, texels
+BORDER_COLOUR_SPREAD = 45.0  # RGB levels: how far from the face's colour a border texel may be
 HOLE_TEXELS = 6.0  # ... and of the close fill of the eyes' and mouth's holes
 
 
@@ -158,8 +159,16 @@ def photo_texture(V: np.ndarray, N: np.ndarray, uv: np.ndarray, to_photo: np.nda
     px = np.clip(q[:, 0], 0, iw - 1).astype(np.int64)
     py = np.clip(q[:, 1], 0, ih - 1).astype(np.int64)
     on_image = (q[:, 0] >= 0) & (q[:, 0] < iw) & (q[:, 1] >= 0) & (q[:, 1] < ih)
-    w *= np.where(on_image, ow[py, px], 0.0)
+    edge = np.where(on_image, ow[py, px], 0.0)
+    w *= edge
     colour = _bilinear(image, q[:, 0], q[:, 1])
+    # in the outline's soft border the photo often shows hair, a hat's brim or background:
+    # there a colour far from the face's own counts less (inside, brows and lips keep theirs)
+    core = (edge >= 1.0) & (w > 0.5)
+    if core.sum() >= 100:
+        face_colour = np.median(colour[core], axis=0)
+        likeness = np.exp(-(np.linalg.norm(colour - face_colour, axis=1) / BORDER_COLOUR_SPREAD) ** 2)
+        w *= np.where(edge < 1.0, likeness, 1.0)
 
     W = np.zeros(height * width)
     W[at] = w

@@ -758,8 +758,9 @@ class _Reader:
             bary=self.numbers(self.get(obj, "bary", f"{field}.bary", list), f"{field}.bary", (3,), np.float64),
         )
 
-    def check_node(self, node, field: str, vertex_count: int, face_count: int) -> None:
-        """The render mesh of a surface must match its engine arrays."""
+    def check_node(self, node, field: str, vertex_count: int, face_count: int, also: int | None = None) -> None:
+        """The render mesh of a surface must match its engine arrays (`also`: another vertex
+        count it may have, the textured skin's without its seam copies)."""
         if node is None:
             return
         if not isinstance(node, int) or isinstance(node, bool) or not 0 <= node < len(self.gltf.nodes):
@@ -771,7 +772,7 @@ class _Reader:
             indices = self.gltf.accessors[primitive.indices].count
         except (IndexError, TypeError, AttributeError):
             self.fail(f"{field}.node", f"node {node} has no triangle mesh with POSITION and indices")
-        if positions != vertex_count or indices != 3 * face_count:
+        if positions not in (vertex_count, also) or indices != 3 * face_count:
             self.fail(
                 f"{field}.node",
                 f"render mesh of node {node} has {positions} vertices and {indices} indices; "
@@ -796,7 +797,8 @@ class _Reader:
         if (s.get("texture") is not None and skin_uv.shape == (len(skin_vertices), 2) and skin_faces.ndim == 2
                 and skin_faces.size and 0 <= skin_faces.min() and skin_faces.max() < len(skin_vertices)):
             seam_copies = len(wrapped_seam(skin_faces, skin_uv)[1])  # the render mesh repeats the seam's vertices
-        self.check_node(s.get("node"), f"{X}.skin", len(skin_vertices) + seam_copies, len(skin_faces))
+        self.check_node(s.get("node"), f"{X}.skin", len(skin_vertices) + seam_copies, len(skin_faces),
+                        also=len(skin_vertices))
 
         parts = {}
         for name, p in self.get(e, "parts", f"{X}.parts", dict).items():
