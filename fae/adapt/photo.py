@@ -80,12 +80,6 @@ def pupil_distance_px(photo: PhotoPoints, eyes: tuple[np.ndarray, np.ndarray]) -
     return float(np.linalg.norm(a - b))
 
 
-def photo_pose(template_points: np.ndarray, photo_points: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """(s, R, t): x_photo = s R x + t, from template points (k, 3) metres to photo points
-    (k, 3) (pixels, y up, z towards the viewer)."""
-    return similarity_transform(template_points, photo_points)
-
-
 def face_to_photo(s: float, R: np.ndarray, t: np.ndarray) -> np.ndarray:
     """(4, 4): face frame (metres) -> photo pixels (x right, y down, z away)."""
     M = np.eye(4)
@@ -156,7 +150,7 @@ def adapt_photo(template: FaceModel, photo: PhotoPoints, on_template: TemplatePo
     if len(idx) < 50:
         raise PhotoRefused(f"{photo_name}: only {len(idx)} of the landmark points could be matched on the template")
     Q = photo.points @ _FLIP  # y up, z towards the viewer
-    s, R, t = photo_pose(on_template.points[idx], Q[idx])
+    s, R, t = similarity_transform(on_template.points[idx], Q[idx])  # x_photo = s R x + t
     # across the image only: the model's depth is its own guess
     residual = np.linalg.norm((s * on_template.points[idx] @ R.T + t - Q[idx])[:, :2], axis=1)
     rms_share = float(np.sqrt(np.mean(residual ** 2)) / eye_px)
