@@ -132,3 +132,15 @@ def wrapped_seam(F: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray,
         F2[low] = copy_of[F[low]]
     uv2 = np.concatenate([uv, uv[source] + np.array([1.0, 0.0], dtype=np.float32)])
     return F2, source, uv2
+
+
+def seamed_surface(V: np.ndarray, F: np.ndarray, uv: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The surface V (n, 3), F (m, 3) with the copies wrapped_seam asks for, ready to draw
+    with its texture: (V2 (n + k, 3), F2 (m, 3), uv2 (n + k, 2), N2 (n + k, 3) unit normals
+    of the whole surface, each copy sharing its vertex's, seam (k,) the vertex each copy
+    repeats)."""
+    V = np.asarray(V, dtype=np.float64)
+    F2, seam, uv2 = wrapped_seam(F, uv)
+    N = vertex_normals(V, F)
+    return np.concatenate([V, V[seam]]), F2, uv2, np.concatenate([N, N[seam]]), seam

@@ -32,8 +32,9 @@ import pygltflib
 from scipy.spatial.transform import Rotation
 
 from fae.io.atomic import atomic_path
-from fae.io.facemodel_gltf import DEFAULT_ROUGHNESS, ROUGHNESS, png_bytes, vertex_normals, wrapped_texture
-from fae.mesh import wrapped_seam
+from fae.io.facemodel_gltf import (DEFAULT_ROUGHNESS, ROUGHNESS, png_bytes, texture_factors, vertex_normals,
+                                   wrapped_texture)
+from fae.mesh import seamed_surface
 
 GENERATOR = "fae scene export"
 HIDDEN_PARTS = ("cranium", "mandible")  # under the skin: never seen, left out
@@ -220,9 +221,8 @@ class _SceneWriter:
         target; vertex colours, when given, become factors of the texture (1 where they are
         the skin colour, darker inside the mouth)."""
         m = self.model
-        V = np.asarray(m.skin_vertices, dtype=np.float64)
-        n = len(V)
-        F2, source, uv2 = wrapped_seam(m.skin_faces, m.skin_uv)
+        n = len(m.skin_vertices)
+        V2, F2, uv2, N2, source = seamed_surface(m.skin_vertices, m.skin_faces, m.skin_uv)
         targets = []
         for t in self.targets:
             row = np.full(n, -1, dtype=np.int64)
@@ -232,14 +232,12 @@ class _SceneWriter:
                                    np.concatenate([t.displacement, np.asarray(t.displacement)[row[source[copies]]]])))
         factors = None
         if colors is not None:
-            skin = np.maximum(np.asarray(m.skin_color, dtype=np.float32)[:3], 1e-3)
-            factors = np.clip(colors[:, :3] / skin, 0.0, 1.0)
+            factors = texture_factors(colors, m.skin_color)
             factors = np.concatenate([factors, factors[source]])
         image = len(self.gltf.images)
         self.gltf.images.append(pygltflib.Image(bufferView=self.view(png_bytes(m.skin_texture)), mimeType="image/png"))
-        N = vertex_normals(V, m.skin_faces)  # of the whole skin: a copy shares its vertex's normal
-        return self.mesh("skin", np.concatenate([V, V[source]]), F2, np.asarray(m.skin_color, dtype=np.float32),
-                         colors=factors, targets=targets, uv=uv2, image=image, normals=np.concatenate([N, N[source]]))
+        return self.mesh("skin", V2, F2, np.asarray(m.skin_color, dtype=np.float32),
+                         colors=factors, targets=targets, uv=uv2, image=image, normals=N2)
 
     def animation(self, skin: int, bones: dict[str, int]) -> None:
         k = self.keyframes

@@ -27,7 +27,7 @@ import pygltflib
 
 from fae.io.atomic import atomic_path
 from fae.io.facemodel import FACE_DEF_TABLE_SOURCES, PART_BONES, FaceDefTable, FaceModel, Muscle, Part, SurfacePoint
-from fae.mesh import vertex_normals, wrapped_seam
+from fae.mesh import seamed_surface, vertex_normals, wrapped_seam
 from fae.mpeg4 import FEATURE_POINTS, fapu0_from_positions, fapu_from_fapu0
 
 EXTENSION = "FAE_face_model"
@@ -483,11 +483,8 @@ class _Writer:
         if texture is None:
             skin_node = self.mesh_node("skin", m.skin_vertices, m.skin_faces, m.skin_color, uv=m.skin_uv)
         else:  # viewers get the seam's triangles on their own vertex copies (fae.mesh.wrapped_seam)
-            F2, seam, uv2 = wrapped_seam(m.skin_faces, m.skin_uv)
-            V = np.asarray(m.skin_vertices, dtype=np.float64)
-            N = vertex_normals(V, m.skin_faces)
-            skin_node = self.mesh_node("skin", np.concatenate([V, V[seam]]), F2, m.skin_color, uv=uv2,
-                                       texture=texture, normals=np.concatenate([N, N[seam]]))
+            V2, F2, uv2, N2, _ = seamed_surface(m.skin_vertices, m.skin_faces, m.skin_uv)
+            skin_node = self.mesh_node("skin", V2, F2, m.skin_color, uv=uv2, texture=texture, normals=N2)
         part_nodes = {
             name: self.mesh_node(name, part.vertices, part.faces, part.color, vertex_colors=part.vertex_colors)
             for name, part in m.parts.items()
@@ -579,6 +576,13 @@ def wrapped_texture(gltf: pygltflib.GLTF2, image: int) -> pygltflib.TextureInfo:
                                                wrapS=pygltflib.REPEAT, wrapT=pygltflib.CLAMP_TO_EDGE))
     gltf.textures.append(pygltflib.Texture(sampler=0, source=image))
     return pygltflib.TextureInfo(index=len(gltf.textures) - 1)
+
+
+def texture_factors(skin_colors: np.ndarray, skin_color) -> np.ndarray:
+    """(V, 3) float in [0, 1]: the colours a skin is drawn in (fae.render.renderer.skin_colors)
+    as factors of its texture: 1 where they are the skin colour, darker inside the mouth."""
+    base = np.maximum(np.asarray(skin_color, dtype=np.float64).ravel()[:3], 1e-3)
+    return np.clip(np.asarray(skin_colors, dtype=np.float64)[:, :3] / base, 0.0, 1.0)
 
 
 def png_bytes(rgb: np.ndarray) -> bytes:

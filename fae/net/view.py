@@ -74,7 +74,7 @@ def head_message(model, skin_colors=None) -> str:
     if getattr(model, "skin_texture", None) is not None:
         import base64
 
-        from fae.io.facemodel_gltf import png_bytes
+        from fae.io.facemodel_gltf import png_bytes, texture_factors
         from fae.mesh import wrapped_seam
 
         faces, seam, uv = wrapped_seam(model.skin_faces, model.skin_uv)
@@ -84,8 +84,7 @@ def head_message(model, skin_colors=None) -> str:
                      "texture": "data:image/png;base64," + base64.b64encode(png_bytes(model.skin_texture)).decode(),
                      "color": [1.0, 1.0, 1.0, 1.0]})
         if skin_colors is not None:
-            base = np.maximum(np.asarray(model.skin_color, dtype=np.float64).ravel()[:3], 1e-3)
-            factors = np.clip(np.asarray(skin_colors, dtype=np.float64)[:, :3] / base, 0.0, 1.0)
+            factors = texture_factors(skin_colors, model.skin_color)
             skin["colors"] = np.round(np.concatenate([factors, factors[seam]]), 3).ravel().tolist()
     parts = []
     for name, part in model.parts.items():
