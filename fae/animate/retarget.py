@@ -147,6 +147,8 @@ class Retarget:
     anchors        bone -> ((3,) template point, (3,) target point) its poses are re-anchored at
     scale          the target's size over the template's (FAPU ratio, mean of ES, ENS, MNS, MW)
     report         what was found and measured (fit errors, scales, parts, feature points)
+    normal_groups  (k,) int64: skin vertices that are one point of the surface split along a
+                   texture seam share a label (fae.adapt.binding.seam_groups; FaceRenderer)
     """
 
     model: FaceModel
@@ -160,6 +162,7 @@ class Retarget:
     scale: float
     report: dict = field(default_factory=dict)
     vertex_count: int = 0
+    normal_groups: np.ndarray | None = None
     head_weight: np.ndarray | None = None
 
     def displacements(self, template_motion: np.ndarray) -> np.ndarray:
@@ -431,7 +434,7 @@ def retarget(template: FaceModel, target: TargetMesh, say: Callable[[str], None]
     neck = coverage_weights(chin - Ys[:, 1], *NECK_FADE)
     return Retarget(model=model, skin_index=skin_index, head_weight=coverage * neck, part_index=part_index, used=used,
                     frame_transform=np.ascontiguousarray(Tv[used]), gather=G, coverage=coverage,
-                    anchors=anchors, scale=ratio, report=report, vertex_count=n)
+                    anchors=anchors, scale=ratio, report=report, vertex_count=n, normal_groups=seams)
 
 
 class RetargetPlayer:

@@ -98,9 +98,7 @@ def run(args: argparse.Namespace) -> int:
             return fail("play", f"{args.head}: the template's fit to the mesh is not to be trusted ({'; '.join(verdict)}); "
                         "check the feature points in --landmarks (--force plays it anyway)")
         model = retargeted.model
-        from fae.adapt.binding import seam_groups
-
-        normal_groups = seam_groups(model.skin_vertices, model.skin_faces)  # a scan's texture seams split its vertices
+        normal_groups = retargeted.normal_groups  # a scan's texture seams split its vertices
 
     from fae.animate.player import Player, playable_head
     from fae.io.frames import dense_frames
