@@ -57,6 +57,30 @@ def test_a_vertex_pushed_through_the_skin_shows_as_folded_and_stretched(face, ch
     assert r.stretch > 2.0
 
 
+def test_a_needle_flipped_by_a_few_microns_is_not_a_fold(face, check):
+    """A needle of the shipped head (least height under 1 % of the median edge) whose apex
+    crosses its long edge turns over without a pixel changing; its fat neighbours stay put."""
+    V = np.asarray(face.skin_vertices, dtype=np.float64).copy()
+    F = np.asarray(face.skin_faces)
+    P = V[F]
+    twice_area = np.linalg.norm(np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]), axis=1)
+    edges = np.linalg.norm(P - P[:, [1, 2, 0]], axis=2)
+    height = twice_area / edges.max(axis=1)
+    median_edge = np.median(np.linalg.norm(V[F[:, 0]] - V[F[:, 1]], axis=1))
+    cavity = np.asarray(face.skin_region) == list(face.region_names).index("mouth_cavity")
+    needles = np.flatnonzero((height > 0) & (height < 0.005 * median_edge) & ~cavity[F].any(axis=1))
+    assert len(needles) > 0
+    t = needles[0]
+    long_edge = int(np.argmax(edges[t]))
+    a, b, apex = F[t][long_edge], F[t][(long_edge + 1) % 3], F[t][(long_edge + 2) % 3]
+    foot = V[a] + np.dot(V[apex] - V[a], V[b] - V[a]) / np.dot(V[b] - V[a], V[b] - V[a]) * (V[b] - V[a])
+    V[apex] += 2.0 * (foot - V[apex])  # mirrored across the long edge: the needle is upside down
+    assert np.linalg.norm(foot - V[apex]) < 0.005 * median_edge
+    r = check.frame(V)
+    assert not r.folded[t]
+    assert not r.folded.any()
+
+
 def test_the_lower_lip_lifted_through_the_upper_lip_is_caught(face, check):
     V = np.asarray(face.skin_vertices, dtype=np.float64).copy()
     lower = np.asarray(face.skin_region) == list(face.region_names).index("lip_lower")

@@ -1,14 +1,15 @@
 """Is the skin whole? Folds, edge strain and lips passing through each other, frame by frame.
 
 A visible skin triangle (none of its corners in the mouth's lining, which is seen only
-through the lips) is **folded** when its normal, in the head's own frame (head rotation
-removed), has turned more than 90 degrees from its rest normal, or when it sits on a
-**crease**: an edge whose two triangles, at most 45 degrees apart at rest, are now more
-than 90 degrees apart (a hinge fold shows as a dark line before either side has turned 90
-degrees). Edge **strain** is an edge's length over its rest length, over the edges of
-visible triangles (not shorter than `STRAIN_MIN_EDGE` of the median edge). The lips **cross** when an edge of one lip passes through a triangle of
-the other (a segment-triangle test between the two lip regions): the lower lip has gone
-through the upper one, or the reverse.
+through the lips, and not a needle thinner than `SLIVER_HEIGHT` of the median edge) is
+**folded** when its normal, in the head's own frame (head rotation removed), has turned
+more than 90 degrees from its rest normal, or when it sits on a **crease**: an edge whose
+two triangles, at most 45 degrees apart at rest, are now more than 90 degrees apart (a
+hinge fold shows as a dark line before either side has turned 90 degrees). Edge
+**strain** is an edge's length over its rest length, over the edges of visible triangles
+(not shorter than `STRAIN_MIN_EDGE` of the median edge). The lips **cross** when an edge
+of one lip passes through a triangle of the other (a segment-triangle test between the
+two lip regions): the lower lip has gone through the upper one, or the reverse.
 
     check = SkinCheck(face)
     for name, frames in default_streams(): ...          # the FAP sweep and the six expressions
@@ -33,6 +34,10 @@ MIN_COMPRESSION = 0.3
 # strain is measured on edges at least this share of the median edge: a sliver's 1-micron
 # edge grown to 0.2 mm is 200x its length and invisible
 STRAIN_MIN_EDGE = 0.05
+# a needle (least height under this share of the median edge: 0.04 mm on the shipped head,
+# which has 182 of them among 22,770 triangles) has no direction of its own to turn from:
+# two of its corners a few microns apart swap sides at the slightest motion, unseen
+SLIVER_HEIGHT = 0.01
 SWEEP_RAMP, SWEEP_HOLD = 4, 8  # frames of the FAP sweep: rise, hold at the limit
 EXPRESSION_RAMP, EXPRESSION_HOLD = 8, 12
 HIDDEN_REGIONS = ("mouth_cavity",)
@@ -88,8 +93,11 @@ class SkinCheck:
         hidden = np.isin(region, [names.index(r) for r in HIDDEN_REGIONS if r in names])
         n = triangle_normals(V, F)
         area2 = np.linalg.norm(n, axis=1)
-        # degenerate rest triangles have no direction to turn from
-        self.visible = ~hidden[F].any(axis=1) & (area2 > 1e-14)
+        # degenerate rest triangles and needles have no direction to turn from
+        longest = np.linalg.norm(V[F] - V[F][:, [1, 2, 0]], axis=2).max(axis=1)
+        median_edge = float(np.median(np.linalg.norm(V[F[:, 0]] - V[F[:, 1]], axis=1))) if len(F) else 0.0
+        self.visible = (~hidden[F].any(axis=1) & (area2 > 1e-14)
+                        & (area2 >= SLIVER_HEIGHT * median_edge * longest))
         self.rest_normals = n / np.maximum(area2, 1e-30)[:, None]
         # a triangle's region: the most common of its corners' (ties: the first corner's)
         r = region[F]
