@@ -106,9 +106,11 @@ def test_only_a_mapping_for_this_solver_starts_a_calibration():
     from fae.animate.calibrate import warm_start_usable
     from fae.animate.mapping import FORMAT_VERSION
 
-    good = {"layout": np.array([27, 40, 3, FORMAT_VERSION]), "table_scale": np.full((68, 5), 1.2)}
+    good = {"layout": np.array([27, 40, 3, FORMAT_VERSION]), "table_scale": np.full((68, 5), 1.2),
+            "jaw_follow": np.zeros(68)}
     assert warm_start_usable(good)
     assert not warm_start_usable(None) and not warm_start_usable({})
+    assert not warm_start_usable({k: v for k, v in good.items() if k != "jaw_follow"})
     assert not warm_start_usable({**good, "layout": np.array([27, 40, 3, FORMAT_VERSION - 1])})
     assert not warm_start_usable({**good, "table_scale": np.full((60, 5), 1.2)})
     bad = good["table_scale"].copy()

@@ -219,23 +219,36 @@ def test_an_ear_fap_carries_its_ear_whole_and_leaves_the_other(player):
     assert np.allclose(p, [0.0, up, 0.0], atol=1e-6)
 
 
-def test_an_open_jaw_carries_lower_lip_and_chin_and_not_the_neck(player):
-    """open_jaw at its full range: chin and lower lip go down with the mandible, the upper lip
-    and the bottom of the neck (held by the body, not the jaw) stay where they are, and the
-    skin between jaw and neck stretches smoothly (no vertex jumps away from its neighbours)."""
+def test_open_jaw_does_not_open_the_mouth_and_the_lips_ride_on_the_jaw_as_streams_send_them(player):
+    """open_jaw at its full range: the chin goes down 2 cm, the bottom of the neck (held by
+    the body, not the jaw) stays, and the skin between jaw and neck stretches smoothly (no
+    vertex jumps away from its neighbours). The standard's open_jaw "does not affect mouth
+    opening": alone, it leaves the lips nearly closed (the lower lip held against what the
+    jaw carries, 29 mm); sent with the lower lip's FAPs as a stream sends them (riding on
+    the jaw, fae.animate.highlevel.jaw_carried), the lower lip goes down by their value and
+    the upper lip stays."""
+    from fae.animate.highlevel import jaw_carried
+
     face = player.face
-    v = np.zeros(68)
-    v[2] = FAP_LIMITS[2, 1]
-    skin = settle(player, v)
     rest = face.skin_vertices
     names, region = face.region_names, face.skin_region
     fp = face.feature_point_positions()
+    mns = fapu_of(face)["MNS"]
+    v = np.zeros(68)
+    v[2] = FAP_LIMITS[2, 1]
+    for k, x in jaw_carried({3: FAP_LIMITS[2, 1]}).items():
+        v[k - 1] = x
+    skin = settle(player, v)
 
     def down(name):
         return (face.surface_point_position(face.feature_points[name], skin) - fp[name])[1]
 
-    assert down("2.1") < -0.015 and down("8.2") < -0.5 * 0.015
-    assert abs(down("8.1")) < 0.002
+    assert down("2.1") < -0.015 and down("2.3") == pytest.approx(v[4] * mns, rel=0.15)
+    assert abs(down("8.1")) < 0.002 and abs(down("2.2")) < 0.002
+    alone = np.zeros(68)
+    alone[2] = FAP_LIMITS[2, 1]
+    skin = settle(player, alone)
+    assert down("2.1") < -0.015 and abs(down("2.3")) < 0.2 * abs(v[4] * mns) and abs(down("2.2")) < 0.003
     neck = region == names.index("neck")
     base = neck & (rest[:, 1] < np.percentile(rest[neck, 1], 20))
     assert np.linalg.norm(skin[base] - rest[base], axis=1).max() < 1e-4

@@ -9,7 +9,7 @@ import pytest
 
 from fae.anatomy import template_shapes as S
 from fae.anatomy.checks import edge_counts, facemodel_problems, points_inside, self_intersections
-from fae.anatomy.template import build_template
+from fae.anatomy.template import GNATHION_DIRECTION, build_template
 from fae.data import shipped_head_path
 from fae.cli import main
 from fae.io.facemodel_gltf import facemodel_to_glb, read_facemodel, structural_problems
@@ -148,7 +148,9 @@ def test_feature_points_sit_where_the_standard_puts_them(head, fdp):
     nose = V[region_mask(head, "nose")]
     assert fdp["9.3"][2] >= nose[:, 2].max() - 1e-3  # nose tip: most forward point of the nose
     chin = V[region_mask(head, "chin") & (V[:, 0] == 0.0)]
-    assert fdp["2.1"][1] == pytest.approx(chin[:, 1].min())  # bottom of the chin
+    # bottom of the chin: its front-bottom (the gnathion), above and in front of the lowest point
+    assert np.allclose(fdp["2.1"], chin[np.argmax(chin @ GNATHION_DIRECTION)])
+    assert fdp["2.1"][2] > chin[np.argmin(chin[:, 1]), 2] + 0.01
     for eye, name in (("eye_l", "3.5"), ("eye_r", "3.6")):
         pupil = head.eye_centers[eye] + np.array([0.0, 0.0, S.EYE_RADIUS * MM])
         assert np.linalg.norm(fdp[name] - pupil) < 1e-9

@@ -133,17 +133,19 @@ XFACE = sorted(SHARED_FAP.glob("xface_*.fap")) if SHARED_FAP.is_dir() else []
 @pytest.mark.parametrize("name", [p.name for p in XFACE] or ["none"])
 def test_real_streams_keep_the_lips_apart_and_the_folds_few(name):
     """The xface streams on the shipped head: the lips pass through each other in at most
-    three frames (xface_fear's widest jaw opening: 3 since the neck was remeshed, 0-1 before),
-    and at most 320 visible triangles ever fold or crease (before the fold guard: 367-714 by this
-    count, with holes under the lower lip; the issue's goal, 0, is not reached yet)."""
+    five frames (pressed together as xface_beg and xface_hate press them: 4-5), at
+    most 130 visible triangles ever fold or crease (20-103 measured; 52-281 while open_jaw
+    also lowered the lips, 367-714 before the fold guard; the issue's goal, 0, is not
+    reached yet) and no edge stretches past 9x (the mouth corners' 1 mm edges as the mouth
+    opens: up to 7.7x)."""
     from fae.animate.player import Player, playable_head
     from fae.io.fap import read_fap
 
     player = Player(playable_head(read_facemodel(shipped_head_path())))
     r = check_stream(player, read_fap(SHARED_FAP / name), name)
-    assert r["frames_lips_crossed"] <= 3
-    assert r["triangles_folded"] <= 320
-    assert r["max_stretch"] <= 12.0
+    assert r["frames_lips_crossed"] <= 5
+    assert r["triangles_folded"] <= 130
+    assert r["max_stretch"] <= 9.0
 
 
 @pytest.mark.slow

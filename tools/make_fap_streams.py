@@ -19,7 +19,9 @@ expressions.fap    the six basic expressions (joy, sadness, anger, fear, disgust
                    brows up, upper lids wide, jaw dropped, lips rounded. Magnitudes are a
                    fifth to a third of each FAP's I range (e.g. open_jaw 200 of 1080 x 4 MNS
                    units, raise_i_eyebrow 250 of 900 x 2 ENS units), clearly visible yet
-                   anatomically possible.
+                   anatomically possible. The poses give the lips relative to the jaw; the
+                   file sends them as the standard's displacements from neutral, which
+                   open_jaw does not change (fae.animate.highlevel.jaw_carried).
 visemes.fap        "Thank you, Bob." as a FAP 1 viseme sequence (TH aa nn kk ih ou sil PP oh
                    PP sil), 4 frames per viseme, each blending in from the previous one over
                    2 frames (viseme_select2 = previous, viseme_blend 32 then 63).
@@ -45,6 +47,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
+from fae.animate.highlevel import jaw_carried  # noqa: E402
 from fae.io.fap import FapFrame, FapHeader, Viseme, write_fap  # noqa: E402
 from fae.mpeg4.faps import FAP_COUNT, FAPS  # noqa: E402
 from fae.mpeg4.highlevel import viseme_by_name  # noqa: E402
@@ -120,10 +123,11 @@ def expressions_frames() -> list[FapFrame]:
     rise, hold, release, rest = 0.5, 1.0, 0.5, 0.2
     per = int(round((rise + hold + release + rest) * FPS))
     weights = envelope(per, rise, hold, release)
-    used = sorted({number for pose in EXPRESSION_POSES.values() for number in pose})
-    n_frames = per * len(EXPRESSION_POSES)
+    poses = [jaw_carried(pose) for pose in EXPRESSION_POSES.values()]
+    used = sorted({number for pose in poses for number in pose})
+    n_frames = per * len(poses)
     tracks = {number: np.zeros(n_frames) for number in used}
-    for i, pose in enumerate(EXPRESSION_POSES.values()):
+    for i, pose in enumerate(poses):
         for number, value in pose.items():
             tracks[number][i * per:(i + 1) * per] = value * weights
     return frames_from_tracks(tracks, n_frames)

@@ -42,6 +42,7 @@ from fae.adapt.calibration import apply_transform, scan_unit, similarity_transfo
 from fae.adapt.errors import surface
 from fae.adapt.query import MeshQuery
 from fae.adapt.rbf import rbf_interpolant, rbf_weights
+from fae.anatomy.surface_points import markup_positions
 from fae.io.facemodel import FaceModel
 
 NOSE_SEARCH = 0.02  # m around the aligned template's nose tip
@@ -226,7 +227,7 @@ def auto_landmarks(template: FaceModel, scan_V: np.ndarray, scan_F: np.ndarray, 
     t0 = time.perf_counter()
     V, F = template.skin_vertices, template.skin_faces.astype(np.int64)
     seen = visible_skin(template)
-    fdp = {n: p for n, p in template.feature_point_positions().items() if template.feature_points[n].part == "skin"}
+    fdp = {n: p for n, p in markup_positions(template).items() if template.feature_points[n].part == "skin"}
     face = _front_samples(V, seen, fdp, 0.004)
     T, unit, rms = rough_alignment(V[seen], V[face], scan_V)
     SV = apply_transform(T, scan_V)

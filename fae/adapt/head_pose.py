@@ -45,6 +45,7 @@ from scipy.spatial import cKDTree
 
 from fae.adapt.calibration import scan_unit, similarity_icp, similarity_transform
 from fae.adapt.geometry import coincident_groups
+from fae.anatomy.surface_points import markup_positions
 from fae.io.facemodel import FaceModel
 
 SCAN_SAMPLES = 10000  # scan vertices (at most) used by the pose search
@@ -127,7 +128,7 @@ def template_head(template: FaceModel) -> TemplateHead:
 
     V = np.asarray(template.skin_vertices, dtype=np.float64)
     seen = visible_skin(template)
-    fdp = template.feature_point_positions()
+    fdp = markup_positions(template)
     chin_y = float(fdp["2.1"][1]) if "2.1" in fdp else float(V[:, 1].min() + 0.3 * np.ptp(V[:, 1]))
     head_mask = seen & (V[:, 1] >= chin_y - 0.005)
     spacing = max(float(np.ptp(V[head_mask], axis=0).max()) / 40.0, 1e-4)

@@ -57,6 +57,7 @@ from fae.adapt.multilevel import fit_template
 from fae.adapt.query import MeshQuery
 from fae.adapt.rbf import RBF, rbf_interpolant, rbf_weights
 from fae.adapt.untangle import untangle
+from fae.anatomy.surface_points import markup_positions
 from fae.io.facemodel import FaceModel
 
 MIN_BONE_DEPTH = 0.002  # metres of soft tissue kept between skin and bone
@@ -430,8 +431,7 @@ def adapt_facemodel(template: FaceModel, scan_V: np.ndarray, scan_F: np.ndarray,
     frame and unit; landmarks FDP name -> (3,) in the same) by one of the paper methods of
     fae.adapt.multilevel. Returns (model, report dict)."""
     t0 = time.perf_counter()
-    fdp_old = template.feature_point_positions()
-    skin_fdp = {n: p for n, p in fdp_old.items() if template.feature_points[n].part == "skin"}
+    skin_fdp = {n: p for n, p in markup_positions(template).items() if template.feature_points[n].part == "skin"}
     T, unit, names, ignored, scan = scan_landmarks_in_face_frame(skin_fdp, scan_landmarks, scan_V, scan_F)
     PL = np.array([skin_fdp[n] for n in names])
     QL = apply_transform(T, np.array([scan_landmarks[n] for n in names]))

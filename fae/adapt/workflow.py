@@ -24,6 +24,7 @@ from typing import Callable
 
 import numpy as np
 
+from fae.anatomy.surface_points import markup_positions
 from fae.io.facemodel import FaceModel
 
 # A face found on the scan is trusted with at least this many point pairs, whose RMS
@@ -69,7 +70,7 @@ def adapt_scan(template: FaceModel, V: np.ndarray, F: np.ndarray, face_pairs: Ca
     say = say or (lambda msg: None)
     try:
         if landmarks:
-            fdp = template.feature_point_positions()
+            fdp = markup_positions(template)
             names = [n for n in landmarks if n in fdp and template.feature_points[n].part == "skin"
                      and np.all(np.isfinite(landmarks[n]))]
             if len(names) < 4:

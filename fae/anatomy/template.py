@@ -42,6 +42,8 @@ NECK_REFINE_BELOW = -125.0
 MAX_EDGE = 10.0
 THICKNESS_CAP = 0.025  # m, soft-tissue depth reported where no bone lies below
 LAYER_DEPTH_FRACTIONS = [0.0, 0.35, 1.0]
+# the gnathion's direction from the face (y up, z forward): 30 degrees forward of straight down
+GNATHION_DIRECTION = np.array([0.0, -np.cos(np.radians(30.0)), np.sin(np.radians(30.0))])
 SKIN_COLOR = np.array([0.745, 0.42, 0.31, 1.0], dtype=np.float32)  # linear RGB of a light skin tone
 
 # (field, grid box lo/hi in mm for the x >= 0 half, grid step mm, faces in the half mesh)
@@ -148,7 +150,11 @@ def skin_feature_vertices(V: np.ndarray, F: np.ndarray, mirror: np.ndarray, regi
 
     # chin and jaw
     chin_mid = mid_in("chin")
-    out["2.1"] = int(chin_mid[np.argmin(V[chin_mid, 1])])
+    # the bottom of the chin as the face shows it: the most anterior-inferior midline point
+    # (30 degrees forward of straight down, the gnathion), not the lowest one, which on a
+    # nearly level underside lies anywhere back to the neck (25 mm behind, where the jaw's
+    # turn moves it mostly backwards and open_jaw then turned the jaw 1.5x as far)
+    out["2.1"] = int(chin_mid[np.argmax(V[chin_mid] @ GNATHION_DIRECTION)])
     out["2.10"] = _nearest(V, chin_mid, _front(V, F, 0.0, -104.0))
     out["2.11"] = _nearest(V, left_in("chin", "jaw_l"), _front(V, F, 17.0, -108.0))
     out["2.13"] = _nearest(V, left_in("jaw_l", "neck"), (62.0, -100.0, 4.0))

@@ -33,6 +33,9 @@ expected / measured (clipped to [0.5, 2] per pass; `passes` 3 by default). The r
     gain_neg     (68, C) float: controls per FAP unit of |v| for negative values
     table_values (68, 5) float FAPU: -R, -R/2, 0, R/2, R (R: the positive translation limit)
     table_scale  (68, 5) float: multiplier of the linear controls at those values
+    jaw_follow   (68,) float: how far open_jaw alone carries each lip FAP's point along the
+                 FAP's direction, FAP units per open_jaw unit (fae.animate.mapping), measured
+                 with the real solver at +half open_jaw
 Controls C: the head's muscles, then the pull fields, then jaw (angle rad, thrust m, shift m).
 """
 
@@ -49,7 +52,7 @@ from scipy.optimize import lsq_linear
 from scipy.sparse.csgraph import dijkstra
 
 from fae.animate.controls import FapControls
-from fae.animate.mapping import FORMAT_VERSION, JAW_CONTROLS, field_faps
+from fae.animate.mapping import FORMAT_VERSION, JAW_CONTROLS, JAW_OPEN, LIP_FAPS, field_faps
 from fae.animate.faptables import (FAP_DIRECTION, FAP_FEATURE_POINT, FAP_LIMITS, JAW_FAPS,
                                    SKIN_TRANSLATION_FAPS, fap_unit_scale, fapu_of)
 from fae.mpeg4.faps import FAP_COUNT
@@ -256,8 +259,10 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
     half = FAP_LIMITS[:, 1] / 2.0
     table_values = np.column_stack([-2 * half, -half, np.zeros(FAP_COUNT), half, 2 * half])
     table_scale = np.ones((FAP_COUNT, 5))
+    jaw_follow = np.zeros(FAP_COUNT)
     if warm_start_usable(start):
         table_scale = np.asarray(start["table_scale"], dtype=np.float64).copy()
+        jaw_follow = np.asarray(start["jaw_follow"], dtype=np.float64).copy()
         passes = WARM_PASSES if passes is None else passes
     passes = COLD_PASSES if passes is None else passes
     mapping = {
@@ -265,6 +270,7 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
         "field_faps": np.array(field_faps(face), dtype=np.int64),
         "field_radius": np.array([_FIELD_RADIUS_ES.get(k, 0.2) * fapu["ES"] * 1024 for k in field_faps(face)]),
         "gain_pos": gain_pos, "gain_neg": gain_neg, "table_values": table_values, "table_scale": table_scale,
+        "jaw_follow": jaw_follow,
     }
 
     # Nonlinear correction with the real solver: each FAP is probed at its operating
@@ -284,13 +290,18 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
     def settled(job):
         solver, scratch = contexts.get()
         try:
-            return settle(model, solver, ctl, job[2], rig, frames=settle_frames, scratch=scratch)
+            # open_jaw is probed without the lips taking back what it carries (jaw_follow):
+            # that is what it measures
+            controls = jaw_alone if JAW_OPEN in job[1] else ctl
+            return settle(model, solver, controls, job[2], rig, frames=settle_frames, scratch=scratch)
         finally:
             contexts.put((solver, scratch))
 
     for _ in range(passes):
         controls_face.fap_mapping = mapping
         ctl = FapControls(controls_face, model)
+        jaw_alone = FapControls(controls_face, model)
+        jaw_alone.jaw_follow = np.zeros(FAP_COUNT)
         jobs = []
         for side in (1.0, -1.0):
             for batch in batches:
@@ -305,6 +316,13 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
         with ThreadPoolExecutor(workers) as pool:
             skins = list(pool.map(settled, jobs))
         for (side, todo, _), skin in zip(jobs, skins):
+            if side > 0 and JAW_OPEN in todo:
+                # what open_jaw alone carries the lip points by, to be taken back by their FAPs
+                for k in LIP_FAPS:
+                    fdp = FAP_FEATURE_POINT[k - 1]
+                    if fdp in probe.fdp and (np.any(gain_pos[k - 1]) or np.any(gain_neg[k - 1])):
+                        moved = face.surface_point_position(face.feature_points[fdp], skin) - fdp_pos[fdp]
+                        jaw_follow[k - 1] = float(moved @ FAP_DIRECTION[k - 1]) / (half[JAW_OPEN - 1] * unit[k - 1])
             for k in todo:
                 fdp = FAP_FEATURE_POINT[k - 1]
                 moved = face.surface_point_position(face.feature_points[fdp], skin) - fdp_pos[fdp]
@@ -313,6 +331,8 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
                 g = float(np.clip(expected / along, 0.5, 2.0)) if along > 1e-3 * expected else 2.0
                 cols = [3, 4] if side > 0 else [1, 0]
                 table_scale[k - 1, cols] *= g
+                if k == JAW_OPEN and side > 0:
+                    jaw_follow *= g  # the jaw carries the lips as far as it opens
     mapping["table_scale"] = table_scale
     out = copy.copy(face)
     out.fap_mapping = mapping
@@ -322,7 +342,7 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
 def warm_start_usable(mapping: dict | None) -> bool:
     """Whether `mapping`'s table scales can start a calibration: made for this solver
     (FORMAT_VERSION), one finite positive row of 5 scales for each of the 68 FAPs."""
-    if not mapping or "table_scale" not in mapping or "layout" not in mapping:
+    if not mapping or "table_scale" not in mapping or "layout" not in mapping or "jaw_follow" not in mapping:
         return False
     scale = np.asarray(mapping["table_scale"])
     layout = np.asarray(mapping["layout"]).ravel()

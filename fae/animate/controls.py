@@ -1,7 +1,11 @@
 """FAP values -> simulation controls, through a head's calibrated `fap_mapping` (one matmul).
 
-controls(v) = sum_k max(v_k, 0) s_k(v_k) gain_pos[k] + max(-v_k, 0) s_k(v_k) gain_neg[k],
-s_k piecewise linear over table_values[k] (see fae.animate.calibrate). Muscle contractions
+controls(v) = sum_k max(w_k, 0) gain_pos[k] + max(-w_k, 0) gain_neg[k], w_k = s_k(u_k) u_k,
+u = v - jaw_follow v_3: a lip FAP's controls also take back what open_jaw carries its point
+by (fae.animate.mapping). s_k is piecewise linear over table_values[k] (see
+fae.animate.calibrate) where u_k moves the point the way the FAP's own value does, 1
+otherwise: the table scales of a lip raised alone, which must push the other lip too,
+would lift a lip the jaw has lowered far past its place. Muscle contractions
 are kept >= 0 and every control is bounded, whatever the input.
 """
 
@@ -9,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from fae.animate.mapping import FORMAT_VERSION, JAW_CONTROLS, field_faps
+from fae.animate.mapping import FORMAT_VERSION, JAW_CONTROLS, JAW_OPEN, field_faps
 from fae.mpeg4.faps import FAP_COUNT
 
 ACTIVATION_LIMIT = 50.0
@@ -28,7 +32,7 @@ class FapControls:
 
     def __init__(self, face, model=None):
         m = face.fap_mapping or {}
-        need = ("layout", "gain_pos", "gain_neg", "table_values", "table_scale", "field_faps")
+        need = ("layout", "gain_pos", "gain_neg", "table_values", "table_scale", "field_faps", "jaw_follow")
         missing = [k for k in need if k not in m]
         if missing:
             raise MappingMismatch(f"fap_mapping: missing {', '.join(missing)} (the head is not calibrated)")
@@ -47,7 +51,9 @@ class FapControls:
         self.gain_neg = np.asarray(m["gain_neg"], dtype=np.float64)
         self.table_values = np.asarray(m["table_values"], dtype=np.float64)
         self.table_scale = np.asarray(m["table_scale"], dtype=np.float64)
+        self.jaw_follow = np.asarray(m["jaw_follow"], dtype=np.float64)
         for name, a, shape in (("gain_pos", self.gain_pos, (FAP_COUNT, C)), ("gain_neg", self.gain_neg, (FAP_COUNT, C)),
+                               ("jaw_follow", self.jaw_follow, (FAP_COUNT,)),
                                ("table_values", self.table_values, (FAP_COUNT, 5)),
                                ("table_scale", self.table_scale, (FAP_COUNT, 5))):
             if a.shape != shape or not np.all(np.isfinite(a)):
@@ -72,7 +78,8 @@ class FapControls:
     def controls(self, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(activation (M,) for muscles then fields, jaw (3,) angle rad, thrust m, shift m)."""
         v = np.asarray(values, dtype=np.float64)
-        s = self.scale(v) * v
+        u = v - self.jaw_follow * v[JAW_OPEN - 1]
+        s = np.where(u * v > 0.0, self.scale(u), 1.0) * u
         c = np.concatenate([np.maximum(s, 0.0), np.maximum(-s, 0.0)]) @ self._gains
         act = np.minimum(np.maximum(c[: self.muscle_count], -ACTIVATION_LIMIT), ACTIVATION_LIMIT)
         act[: self.model_muscles] = np.maximum(act[: self.model_muscles], 0.0)

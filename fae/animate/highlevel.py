@@ -19,10 +19,10 @@ from fae.mpeg4.faps import FAP_COUNT
 from fae.mpeg4.highlevel import BLEND_MAX
 
 
-def _table(rows: dict[int, dict[int, float]], count: int) -> np.ndarray:
+def _table(rows: dict[int, dict[int, float]], count: int, convert=lambda pose: pose) -> np.ndarray:
     out = np.zeros((count, FAP_COUNT))
     for code, faps in rows.items():
-        for fap, value in faps.items():
+        for fap, value in convert(faps).items():
             out[code, fap - 1] = value
     return out
 
@@ -36,7 +36,26 @@ def _sym(**pairs) -> dict[int, float]:
     return out
 
 
-# (15, 68) viseme code -> low-level FAP values (FAPU units)
+# How far the mandible carries the lower lip's and the corners' feature points, in their
+# FAPs' units per unit of open_jaw (measured on the generic head and rounded: 1.18-1.24
+# and 0.48; the Xface streams send 1.27 and 0.59). The standard's lip FAPs are displacements that the
+# jaw does not change (fae.animate.mapping), so a pose that opens the jaw with its lips
+# riding on it sends these as well: `jaw_carried`.
+JAW_CARRIES = {5: -1.25, 10: -1.25, 11: -1.25, 52: -1.2, 57: -1.2, 58: -1.2, 12: -0.5, 13: -0.5, 59: -0.5, 60: -0.5}
+
+
+def jaw_carried(pose: dict[int, float]) -> dict[int, float]:
+    """FAP -> value: `pose` (open_jaw at pose[3], the lip values relative to where the jaw
+    carries the lips) with the lip values as the standard's displacements from neutral."""
+    jaw = float(pose.get(3, 0.0))
+    out = dict(pose)
+    for fap, ratio in JAW_CARRIES.items():
+        if jaw:
+            out[fap] = float(out.get(fap, 0.0)) + ratio * jaw
+    return out
+
+
+# (15, 68) viseme code -> low-level FAP values (FAPU units), lips relative to the jaw
 VISEME_FAPS = _table({
     0: {},                                                                              # sil
     1: _sym(f4=60, f5=120, f51=40, f52=80, f16_17=40, f3=0),                          # PP: lips pressed
@@ -53,9 +72,10 @@ VISEME_FAPS = _table({
     12: _sym(f3=180, f4=-60, f51=-60, f6_7=160, f53_54=160, f12_13=60, f59_60=60),     # ih: spread
     13: _sym(f3=380, f6_7=-200, f53_54=-200, f16_17=160, f4=-80, f51=-80),            # oh: round, open
     14: _sym(f3=200, f6_7=-260, f53_54=-260, f16_17=240, f4=-40, f51=-40),            # ou: small round
-}, 15)
+}, 15, jaw_carried)
 
-# (7, 68) expression code -> low-level FAP values (FAPU units), full intensity (63)
+# (7, 68) expression code -> low-level FAP values (FAPU units), full intensity (63), lips
+# relative to the jaw
 EXPRESSION_FAPS = _table({
     0: {},
     1: _sym(f3=160, f6_7=200, f53_54=200, f12_13=220, f59_60=220, f41_42=300, f21_22=120,   # joy
@@ -70,7 +90,7 @@ EXPRESSION_FAPS = _table({
             f55=-220, f56=-160, f59=100, f12=60, f61_62=150, f63=120, f5=60, f52=60),
     6: _sym(f31_32=450, f33_34=500, f35_36=400, f19_20=-350, f3=450, f4=-80, f51=-80,       # surprise
             f6_7=-60, f53_54=-60),
-}, 7)
+}, 7, jaw_carried)
 
 
 def _pair(record, kind: str) -> tuple[tuple[int, float], tuple[int, float]]:

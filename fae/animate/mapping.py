@@ -5,7 +5,20 @@ calibration, which writes it (fae.animate.calibrate), and the controls, which re
     FORMAT_VERSION    the solver the mapping was calibrated for (another moves the feature
                       points by other amounts: a mismatch means calibrating again)
     JAW_CONTROLS      jaw controls at the end of each row: angle (rad), thrust (m), shift (m)
+    JAW_OPEN          open_jaw, which does not move the lips (see below)
+    LIP_FAPS          the lip FAPs whose points open_jaw holds
     field_faps(face)  the FAPs that get a pull field on this head, in control order
+
+The standard defines open_jaw (FAP 3) as a "vertical jaw displacement (does not affect
+mouth opening)": the lip FAPs give their feature points' displacement from the neutral
+face whatever the jaw does, and a stream opens the mouth by lowering the lower lip as far
+as the jaw goes (the shared Xface streams send raise_b_midlip = -1.27 x open_jaw, which is
+how far the jaw carries 2.3 on the generic head: 1.24). The skin of the lower lip rides on
+the mandible, so each lip FAP's controls take back what the jaw carried its point by:
+`jaw_follow` (68,) in the mapping is that motion along the FAP's direction, in the FAP's
+units per unit of open_jaw (fae.animate.calibrate, fae.animate.controls). Added to the jaw instead,
+a stream's lower lip dropped twice as far as it asks (17 mm for 10 in xface_joy),
+creasing the chin.
 """
 
 from __future__ import annotations
@@ -13,11 +26,14 @@ from __future__ import annotations
 from fae.animate.ears import EAR_FAPS
 from fae.animate.faptables import FAP_FEATURE_POINT, JAW_FAPS, SKIN_TRANSLATION_FAPS
 
-# 3: the skin solver with the fold guard, crease smoothing and lip contact (fae.sim.folds)
+# 4: lip FAPs are displacements the jaw does not change (jaw_follow), 2.1 at the gnathion; 3: the skin solver with the fold guard, crease smoothing and lip contact (fae.sim.folds)
 # and pull fields preferred to muscles; 2: implicit anchors, blended holds and derived ear
 # tables
-FORMAT_VERSION = 3
+FORMAT_VERSION = 4
 JAW_CONTROLS = 3
+JAW_OPEN = 3
+# the inner (4-13) and outer (51-60) lip FAPs
+LIP_FAPS = tuple(range(4, 14)) + tuple(range(51, 61))
 
 
 def field_faps(face) -> list[int]:

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from fae.anatomy.surface_points import chin_contour_point
 from fae.io.facemodel import FaceModel
 
 VIEWS = {"front": 0.0, "three-quarter": np.radians(35.0), "profile": np.radians(90.0)}
@@ -98,7 +99,7 @@ def head_frame(model: FaceModel) -> HeadFrame:
         eye_mid = np.array([0.5 * (lo[0] + hi[0]), lo[1] + 0.6 * (hi[1] - lo[1]), hi[2]])
     if es0 <= 0.0:
         es0 = float(hi[0] - lo[0]) / _HEAD_WIDTH_PER_ES
-    chin = fp["2.1"][1] if "2.1" in fp else lo[1]
+    chin = chin_contour_point(model)[1] if "2.1" in fp else lo[1]
     if "11.4" in fp:
         top = fp["11.4"][1]
     elif "11.1" in fp:
