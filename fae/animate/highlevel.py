@@ -49,8 +49,8 @@ def jaw_carried(pose: dict[int, float]) -> dict[int, float]:
     carries the lips) with the lip values as the standard's displacements from neutral."""
     jaw = float(pose.get(3, 0.0))
     out = dict(pose)
-    for fap, ratio in JAW_CARRIES.items():
-        if jaw:
+    if jaw:
+        for fap, ratio in JAW_CARRIES.items():
             out[fap] = float(out.get(fap, 0.0)) + ratio * jaw
     return out
 
