@@ -127,3 +127,26 @@ def test_mirror_faps_are_left_right_pairs_moving_mirror_points():
             continue
         expected = np.array(a.direction) if "yaw" in a.name else np.array(a.direction) * (-1.0, 1.0, 1.0)
         assert np.allclose(expected, b.direction), (a.name, b.name)
+
+
+@FAST
+@given(st.floats(-500, 500), st.floats(-500, 500), st.floats(0.0, 1.0))
+def test_lip_twins_sent_alike_move_the_larger_requests_point_as_far_as_it_asks(inner, outer, overlap):
+    """merge_lip_pairs: with each FAP moving its own point by its value and its twin's by
+    overlap x value, the merged pair moves the point of the larger request by exactly that
+    request; one FAP alone and twins of opposite signs are left as they are."""
+    from fae.animate.controls import merge_lip_pairs
+
+    v = np.zeros(FAP_COUNT)
+    v[11], v[58] = inner, outer  # raise_l_cornerlip and raise_l_cornerlip_o
+    c = np.zeros(FAP_COUNT)
+    c[[11, 58]] = overlap
+    m = merge_lip_pairs(v, c)
+    assert np.array_equal(np.delete(m, [11, 58]), np.zeros(FAP_COUNT - 2))
+    if inner * outer <= 0.0:
+        assert m[11] == inner and m[58] == outer
+    else:
+        moved = (m[11] + overlap * m[58], m[58] + overlap * m[11])  # at 2.4, at 8.3
+        big = 0 if abs(inner) >= abs(outer) else 1
+        assert moved[big] == pytest.approx((inner, outer)[big], rel=1e-9)
+        assert abs(moved[1 - big]) <= abs((inner, outer)[big]) * (1 + 1e-9)

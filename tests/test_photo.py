@@ -134,7 +134,9 @@ def test_a_tiny_face_is_refused_with_a_reason(tmp_path, capsys):
 @pytest.mark.slow
 def test_a_profile_is_refused_with_a_reason(astronaut_head, tmp_path, capsys):
     """A profile photo (the astronaut's own textured head drawn from the side) gives no
-    head: too little of the face shows to shape or colour it."""
+    head: too little of the face shows to shape or colour it. Whether the landmark model
+    finds no face there, a turned one, or one whose points the head drawn like the photo
+    cannot match differs between CPUs (its kernels); each is refused with its reason."""
     from fae.render.renderer import FaceRenderer
 
     model, _, _ = astronaut_head
@@ -143,7 +145,7 @@ def test_a_profile_is_refused_with_a_reason(astronaut_head, tmp_path, capsys):
     out = tmp_path / "head.glb"
     assert main(["adapt", "--photo", photo, "-o", str(out)]) == 2
     err = capsys.readouterr().err
-    assert "turned" in err or "no face found" in err
+    assert "turned" in err or "no face found" in err or "drawn like the photo" in err
     assert not out.exists()
 
 

@@ -107,7 +107,7 @@ def test_only_a_mapping_for_this_solver_starts_a_calibration():
     from fae.animate.mapping import FORMAT_VERSION
 
     good = {"layout": np.array([27, 40, 3, FORMAT_VERSION]), "table_scale": np.full((68, 5), 1.2),
-            "jaw_follow": np.zeros(68)}
+            "jaw_follow": np.zeros(68), "hold_scale": np.ones(68)}
     assert warm_start_usable(good)
     assert not warm_start_usable(None) and not warm_start_usable({})
     assert not warm_start_usable({k: v for k, v in good.items() if k != "jaw_follow"})

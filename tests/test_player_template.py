@@ -258,3 +258,25 @@ def test_open_jaw_does_not_open_the_mouth_and_the_lips_ride_on_the_jaw_as_stream
     longer = np.linalg.norm(skin[edges[:, 0]] - skin[edges[:, 1]], axis=1) - np.linalg.norm(
         rest[edges[:, 0]] - rest[edges[:, 1]], axis=1)
     assert longer.max() < 0.01
+
+
+def test_a_lip_corner_raised_by_its_inner_and_outer_faps_alike_moves_as_far_as_either_asks(player):
+    """Streams send raise_l_cornerlip (12) and its outer twin (59) alike; on the generic head
+    their points (2.4, 8.3) are one, and each FAP alone moves it by about its value. Sent
+    together they move it no farther than the farther of the two alone (15 % margin), not
+    by the sum (2.4x one alone before they were merged): a smile's corners are not pulled
+    into spikes."""
+    face = player.face
+    fp = face.feature_point_positions()
+    unit = fapu_of(face)["MNS"]
+    value = FAP_LIMITS[11, 1] / 2
+
+    def raised(faps):
+        v = np.zeros(68)
+        v[[k - 1 for k in faps]] = value
+        skin = settle(player, v, frames=40)
+        return (face.surface_point_position(face.feature_points["2.4"], skin) - fp["2.4"])[1] / (value * unit)
+
+    inner, outer, both = raised([12]), raised([59]), raised([12, 59])
+    assert min(inner, outer) > 0.85
+    assert min(inner, outer) * 0.85 < both < max(inner, outer) * 1.15

@@ -36,6 +36,15 @@ expected / measured (clipped to [0.5, 2] per pass; `passes` 3 by default). The r
     jaw_follow   (68,) float: how far open_jaw alone carries each lip FAP's point along the
                  FAP's direction, FAP units per open_jaw unit (fae.animate.mapping), measured
                  with the real solver at +half open_jaw
+    hold_scale   (68,) float: the multiplier of a lip FAP's controls where they take back
+                 more than the FAP asks (u and v of opposite signs, or v = 0: open_jaw sent
+                 alone), calibrated so that open_jaw alone at +half range leaves the lip
+                 points where the jaw found them (the table scales are measured with the
+                 other lip in the way, these with the mouth opening)
+    pair_overlap (68,) float 0..1: how far an inner or outer lip FAP moves its twin's
+                 point (LIP_PAIRS) over how far it moves its own, both ways and both signs
+                 averaged, measured with the real solver at +-half range in the last pass
+                 (fae.animate.mapping)
 Controls C: the head's muscles, then the pull fields, then jaw (angle rad, thrust m, shift m).
 """
 
@@ -52,7 +61,7 @@ from scipy.optimize import lsq_linear
 from scipy.sparse.csgraph import dijkstra
 
 from fae.animate.controls import FapControls
-from fae.animate.mapping import FORMAT_VERSION, JAW_CONTROLS, JAW_OPEN, LIP_FAPS, field_faps
+from fae.animate.mapping import FORMAT_VERSION, JAW_CONTROLS, JAW_OPEN, LIP_FAPS, LIP_PAIRS, field_faps
 from fae.animate.faptables import (FAP_DIRECTION, FAP_FEATURE_POINT, FAP_LIMITS, JAW_FAPS,
                                    SKIN_TRANSLATION_FAPS, fap_unit_scale, fapu_of)
 from fae.mpeg4.faps import FAP_COUNT
@@ -260,9 +269,11 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
     table_values = np.column_stack([-2 * half, -half, np.zeros(FAP_COUNT), half, 2 * half])
     table_scale = np.ones((FAP_COUNT, 5))
     jaw_follow = np.zeros(FAP_COUNT)
+    hold_scale = np.ones(FAP_COUNT)
     if warm_start_usable(start):
         table_scale = np.asarray(start["table_scale"], dtype=np.float64).copy()
         jaw_follow = np.asarray(start["jaw_follow"], dtype=np.float64).copy()
+        hold_scale = np.asarray(start["hold_scale"], dtype=np.float64).copy()
         passes = WARM_PASSES if passes is None else passes
     passes = COLD_PASSES if passes is None else passes
     mapping = {
@@ -270,7 +281,7 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
         "field_faps": np.array(field_faps(face), dtype=np.int64),
         "field_radius": np.array([_FIELD_RADIUS_ES.get(k, 0.2) * fapu["ES"] * 1024 for k in field_faps(face)]),
         "gain_pos": gain_pos, "gain_neg": gain_neg, "table_values": table_values, "table_scale": table_scale,
-        "jaw_follow": jaw_follow,
+        "jaw_follow": jaw_follow, "hold_scale": hold_scale, "pair_overlap": np.zeros(FAP_COUNT),
     }
 
     # Nonlinear correction with the real solver: each FAP is probed at its operating
@@ -278,7 +289,8 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
     # settled motion of its feature point along the standard direction is the expected one.
     # FAPs whose footprints (with a margin ring) do not overlap are probed together.
     faps = [k for k in SKIN_TRANSLATION_FAPS if np.any(gain_pos[k - 1]) or np.any(gain_neg[k - 1])]
-    batches = _disjoint_batches(face, model, faps, responses, gain_pos, gain_neg, unit)
+    batches, footprint = _disjoint_batches(face, model, faps, responses, gain_pos, gain_neg, unit)
+    twin_of = {**{i: o for i, o in LIP_PAIRS}, **{o: i for i, o in LIP_PAIRS}}
     controls_face = copy.copy(face)
     # the settles of one pass do not depend on each other (each starts from rest and holds only
     # its batch's FAPs): they run on every core, each thread with its own solver and state
@@ -291,17 +303,20 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
         solver, scratch = contexts.get()
         try:
             # open_jaw is probed without the lips taking back what it carries (jaw_follow):
-            # that is what it measures
-            controls = jaw_alone if JAW_OPEN in job[1] else ctl
+            # that is what it measures; the "hold" job probes it with them
+            controls = jaw_alone if JAW_OPEN in job[1] and job[3] == "probe" else ctl
             return settle(model, solver, controls, job[2], rig, frames=settle_frames, scratch=scratch)
         finally:
             contexts.put((solver, scratch))
 
+    overlap: dict[int, list[float]] = {}  # twin-over-own motion ratios of the last pass (none: 0)
     for _ in range(passes):
         controls_face.fap_mapping = mapping
+        overlap = {}
         ctl = FapControls(controls_face, model)
         jaw_alone = FapControls(controls_face, model)
         jaw_alone.jaw_follow = np.zeros(FAP_COUNT)
+        follow_asked = jaw_follow.copy()  # what the lips take back in this pass's hold job
         jobs = []
         for side in (1.0, -1.0):
             for batch in batches:
@@ -312,10 +327,18 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
                 values = np.zeros(FAP_COUNT)
                 for k in todo:
                     values[k - 1] = side * half[k - 1]
-                jobs.append((side, todo, values))
+                jobs.append((side, todo, values, "probe"))
+        if JAW_OPEN in faps and np.any(follow_asked):
+            values = np.zeros(FAP_COUNT)
+            values[JAW_OPEN - 1] = half[JAW_OPEN - 1]
+            jobs.append((1.0, [JAW_OPEN], values, "hold"))
         with ThreadPoolExecutor(workers) as pool:
             skins = list(pool.map(settled, jobs))
-        for (side, todo, _), skin in zip(jobs, skins):
+        carried = {}
+        for (side, todo, _, kind), skin in zip(jobs, skins):
+            if kind == "hold":
+                held = skin
+                continue
             if side > 0 and JAW_OPEN in todo:
                 # what open_jaw alone carries the lip points by, to be taken back by their FAPs
                 for k in LIP_FAPS:
@@ -323,26 +346,60 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
                     if fdp in probe.fdp and (np.any(gain_pos[k - 1]) or np.any(gain_neg[k - 1])):
                         moved = face.surface_point_position(face.feature_points[fdp], skin) - fdp_pos[fdp]
                         jaw_follow[k - 1] = float(moved @ FAP_DIRECTION[k - 1]) / (half[JAW_OPEN - 1] * unit[k - 1])
+                        carried[k] = jaw_follow[k - 1]
             for k in todo:
                 fdp = FAP_FEATURE_POINT[k - 1]
                 moved = face.surface_point_position(face.feature_points[fdp], skin) - fdp_pos[fdp]
                 along = float(moved @ FAP_DIRECTION[k - 1]) * side
+                twin = twin_of.get(k)
+                if twin is not None and FAP_FEATURE_POINT[twin - 1] in probe.fdp and abs(along) > 0:
+                    # the twin's point moves with k only inside k's footprint (elsewhere a
+                    # batch mate may move it): outside, the two do not overlap
+                    tp = FAP_FEATURE_POINT[twin - 1]
+                    ratio = 0.0
+                    if footprint[k][probe.fdp[tp][0]].all():
+                        t_moved = face.surface_point_position(face.feature_points[tp], skin) - fdp_pos[tp]
+                        ratio = float(np.clip(t_moved @ FAP_DIRECTION[twin - 1] * side / along, 0.0, 1.0))
+                    overlap.setdefault(k, []).append(ratio)
                 expected = half[k - 1] * unit[k - 1]
                 g = float(np.clip(expected / along, 0.5, 2.0)) if along > 1e-3 * expected else 2.0
                 cols = [3, 4] if side > 0 else [1, 0]
                 table_scale[k - 1, cols] *= g
                 if k == JAW_OPEN and side > 0:
                     jaw_follow *= g  # the jaw carries the lips as far as it opens
+        if carried and jobs[-1][3] == "hold":
+            # the lips' hold against the jaw: what they took back (the jaw's carry less what
+            # is left) against what they were asked to (follow_asked), per lip FAP
+            for k, carry in carried.items():
+                fdp = FAP_FEATURE_POINT[k - 1]
+                if abs(follow_asked[k - 1]) < 0.05 or abs(carry) < 0.05:
+                    continue
+                left = float((face.surface_point_position(face.feature_points[fdp], held) - fdp_pos[fdp])
+                             @ FAP_DIRECTION[k - 1]) / (half[JAW_OPEN - 1] * unit[k - 1])
+                taken = (carry - left) / follow_asked[k - 1]
+                hold_scale[k - 1] *= float(np.clip(1.0 / taken, 0.5, 2.0)) if taken > 0.0 else 2.0
     mapping["table_scale"] = table_scale
+    mapping["pair_overlap"] = pair_overlap_of(overlap)
     out = copy.copy(face)
     out.fap_mapping = mapping
+    return out
+
+
+def pair_overlap_of(ratios: dict[int, list[float]]) -> np.ndarray:
+    """(68,) 0..1: per LIP_PAIRS FAP, the mean of the twin-over-own motion ratios measured
+    for either FAP of its pair (0 where none was)."""
+    out = np.zeros(FAP_COUNT)
+    for pair in LIP_PAIRS:
+        r = ratios.get(pair[0], []) + ratios.get(pair[1], [])
+        if r:
+            out[[pair[0] - 1, pair[1] - 1]] = float(np.clip(np.mean(r), 0.0, 1.0))
     return out
 
 
 def warm_start_usable(mapping: dict | None) -> bool:
     """Whether `mapping`'s table scales can start a calibration: made for this solver
     (FORMAT_VERSION), one finite positive row of 5 scales for each of the 68 FAPs."""
-    if not mapping or "table_scale" not in mapping or "layout" not in mapping or "jaw_follow" not in mapping:
+    if not mapping or any(k not in mapping for k in ("table_scale", "layout", "jaw_follow", "hold_scale")):
         return False
     scale = np.asarray(mapping["table_scale"])
     layout = np.asarray(mapping["layout"]).ravel()
@@ -350,8 +407,10 @@ def warm_start_usable(mapping: dict | None) -> bool:
             and bool(np.all(np.isfinite(scale))) and bool(np.all(scale > 0)))
 
 
-def _disjoint_batches(face, model, faps, responses, gain_pos, gain_neg, unit) -> list[list[int]]:
-    """FAPs grouped so that no two in a group move the same skin (footprint + 2 rings)."""
+def _disjoint_batches(face, model, faps, responses, gain_pos, gain_neg, unit
+                      ) -> tuple[list[list[int]], dict[int, np.ndarray]]:
+    """FAPs grouped so that no two in a group move the same skin (footprint + 2 rings), and
+    each FAP's footprint ((V,) bool skin vertices)."""
     from fae.sim.build import dilate
 
     A = adjacency(np.asarray(face.skin_faces), len(face.skin_vertices))
@@ -370,7 +429,7 @@ def _disjoint_batches(face, model, faps, responses, gain_pos, gain_neg, unit) ->
                 break
         else:
             batches.append([k])
-    return batches
+    return batches, footprint
 
 
 def settle_scratch(model) -> tuple:

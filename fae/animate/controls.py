@@ -3,9 +3,12 @@
 controls(v) = sum_k max(w_k, 0) gain_pos[k] + max(-w_k, 0) gain_neg[k], w_k = s_k(u_k) u_k,
 u = v - jaw_follow v_3: a lip FAP's controls also take back what open_jaw carries its point
 by (fae.animate.mapping). s_k is piecewise linear over table_values[k] (see
-fae.animate.calibrate) where u_k moves the point the way the FAP's own value does, 1
-otherwise: the table scales of a lip raised alone, which must push the other lip too,
-would lift a lip the jaw has lowered far past its place. Muscle contractions
+fae.animate.calibrate) where u_k moves the point the way the FAP's own value does,
+hold_scale[k] otherwise (calibrated with the jaw opening alone): the table scales of a
+lip raised alone, which must push the other lip too, would lift a lip the jaw has
+lowered far past its place. An inner lip FAP and its outer
+twin sent the same way are scaled together so that the larger request is met, not their
+sum where their points overlap (merge_lip_pairs, fae.animate.mapping). Muscle contractions
 are kept >= 0 and every control is bounded, whatever the input.
 """
 
@@ -13,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from fae.animate.mapping import FORMAT_VERSION, JAW_CONTROLS, JAW_OPEN, field_faps
+from fae.animate.mapping import FORMAT_VERSION, JAW_CONTROLS, JAW_OPEN, LIP_PAIRS, field_faps
 from fae.mpeg4.faps import FAP_COUNT
 
 ACTIVATION_LIMIT = 50.0
@@ -21,6 +24,25 @@ ACTIVATION_LIMIT = 50.0
 # on the generic head with its condylar glide, fae.animate.rigid), so the chin goes down
 # monotonically with open_jaw and visemes
 JAW_ANGLE_LIMIT = 0.5
+
+
+_INNER = np.array([k - 1 for k, _ in LIP_PAIRS])
+_OUTER = np.array([o - 1 for _, o in LIP_PAIRS])
+
+
+def merge_lip_pairs(values: np.ndarray, overlap: np.ndarray) -> np.ndarray:
+    """(68,) `values` with each inner lip FAP and its outer twin (LIP_PAIRS) that point the
+    same way scaled by max / (max + overlap x min) of their magnitudes (overlap (68,), 0..1,
+    the mapping's pair_overlap): the point of the larger request then moves as far as it
+    asks, where moving each FAP's own point by its value would move it by the sum. One FAP
+    alone, twins pointing opposite ways, or points that do not overlap are unchanged."""
+    a, b = values[_INNER], values[_OUTER]
+    big, small = np.maximum(np.abs(a), np.abs(b)), np.minimum(np.abs(a), np.abs(b))
+    f = np.where(a * b > 0.0, big / np.maximum(big + overlap[_INNER] * small, 1e-300), 1.0)
+    out = values.copy()
+    out[_INNER] *= f
+    out[_OUTER] *= f
+    return out
 
 
 class MappingMismatch(ValueError):
@@ -32,7 +54,8 @@ class FapControls:
 
     def __init__(self, face, model=None):
         m = face.fap_mapping or {}
-        need = ("layout", "gain_pos", "gain_neg", "table_values", "table_scale", "field_faps", "jaw_follow")
+        need = ("layout", "gain_pos", "gain_neg", "table_values", "table_scale", "field_faps", "jaw_follow",
+                "hold_scale", "pair_overlap")
         missing = [k for k in need if k not in m]
         if missing:
             raise MappingMismatch(f"fap_mapping: missing {', '.join(missing)} (the head is not calibrated)")
@@ -52,8 +75,12 @@ class FapControls:
         self.table_values = np.asarray(m["table_values"], dtype=np.float64)
         self.table_scale = np.asarray(m["table_scale"], dtype=np.float64)
         self.jaw_follow = np.asarray(m["jaw_follow"], dtype=np.float64)
+        self.hold_scale = np.clip(np.asarray(m["hold_scale"], dtype=np.float64), 0.1, 10.0)
+        self.pair_overlap = np.clip(np.asarray(m["pair_overlap"], dtype=np.float64), 0.0, 1.0)
         for name, a, shape in (("gain_pos", self.gain_pos, (FAP_COUNT, C)), ("gain_neg", self.gain_neg, (FAP_COUNT, C)),
                                ("jaw_follow", self.jaw_follow, (FAP_COUNT,)),
+                               ("hold_scale", self.hold_scale, (FAP_COUNT,)),
+                               ("pair_overlap", self.pair_overlap, (FAP_COUNT,)),
                                ("table_values", self.table_values, (FAP_COUNT, 5)),
                                ("table_scale", self.table_scale, (FAP_COUNT, 5))):
             if a.shape != shape or not np.all(np.isfinite(a)):
@@ -79,7 +106,7 @@ class FapControls:
         """(activation (M,) for muscles then fields, jaw (3,) angle rad, thrust m, shift m)."""
         v = np.asarray(values, dtype=np.float64)
         u = v - self.jaw_follow * v[JAW_OPEN - 1]
-        s = np.where(u * v > 0.0, self.scale(u), 1.0) * u
+        s = merge_lip_pairs(np.where(u * v > 0.0, self.scale(u), self.hold_scale) * u, self.pair_overlap)
         c = np.concatenate([np.maximum(s, 0.0), np.maximum(-s, 0.0)]) @ self._gains
         act = np.minimum(np.maximum(c[: self.muscle_count], -ACTIVATION_LIMIT), ACTIVATION_LIMIT)
         act[: self.model_muscles] = np.maximum(act[: self.model_muscles], 0.0)

@@ -7,6 +7,7 @@ calibration, which writes it (fae.animate.calibrate), and the controls, which re
     JAW_CONTROLS      jaw controls at the end of each row: angle (rad), thrust (m), shift (m)
     JAW_OPEN          open_jaw, which does not move the lips (see below)
     LIP_FAPS          the lip FAPs whose points open_jaw holds
+    LIP_PAIRS         (inner, outer) lip FAPs that move one lip at one place (see below)
     field_faps(face)  the FAPs that get a pull field on this head, in control order
 
 The standard defines open_jaw (FAP 3) as a "vertical jaw displacement (does not affect
@@ -19,6 +20,18 @@ the mandible, so each lip FAP's controls take back what the jaw carried its poin
 units per unit of open_jaw (fae.animate.calibrate, fae.animate.controls). Added to the jaw instead,
 a stream's lower lip dropped twice as far as it asks (17 mm for 10 in xface_joy),
 creasing the chin.
+
+Each inner lip FAP (4-13) has an outer twin (51-60) on the same lip, a few millimetres
+away on a real face; streams send the two alike (the Xface streams: outer = inner for the
+corners and the stretch, 0.8-2.7 x for the upper lip). Where the two points lie together
+(2.4 and 8.3 are one point of the generic head's mouth corner), each FAP's controls
+move both, and the pair sent alike moved the corner twice as far as either asks: a spike
+pulled up from each corner of a smile, its edges stretched 7x. `pair_overlap` (68,) in
+the mapping is how far a FAP's controls move its twin's point along the twin's
+direction, over how far they move its own (the two ways averaged, 0..1; measured on the
+linear response by calibration), and `merge_lip_pairs` (fae.animate.controls) scales a
+pair sent the same way so that the larger request is met at its point, not their sum:
+one FAP alone, or two points far apart, are unchanged.
 """
 
 from __future__ import annotations
@@ -26,14 +39,16 @@ from __future__ import annotations
 from fae.animate.ears import EAR_FAPS
 from fae.animate.faptables import FAP_FEATURE_POINT, JAW_FAPS, SKIN_TRANSLATION_FAPS
 
-# 4: lip FAPs are displacements the jaw does not change (jaw_follow), 2.1 at the gnathion; 3: the skin solver with the fold guard, crease smoothing and lip contact (fae.sim.folds)
+# 5: inner and outer lip FAPs merged where their points overlap (pair_overlap); 4: lip FAPs are displacements the jaw does not change (jaw_follow), 2.1 at the gnathion; 3: the skin solver with the fold guard, crease smoothing and lip contact (fae.sim.folds)
 # and pull fields preferred to muscles; 2: implicit anchors, blended holds and derived ear
 # tables
-FORMAT_VERSION = 4
+FORMAT_VERSION = 5
 JAW_CONTROLS = 3
 JAW_OPEN = 3
 # the inner (4-13) and outer (51-60) lip FAPs
 LIP_FAPS = tuple(range(4, 14)) + tuple(range(51, 61))
+# each inner lip FAP and its outer twin: same lip, same direction (4 <-> 51 ... 13 <-> 60)
+LIP_PAIRS = tuple((k, k + 47) for k in range(4, 14))
 
 
 def field_faps(face) -> list[int]:

@@ -32,7 +32,7 @@ import numpy as np
 from fae.animate.bake import bake_tables, baked_model, has_baked_tables
 from fae.animate.calibrate import calibrate, edge_length_graph, pull_fields
 from fae.animate.ears import ear_tables
-from fae.animate.controls import FapControls, MappingMismatch
+from fae.animate.controls import FapControls, MappingMismatch, merge_lip_pairs
 from fae.animate.facedef import FaceDefOffsets
 from fae.animate.faptables import FAP_COUNT, clamp_values, fapu_of
 from fae.animate.highlevel import highlevel_values
@@ -244,10 +244,13 @@ class Player:
         return skin
 
     def _table_step(self, v: np.ndarray) -> np.ndarray:
-        """The "fdt" engine's frame: rest skin + FaceDefTable offsets, carried by the head pose."""
+        """The "fdt" engine's frame: rest skin + FaceDefTable offsets, carried by the head pose.
+        Each lip table was baked alone: twins sent alike are merged as the physics merges
+        them (merge_lip_pairs), or a corner both move would move twice as far."""
         _, jaw = self.controls.controls(v)
         bones = self.rig.poses(v, self.rig.jaw(*jaw))
-        skin = self.facedef.displaced(v, self.head.rest_skin, bones["head"])
+        skin = self.facedef.displaced(merge_lip_pairs(v, self.controls.pair_overlap), self.head.rest_skin,
+                                      bones["head"])
         self.bone_transforms = bones
         self.pupil_scale = self.rig.pupil_scale(v)
         self.values = v
