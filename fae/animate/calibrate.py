@@ -93,7 +93,11 @@ CONTROL_SCALE = 0.01  # metres
 # passes of the nonlinear correction from neutral table scales, and from another head's
 COLD_PASSES = 3
 WARM_PASSES = 1
-SETTLE_THREADS = 4  # at most; Warp's CPU kernels release the GIL
+SETTLE_THREADS = 4
+# FAPs probed alone: the mouth corners' raise, which a batch mate whose footprint does not
+# meet its own on the linear response still moves through the lips' contact
+ALONE_FAPS = (12, 13, 59, 60)
+RAISE_REACH = {k: 2.0 for k in ALONE_FAPS}  # at most; Warp's CPU kernels release the GIL
 
 
 def edge_length_graph(face) -> sp.csr_matrix:
@@ -128,7 +132,15 @@ def pull_fields(face, fapu: dict[str, float], graph: sp.csr_matrix | None = None
     for k in field_faps(face):
         point = face.feature_points[FAP_FEATURE_POINT[k - 1]]
         radius = _FIELD_RADIUS_ES.get(k, 0.2) * es0
-        r = geodesic_distance(face, point, radius, graph) / radius
+        reach = RAISE_REACH.get(k, 1.0)
+        d = geodesic_distance(face, point, radius * reach, graph)
+        r = d / radius
+        if reach != 1.0:
+            # a corner raised alone squashed the skin above it into folds that the guard
+            # rocked against: the skin above the point comes along, fading `reach` times
+            # farther than below it
+            above = np.asarray(face.skin_vertices)[:, 1] > face.surface_point_position(point)[1]
+            r = np.where(above, d / (radius * reach), r)
         r = np.minimum(r, 1.0)
         w = (1.0 - r) ** 4 * (4.0 * r + 1.0)
         # upper-lip points never pull the lower lip and vice versa
@@ -423,7 +435,8 @@ def _disjoint_batches(face, model, faps, responses, gain_pos, gain_neg, unit
     batches: list[list[int]] = []
     for k in faps:
         for b in batches:
-            if k not in JAW_FAPS and not any(o in JAW_FAPS for o in b) \
+            if k not in JAW_FAPS and not any(o in JAW_FAPS for o in b) and k not in ALONE_FAPS \
+                    and not any(o in ALONE_FAPS for o in b) \
                     and not any(np.any(footprint[k] & footprint[o]) for o in b):
                 b.append(k)
                 break
