@@ -280,3 +280,40 @@ def test_a_lip_corner_raised_by_its_inner_and_outer_faps_alike_moves_as_far_as_e
     inner, outer, both = raised([12]), raised([59]), raised([12, 59])
     assert min(inner, outer) > 0.85
     assert min(inner, outer) * 0.85 < both < max(inner, outer) * 1.15
+
+
+def test_eyelids_closed_to_1024_cover_the_whole_eye_and_stay_outside_the_eyeball(player):
+    """close_t_l_eyelid and close_t_r_eyelid at 1024 (the lid's top meets the lower lid):
+    looked at from the front, the skin covers the eye across its opening (a round pull
+    about the lid's middle brought it down in a V and left the eye open on both sides),
+    and no skin vertex is inside an eyeball (the lid slides over the cornea)."""
+    import trimesh
+
+    face = player.face
+    fp = face.feature_point_positions()
+    v = np.zeros(68)
+    v[[18, 19]] = 1024.0
+    for closed in (False, True):
+        skin = settle(player, v, frames=30) if closed else np.asarray(face.skin_vertices)
+        covered = []
+        for eye, inner, outer in (("eye_l", "3.11", "3.7"), ("eye_r", "3.12", "3.8")):
+            E, EF = face.mesh(eye)
+            centre = E.mean(axis=0)
+            radius = np.linalg.norm(E - centre, axis=1).mean()
+            assert np.linalg.norm(skin - centre, axis=1).min() > radius - 1e-4
+            # rays from the front over the opening's middle 70 % and +-4 mm about the corners' line
+            xs = fp[inner][0] + np.linspace(0.15, 0.85, 8) * (fp[outer][0] - fp[inner][0])
+            ys = 0.5 * (fp[inner][1] + fp[outer][1]) + np.linspace(-0.004, 0.004, 5)
+            origins = np.array([[x, y, centre[2] + 0.05] for x in xs for y in ys])
+            rays = np.tile([0.0, 0.0, -1.0], (len(origins), 1))
+
+            def first_hit(V, F):
+                mesh = trimesh.Trimesh(V, F, process=False)
+                loc, ray, _ = mesh.ray.intersects_location(origins, rays, multiple_hits=False)
+                z = np.full(len(origins), -np.inf)
+                z[ray] = loc[:, 2]
+                return z
+
+            covered.append(first_hit(skin, np.asarray(face.skin_faces)) > first_hit(E, EF))
+        share = float(np.mean(covered))
+        assert share > 0.95 if closed else share < 0.3

@@ -131,6 +131,10 @@ def pull_fields(face, fapu: dict[str, float], graph: sp.csr_matrix | None = None
     out = []
     for k in field_faps(face):
         point = face.feature_points[FAP_FEATURE_POINT[k - 1]]
+        lid = eyelid_weight(face, k)
+        if lid is not None:
+            out.append(PullField(f"fap{k}", FAP_DIRECTION[k - 1], lid))
+            continue
         radius = _FIELD_RADIUS_ES.get(k, 0.2) * es0
         reach = RAISE_REACH.get(k, 1.0)
         d = geodesic_distance(face, point, radius * reach, graph)
@@ -150,6 +154,63 @@ def pull_fields(face, fapu: dict[str, float], graph: sp.csr_matrix | None = None
                 w[np.isin(region, [i for i, n in enumerate(names) if other in n])] = 0.0
         out.append(PullField(f"fap{k}", FAP_DIRECTION[k - 1], w))
     return out
+
+
+# eyelid FAP -> (the lid's region, its eye's inner and outer corners); the lid's own point
+# is the FAP's (3.1-3.4)
+_EYELIDS = {19: ("eyelid_upper_l", "3.11", "3.7"), 20: ("eyelid_upper_r", "3.12", "3.8"),
+            21: ("eyelid_lower_l", "3.11", "3.7"), 22: ("eyelid_lower_r", "3.12", "3.8")}
+
+
+def eyelid_weight(face, k: int) -> np.ndarray | None:
+    """(V,) pull-field weights of eyelid FAP k (19-22), or None when the head lacks the lid's
+    region or its eye's corner points.
+
+    A round bump about the lid's middle point brought its middle down in a V and left the
+    eye open on both sides of it (closed at 1024, the lids met only at 3.1). The lid
+    closes along its whole margin instead: a vertex at t along the line from the inner to
+    the outer corner (0..1) weighs s(t) / s(t at the lid's point), s(t) = sqrt(1 - (2t -
+    1)^2), the opening's elliptical height there, so every margin point meets the other
+    lid when the middle does and the corners stay. Across the lid the weight is 1 at and
+    beyond the margin and falls as a Wendland function of the height above (below, for a
+    lower lid) the margin, to 0 at the region's extent over the margin's middle, and of
+    the depth behind the margin, to 0 at the opening's height (the lining deep in the
+    socket stays). The eyeball, a collider of the skin (fae.sim.build), keeps the closing
+    lid in front of it."""
+    if k not in _EYELIDS:
+        return None
+    region_name, inner_name, outer_name = _EYELIDS[k]
+    names = list(face.region_names)
+    fp = face.feature_point_positions()
+    lid_name = FAP_FEATURE_POINT[k - 1]
+    if region_name not in names or not all(n in fp for n in (inner_name, outer_name, lid_name)):
+        return None
+    V = np.asarray(face.skin_vertices, dtype=np.float64)
+    inside = np.asarray(face.skin_region) == names.index(region_name)
+    a, b, lid = fp[inner_name], fp[outer_name], fp[lid_name]
+    span = b[0] - a[0]
+    if abs(span) < 1e-6 or not inside.any():
+        return None
+
+    def height(t):
+        return np.sqrt(np.clip(1.0 - (2.0 * t - 1.0) ** 2, 0.0, 1.0))
+
+    t, t_lid = (V[:, 0] - a[0]) / span, (lid[0] - a[0]) / span
+    if not 0.0 < t_lid < 1.0:
+        return None
+    shape = height(t) / height(t_lid)
+    opening = lid[1] - (a[1] + t_lid * (b[1] - a[1]))  # signed: + upper lid, - lower
+    margin_y = a[1] + t * (b[1] - a[1]) + opening * shape
+    margin_z = a[2] + t * (b[2] - a[2]) + (lid[2] - (a[2] + t_lid * (b[2] - a[2]))) * shape
+    above = (V[:, 1] - margin_y) * np.sign(opening)  # away from the eye's opening
+    middle = inside & (np.abs(t - t_lid) < 0.15)
+    extent = float(above[middle].max()) if middle.any() else 0.0
+    if extent <= 0.0 or abs(opening) < 1e-6:
+        return None
+    r = np.clip(above / extent, 0.0, 1.0)
+    q = np.clip((margin_z - V[:, 2]) / abs(opening), 0.0, 1.0)
+    w = np.clip(shape, 0.0, 1.0) * (1.0 - r) ** 4 * (4.0 * r + 1.0) * (1.0 - q) ** 4 * (4.0 * q + 1.0)
+    return np.where(inside, w, 0.0)
 
 
 class _Probe:

@@ -219,6 +219,39 @@ def _bone_mesh(face: FaceModel, bone: str) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate(vs), np.concatenate(fs)
 
 
+# The eyeballs are spheres the skin slides over: a closing eyelid passes in front of the
+# eye, not through it (a pull field moves it straight down; the cornea is in its way).
+# A particle within EYE_REACH of an eyeball at rest keeps EYE_CLEARANCE from it, less where
+# it lies closer at rest (the lids' lining, 0.7 mm off the generic head's eyes: it keeps
+# all but EYE_SLACK of that), so that flat lid triangles spanning the curved eye do not cut
+# into it between their corners.
+EYE_PARTS = ("eye_l", "eye_r")
+EYE_REACH = 0.006
+EYE_CLEARANCE = 0.001
+EYE_SLACK = 0.0002
+
+
+def eye_spheres(face: FaceModel, q: np.ndarray, candidates: np.ndarray) -> np.ndarray:
+    """(P, 4): for each particle at rest q (P, 3) among `candidates` (P,) bool within
+    EYE_REACH of an eyeball (the part's vertices' mean and mean distance from it), that
+    eyeball's centre and the radius it keeps outside of; zeros elsewhere."""
+    out = np.zeros((len(q), 4))
+    best = np.full(len(q), np.inf)
+    for name in EYE_PARTS:
+        part = face.parts.get(name)
+        if part is None or part.vertices is None or len(part.vertices) < 4:
+            continue
+        E = np.asarray(part.vertices, dtype=np.float64)
+        centre = E.mean(axis=0)
+        radius = float(np.linalg.norm(E - centre, axis=1).mean())
+        gap = np.linalg.norm(q - centre, axis=1) - radius
+        use = candidates & (gap > EYE_SLACK) & (gap < EYE_REACH) & (gap < best)
+        out[use, :3] = centre
+        out[use, 3] = radius + np.minimum(gap[use] - EYE_SLACK, EYE_CLEARANCE)
+        best[use] = gap[use]
+    return out
+
+
 def _surface_samples(V: np.ndarray, F: np.ndarray) -> np.ndarray:
     """Vertices, triangle centroids and edge midpoints: points to find the nearer bone."""
     if len(F) == 0:
@@ -436,6 +469,7 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
     # a particle closer to its rest place (in a bone's frame) than this cannot be inside that
     # bone (a distance field changes by at most the distance moved; 1 mm spare for the grid)
     clearance = np.clip(phi_rest - 0.001, 0.0, 1.0).T
+    sphere = eye_spheres(face, q, movable & (layer_of < LAYER_COUNT - 1))
 
 
     # Stable substep: the springs' largest eigenvalue of M^-1 K over all configurations and
@@ -458,6 +492,7 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
         particle_layer=arr(layer_of.astype(np.int32), int),
         particle_collider=arr(collide.astype(np.int32), int),
         particle_clearance=arr(clearance.astype(np.float32), wp.vec2),
+        particle_sphere=arr(sphere.astype(np.float32), wp.vec4),
         spring_count=len(spr),
         spring_indices=arr(spr.reshape(-1).astype(np.int32), int),
         spring_rest_length=arr(rest_len.astype(np.float32), float),

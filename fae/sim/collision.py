@@ -214,6 +214,23 @@ def bone_contact(x_prev: wp.vec3, x: wp.vec3, v: wp.vec3, rest: wp.vec3, hold: w
 
 
 @wp.func
+def sphere_contact(x: wp.vec3, v: wp.vec3, sphere: wp.vec4, R: wp.mat33, t: wp.vec3):
+    """(x, v) of a particle kept outside an eyeball: centre sphere[0:3] in the skull's rest
+    frame (pose R, t), radius sphere[3]; inside, it goes out along the radius and loses its
+    inward velocity (a sphere has no far side to pass back through, unlike a thin bone)."""
+    c = R * wp.vec3(sphere[0], sphere[1], sphere[2]) + t
+    d = x - c
+    r = wp.length(d)
+    if r >= sphere[3] or r < 1.0e-9:
+        return x, v
+    n = d / r
+    vn = wp.dot(v, n)
+    if vn < 0.0:
+        v = v - n * vn
+    return c + n * sphere[3], v
+
+
+@wp.func
 def skull_then_jaw_contact(x_prev: wp.vec3, x: wp.vec3, v: wp.vec3, rest: wp.vec3, hold: wp.vec3,
                            clearance: wp.vec2,
                            head_sdf: wp.array3d(dtype=float), head_sdf_origin: wp.vec3, head_sdf_spacing: float,

@@ -40,7 +40,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from fae.sim.collision import skull_then_jaw_contact
+from fae.sim.collision import skull_then_jaw_contact, sphere_contact
 from fae.sim.integrate import ParticleStatic
 
 wp.set_module_options({"fast_math": True, "enable_backward": False})
@@ -320,6 +320,10 @@ def apply_guard(particle_static: wp.array(dtype=ParticleStatic), particle_move: 
                     x, v = skull_then_jaw_contact(x0, x, v, rest, target, ps.clearance, head_sdf, head_sdf_origin,
                                                   head_sdf_spacing, R0, t0, jaw_sdf, jaw_sdf_origin, jaw_sdf_spacing,
                                                   R1, t1, contact_depth)
+                    particle_qd[i] = v
+                if ps.sphere[3] > 0.0:
+                    v = particle_qd[i]
+                    x, v = sphere_contact(x, v, ps.sphere, R0, t0)
                     particle_qd[i] = v
                 particle_q[i] = x
             particle_move[i] = wp.vec3(0.0, 0.0, 0.0)

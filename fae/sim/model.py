@@ -51,6 +51,9 @@ class SkinModel:
     particle_collider   (P,) int   1 for particles that must stay outside the bones, else 0
     particle_clearance  (P,) vec2  metres, per bone: no closer to its rest place in the bone's
                                    frame than this, the particle cannot be inside the bone
+    particle_sphere     (P,) vec4  an eyeball the particle stays outside of: centre (metres,
+                                   the skull's rest frame) and radius (metres, the eyeball's
+                                   plus the particle's clearance); radius 0: none
     contact_depth       metres: deeper penetrations are left to the springs (fae.sim.collision)
     triangle_count      triangles of the two upper layers guarded against folding (fae.sim.folds)
     triangle_guard      (T,) fae.sim.folds.GuardedTriangle: particles, rest shape, rest normal
@@ -106,6 +109,7 @@ class SkinModel:
     particle_layer: wp.array
     particle_collider: wp.array
     particle_clearance: wp.array
+    particle_sphere: wp.array
     spring_count: int
     spring_indices: wp.array
     spring_rest_length: wp.array

@@ -198,6 +198,22 @@ class ReferenceSolver:
             n = n_local @ R.T
             vn = np.sum(qd[idx] * n, axis=1)
             qd[idx] -= n * np.minimum(vn, 0.0)[:, None]
+        # then the eyeballs (fae.sim.collision.sphere_contact), whatever the bones did
+        sphere = self.a["particle_sphere"].astype(np.float64)
+        eye = (sphere[:, 3] > 0.0) & (self.a["particle_inv_mass"] > 0.0)
+        if only is not None:
+            eye &= only
+        idx = np.flatnonzero(eye)
+        if len(idx):
+            c = sphere[idx, :3] @ bone_rotation[0].T + bone_translation[0]
+            d = q[idx] - c
+            r = np.linalg.norm(d, axis=1)
+            inside = (r < sphere[idx, 3]) & (r >= 1e-9)
+            idx, c, d, r = idx[inside], c[inside], d[inside], r[inside]
+            n = d / r[:, None]
+            q[idx] = c + n * sphere[idx, 3:4]
+            vn = np.sum(qd[idx] * n, axis=1)
+            qd[idx] -= n * np.minimum(vn, 0.0)[:, None]
 
     def layer_order(self, q: np.ndarray, qd: np.ndarray, q_prev: np.ndarray, bone_rotation: np.ndarray) -> None:
         """Keep upper-layer particles above their vertex in the layer below (in place)."""
