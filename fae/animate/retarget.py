@@ -18,7 +18,9 @@ closest point of the fitted skin (triangle + barycentric coordinates); since the
 skin has the template's topology, that point is also a point of the template. Per template
 vertex a 3x3 T = R_fit S R_template^T (fae.adapt.binding.frame_transforms: the paper's
 local frames and box scales, eq. 5-9) turns a motion vector of the template into one of
-the fitted skin, i.e. of the target. Motion fades to zero where the target extends beyond
+the fitted skin, i.e. of the target; a smooth per-axis factor over the target's skin
+(fapu_gain_field) then pins the motion of each FAP's feature point to value x the target's
+own FAPU, as the standard defines it. Motion fades to zero where the target extends beyond
 what the template covers (shoulders, plinth, hair: COVERAGE_NEAR..COVERAGE_FAR metres from
 the fitted skin). The target's separate pieces that sit on the fitted head's eyeballs,
 teeth or tongue become rigid parts moved by the template's eye, head, jaw and tongue
@@ -62,8 +64,10 @@ MAX_PART_SHARE = 0.2  # a connected piece with more of the target's vertices tha
 PART_REACH = 0.3  # a piece is a part when its median distance to it is below this share of its size
 PART_REACH_MIN = 0.002  # ... or below this many metres
 PIN_REACH = 0.03  # metres around the given feature points within which the fit is moved onto them
-FDP_REGION_REACH = 0.006
-NECK_FADE = (0.02, 0.09)  # metres below the chin (2.1) where the head pose starts and ends fading out  # metres: a feature point looks this far for triangles of its own region
+FDP_REGION_REACH = 0.006  # metres: a feature point looks this far for triangles of its own region
+GAIN_REACH = 0.03  # metres around the FAPs' feature points over which their FAPU gains spread
+GAIN_LIMITS = (0.05, 4.0)  # the least and most a FAPU gain scales the carried motion by
+NECK_FADE = (0.02, 0.09)  # metres below the chin (2.1) where the head pose starts and ends fading out
 
 
 class RetargetError(ValueError):
@@ -141,6 +145,8 @@ class Retarget:
     gather         (k, u) CSR: coverage weight x barycentric coordinates of each skin
                    vertex's bound point
     coverage       (k,) in [0, 1]: how fully each skin vertex follows (1: on the fitted skin)
+    fapu_gain      (k, 3) the factor, per skin vertex and face axis (x, y, z), that pins the
+                   carried motion's magnitude to the target's FAPU (fapu_gain_field)
     head_weight    (k,) in [0, 1]: how fully each skin vertex turns with the head pose: the
                    coverage, fading down the neck (NECK_FADE below the chin, 2.1) so that
                    a bust's shoulders and chest stay put
@@ -164,12 +170,14 @@ class Retarget:
     vertex_count: int = 0
     normal_groups: np.ndarray | None = None
     head_weight: np.ndarray | None = None
+    fapu_gain: np.ndarray | None = None
 
     def displacements(self, template_motion: np.ndarray) -> np.ndarray:
         """(k, 3) metres: the target skin's motion for the template skin's motion
         (u, 3) at the vertices `used` (face frame, head pose taken off)."""
         turned = np.einsum("uij,uj->ui", self.frame_transform, template_motion)
-        return self.gather @ turned
+        out = self.gather @ turned
+        return out if self.fapu_gain is None else out * self.fapu_gain
 
     def bone_pose(self, bone: str, template_pose: np.ndarray, head: np.ndarray | None = None) -> np.ndarray:
         """(4, 4) the target's pose of `bone` for the template's `template_pose` (rest -> now,
@@ -195,6 +203,55 @@ class Retarget:
             M = bones.get(part.bone, np.eye(4))
             out[idx] = part.vertices @ M[:3, :3].T + M[:3, 3]
         return apply_transform(self.model.scan_transform, out) if frame == "file" else out
+
+
+def fapu_gain_field(model: FaceModel, carried: Callable[[np.ndarray], np.ndarray], template_fapu: dict[str, float],
+                    target_fapu: dict[str, float], reach: float = GAIN_REACH) -> tuple[np.ndarray, dict]:
+    """(k, 3) the factor per target skin vertex (model.skin_vertices (k, 3), face frame) and
+    face axis by which the carried motion is scaled, and per feature point the factors met.
+
+    The standard moves a FAP's feature point by value x the head's FAPU; the local frames'
+    box scales (the paper's magnitude adjustment) follow the target's shape, which differs
+    from its FAPU wherever the target is shaped otherwise than the template: eyes nearly
+    shut (an iris diameter a tenth of the template's), a lip thicker, a jaw longer. At each
+    feature point a FAP moves, per axis it moves along: gain = what a uniform template
+    motion along that axis becomes there (carried: (3,) face-frame motion -> (k, 3) target
+    motion), and factor = (target FAPU / template FAPU of that FAP's unit) / gain, clamped to
+    GAIN_LIMITS; an axis no FAP of the point moves along takes the geometric mean of those
+    that do. Between the points the log-factors spread as the smoothest field over the
+    target's surface that meets them (fae.adapt.binding.pinned_to_points: along the skin,
+    never across the mouth's slit), fading to 1 beyond `reach` metres of every point."""
+    from fae.animate.faptables import FAP_DIRECTION, FAP_FEATURE_POINT, FAP_UNIT_NAME, SKIN_TRANSLATION_FAPS
+
+    V = np.asarray(model.skin_vertices, dtype=np.float64)
+    F = np.asarray(model.skin_faces, dtype=np.int64)
+    uniform = [carried(axis) for axis in np.eye(3)]  # (k, 3) each
+    logs: dict[str, dict[int, list[float]]] = {}
+    for k in SKIN_TRANSLATION_FAPS:
+        name = FAP_FEATURE_POINT[k - 1]
+        point = model.feature_points.get(name)
+        unit = FAP_UNIT_NAME[k - 1]
+        if point is None or point.part != "skin" or unit not in template_fapu or unit not in target_fapu:
+            continue
+        axis = int(np.argmax(np.abs(FAP_DIRECTION[k - 1])))
+        corners = F[point.triangle]
+        gain = float(point.bary @ uniform[axis][corners, axis])
+        want = target_fapu[unit] / template_fapu[unit]
+        factor = np.clip(want / max(gain, GAIN_LIMITS[0] * want), *GAIN_LIMITS)
+        logs.setdefault(name, {}).setdefault(axis, []).append(float(np.log(factor)))
+    names = sorted(logs)
+    if not names:
+        return np.ones_like(V), {}
+    met = np.zeros((len(names), 3))
+    for i, name in enumerate(names):
+        axes = {a: float(np.mean(v)) for a, v in logs[name].items()}
+        fill = float(np.mean(list(axes.values())))
+        met[i] = [axes.get(a, fill) for a in range(3)]
+    faces = np.array([model.feature_points[n].triangle for n in names])
+    bary = np.array([model.feature_points[n].bary for n in names])
+    at = np.einsum("kj,kjd->kd", bary, V[F[faces]])
+    field_ = pinned_to_points(V, F, faces, bary, at + met, reach) - V
+    return np.exp(field_), {n: np.exp(met[i]).round(4).tolist() for i, n in enumerate(names)}
 
 
 def _reanchored(M: np.ndarray, a: np.ndarray, b: np.ndarray, s: float) -> np.ndarray:
@@ -432,9 +489,12 @@ def retarget(template: FaceModel, target: TargetMesh, say: Callable[[str], None]
     }
     chin = fitted_fp["2.1"][1] if "2.1" in fitted_fp else float(Ys[:, 1].min())
     neck = coverage_weights(chin - Ys[:, 1], *NECK_FADE)
-    return Retarget(model=model, skin_index=skin_index, head_weight=coverage * neck, part_index=part_index, used=used,
-                    frame_transform=np.ascontiguousarray(Tv[used]), gather=G, coverage=coverage,
-                    anchors=anchors, scale=ratio, report=report, vertex_count=n, normal_groups=seams)
+    rt = Retarget(model=model, skin_index=skin_index, head_weight=coverage * neck, part_index=part_index, used=used,
+                  frame_transform=np.ascontiguousarray(Tv[used]), gather=G, coverage=coverage,
+                  anchors=anchors, scale=ratio, report=report, vertex_count=n, normal_groups=seams)
+    rt.fapu_gain, report["fapu_gains"] = fapu_gain_field(
+        model, lambda axis: rt.displacements(np.broadcast_to(axis, (len(used), 3))), template_fapu, target_fapu)
+    return rt
 
 
 class RetargetPlayer:
