@@ -56,12 +56,15 @@ def naive_carry(rt, neutral: np.ndarray, skin: np.ndarray, head: np.ndarray) -> 
     G = rt.gather
     Hinv = np.linalg.inv(head)
     Ht = rt.bone_pose("head", head)
+    gain = np.ones_like(out) if rt.fapu_gain is None else rt.fapu_gain
     for i in range(G.shape[0]):
+        d = np.zeros(3)
         for p in range(G.indptr[i], G.indptr[i + 1]):
             j = G.indices[p]
             x = Hinv[:3, :3] @ skin[rt.used[j]] + Hinv[:3, 3]
-            out[i] += G.data[p] * (rt.frame_transform[j] @ (x - neutral[j]))
-        out[i] += rt.coverage[i] * (Ht[:3, :3] @ out[i] + Ht[:3, 3] - out[i])
+            d += G.data[p] * (rt.frame_transform[j] @ (x - neutral[j]))
+        out[i] += gain[i] * d
+        out[i] += rt.head_weight[i] * (Ht[:3, :3] @ out[i] + Ht[:3, 3] - out[i])
     return out
 
 

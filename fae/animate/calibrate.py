@@ -93,11 +93,11 @@ CONTROL_SCALE = 0.01  # metres
 # passes of the nonlinear correction from neutral table scales, and from another head's
 COLD_PASSES = 3
 WARM_PASSES = 1
-SETTLE_THREADS = 4
+SETTLE_THREADS = 4  # at most; Warp's CPU kernels release the GIL
 # FAPs probed alone: the mouth corners' raise, which a batch mate whose footprint does not
 # meet its own on the linear response still moves through the lips' contact
 ALONE_FAPS = (12, 13, 59, 60)
-RAISE_REACH = {k: 2.0 for k in ALONE_FAPS}  # at most; Warp's CPU kernels release the GIL
+RAISE_REACH = {k: 2.0 for k in ALONE_FAPS}  # how many times farther the pull reaches above its point
 
 
 def edge_length_graph(face) -> sp.csr_matrix:
