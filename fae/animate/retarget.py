@@ -174,7 +174,8 @@ class Retarget:
 
     def displacements(self, template_motion: np.ndarray) -> np.ndarray:
         """(k, 3) metres: the target skin's motion for the template skin's motion
-        (u, 3) at the vertices `used` (face frame, head pose taken off)."""
+        (u, 3) at the vertices `used` (face frame, head pose taken off), times the FAPU
+        gains (`fapu_gain`) where set."""
         turned = np.einsum("uij,uj->ui", self.frame_transform, template_motion)
         out = self.gather @ turned
         return out if self.fapu_gain is None else out * self.fapu_gain
@@ -215,12 +216,16 @@ def fapu_gain_field(model: FaceModel, carried: Callable[[np.ndarray], np.ndarray
     from its FAPU wherever the target is shaped otherwise than the template: eyes nearly
     shut (an iris diameter a tenth of the template's), a lip thicker, a jaw longer. At each
     feature point a FAP moves, per axis it moves along: gain = what a uniform template
-    motion along that axis becomes there (carried: (3,) face-frame motion -> (k, 3) target
-    motion), and factor = (target FAPU / template FAPU of that FAP's unit) / gain, clamped to
-    GAIN_LIMITS; an axis no FAP of the point moves along takes the geometric mean of those
-    that do. Between the points the log-factors spread as the smoothest field over the
-    target's surface that meets them (fae.adapt.binding.pinned_to_points: along the skin,
-    never across the mouth's slit), fading to 1 beyond `reach` metres of every point."""
+    motion along that axis becomes there along the same axis (carried: (3,) face-frame
+    motion -> (k, 3) target motion, without any gain field), and factor = (target FAPU /
+    template FAPU of that FAP's unit) / gain, clamped to GAIN_LIMITS (a gain <= 0, an axis
+    the frames turn over, gives none); an axis no FAP of the point moves along takes the
+    geometric mean of those that do. The factor scales the whole motion along its face
+    axis, including what the frames turn into it from the others. Between the points the
+    log-factors spread as the smoothest field over the target's surface that meets them
+    (softly: fae.adapt.binding.pinned_to_points, along the skin, never across the mouth's
+    slit), fading to 1 beyond `reach` metres of every point, and kept between the smallest
+    and largest factor met and 1."""
     from fae.animate.faptables import FAP_DIRECTION, FAP_FEATURE_POINT, FAP_UNIT_NAME, SKIN_TRANSLATION_FAPS
 
     V = np.asarray(model.skin_vertices, dtype=np.float64)
@@ -236,8 +241,9 @@ def fapu_gain_field(model: FaceModel, carried: Callable[[np.ndarray], np.ndarray
         axis = int(np.argmax(np.abs(FAP_DIRECTION[k - 1])))
         corners = F[point.triangle]
         gain = float(point.bary @ uniform[axis][corners, axis])
-        want = target_fapu[unit] / template_fapu[unit]
-        factor = np.clip(want / max(gain, GAIN_LIMITS[0] * want), *GAIN_LIMITS)
+        if not gain > 0.0:  # the frames turn this axis over here: no magnitude to correct
+            continue
+        factor = np.clip(target_fapu[unit] / template_fapu[unit] / gain, *GAIN_LIMITS)
         logs.setdefault(name, {}).setdefault(axis, []).append(float(np.log(factor)))
     names = sorted(logs)
     if not names:
@@ -251,6 +257,9 @@ def fapu_gain_field(model: FaceModel, carried: Callable[[np.ndarray], np.ndarray
     bary = np.array([model.feature_points[n].bary for n in names])
     at = np.einsum("kj,kjd->kd", bary, V[F[faces]])
     field_ = pinned_to_points(V, F, faces, bary, at + met, reach) - V
+    # the smoothest field overshoots between points of unlike factors (a lid's 0.1 beside a
+    # brow's 0.9): kept within the factors met and 1
+    field_ = np.clip(field_, np.minimum(met.min(axis=0), 0.0), np.maximum(met.max(axis=0), 0.0))
     return np.exp(field_), {n: np.exp(met[i]).round(4).tolist() for i, n in enumerate(names)}
 
 
