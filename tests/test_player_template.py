@@ -289,6 +289,8 @@ def test_eyelids_closed_to_1024_cover_the_whole_eye_and_stay_outside_the_eyeball
     and no skin vertex is inside an eyeball (the lid slides over the cornea)."""
     import trimesh
 
+    from fae.sim.build import eyeball_sphere
+
     face = player.face
     fp = face.feature_point_positions()
     v = np.zeros(68)
@@ -298,8 +300,7 @@ def test_eyelids_closed_to_1024_cover_the_whole_eye_and_stay_outside_the_eyeball
         covered = []
         for eye, inner, outer in (("eye_l", "3.11", "3.7"), ("eye_r", "3.12", "3.8")):
             E, EF = face.mesh(eye)
-            centre = E.mean(axis=0)
-            radius = np.linalg.norm(E - centre, axis=1).mean()
+            centre, radius = eyeball_sphere(face, eye)
             assert np.linalg.norm(skin - centre, axis=1).min() > radius - 1e-4
             # rays from the front over the opening's middle 70 % and +-4 mm about the corners' line
             xs = fp[inner][0] + np.linspace(0.15, 0.85, 8) * (fp[outer][0] - fp[inner][0])

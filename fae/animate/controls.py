@@ -6,10 +6,10 @@ by (fae.animate.mapping). s_k is piecewise linear over table_values[k] (see
 fae.animate.calibrate) where u_k moves the point the way the FAP's own value does,
 hold_scale[k] otherwise (calibrated with the jaw opening alone): the table scales of a
 lip raised alone, which must push the other lip too, would lift a lip the jaw has
-lowered far past its place. An inner lip FAP and its outer
-twin sent the same way are scaled together so that the larger request is met, not their
-sum where their points overlap (merge_lip_pairs, fae.animate.mapping). Muscle contractions
-are kept >= 0 and every control is bounded, whatever the input.
+lowered far past its place. An inner lip FAP and its outer twin sent the same way are
+scaled together so that the larger request is met, not their sum where their points
+overlap (merge_lip_pairs, fae.animate.mapping). Muscle contractions are kept >= 0 and
+every control is bounded, whatever the input.
 """
 
 from __future__ import annotations

@@ -231,19 +231,28 @@ EYE_CLEARANCE = 0.001
 EYE_SLACK = 0.0002
 
 
+def eyeball_sphere(face: FaceModel, name: str) -> tuple[np.ndarray, float] | None:
+    """(centre (3,), radius) metres of the eyeball part `name` at rest: its vertices' mean
+    and their mean distance from it; None when the head has no such part."""
+    part = face.parts.get(name)
+    if part is None or part.vertices is None or len(part.vertices) < 4:
+        return None
+    E = np.asarray(part.vertices, dtype=np.float64)
+    centre = E.mean(axis=0)
+    return centre, float(np.linalg.norm(E - centre, axis=1).mean())
+
+
 def eye_spheres(face: FaceModel, q: np.ndarray, candidates: np.ndarray) -> np.ndarray:
     """(P, 4): for each particle at rest q (P, 3) among `candidates` (P,) bool within
-    EYE_REACH of an eyeball (the part's vertices' mean and mean distance from it), that
-    eyeball's centre and the radius it keeps outside of; zeros elsewhere."""
+    EYE_REACH of an eyeball (eyeball_sphere), that eyeball's centre and the radius it keeps
+    outside of; zeros elsewhere."""
     out = np.zeros((len(q), 4))
     best = np.full(len(q), np.inf)
     for name in EYE_PARTS:
-        part = face.parts.get(name)
-        if part is None or part.vertices is None or len(part.vertices) < 4:
+        sphere = eyeball_sphere(face, name)
+        if sphere is None:
             continue
-        E = np.asarray(part.vertices, dtype=np.float64)
-        centre = E.mean(axis=0)
-        radius = float(np.linalg.norm(E - centre, axis=1).mean())
+        centre, radius = sphere
         gap = np.linalg.norm(q - centre, axis=1) - radius
         use = candidates & (gap > EYE_SLACK) & (gap < EYE_REACH) & (gap < best)
         out[use, :3] = centre
