@@ -90,12 +90,12 @@ def test_open_jaw_opens_the_jaw_monotonically_up_to_the_limit(controls):
 
 def _mirror_permutation(head) -> np.ndarray:
     """Control index of each control's mirror partner: muscles _l <-> _r, the pull fields of
-    mirror FAPs, the midline ones onto themselves."""
+    mirror FAPs (a lowering field onto its mirror's), the midline ones onto themselves."""
     names = [m.name for m in head.muscles]
     swap = {"_l": "_r", "_r": "_l"}
     muscle = [names.index(n[:-2] + swap[n[-2:]] if n[-2:] in swap else n) for n in names]
-    fields = field_faps(head)
-    field = [len(names) + fields.index(MIRROR_FAP.get(f, f)) for f in fields]
+    fields = field_faps(head)  # -k: the field of FAP k's negative values
+    field = [len(names) + fields.index(int(np.copysign(MIRROR_FAP.get(abs(f), abs(f)), f))) for f in fields]
     return np.array(muscle + field)
 
 

@@ -27,7 +27,8 @@ direction is measured and the table scale at +-half and full range multiplied by
 expected / measured (clipped to [0.5, 2] per pass; `passes` 3 by default). The result, arrays only, goes into `FaceModel.fap_mapping`:
 
     layout       (4,) int: muscle count, field count, jaw controls (3), format version
-    field_faps   (K,) int: FAP of each pull field, in control order
+    field_faps   (K,) int: FAP of each pull field, in control order (-k: the field of FAP
+                 k's negative values, fae.animate.mapping)
     field_radius (K,) float metres
     gain_pos     (68, C) float: controls per FAP unit for positive values
     gain_neg     (68, C) float: controls per FAP unit of |v| for negative values
@@ -61,7 +62,8 @@ from scipy.optimize import lsq_linear
 from scipy.sparse.csgraph import dijkstra
 
 from fae.animate.controls import FapControls
-from fae.animate.mapping import FORMAT_VERSION, JAW_CONTROLS, JAW_OPEN, LIP_FAPS, LIP_PAIRS, field_faps
+from fae.animate.mapping import (FORMAT_VERSION, JAW_CONTROLS, JAW_OPEN, LIP_FAPS, LIP_PAIRS,
+                                 LOWERING_FIELD_FAPS, field_faps)
 from fae.animate.faptables import (FAP_DIRECTION, FAP_FEATURE_POINT, FAP_LIMITS, JAW_FAPS,
                                    SKIN_TRANSLATION_FAPS, fap_unit_scale, fapu_of)
 from fae.mpeg4.faps import FAP_COUNT
@@ -97,7 +99,9 @@ SETTLE_THREADS = 4  # at most; Warp's CPU kernels release the GIL
 # FAPs probed alone: the mouth corners' raise, which a batch mate whose footprint does not
 # meet its own on the linear response still moves through the lips' contact
 ALONE_FAPS = (12, 13, 59, 60)
-RAISE_REACH = {k: 2.0 for k in ALONE_FAPS}  # how many times farther the pull reaches above its point
+# how many times farther a raise's pull reaches above its point than below: the corners'
+# (see pull_fields) and the brows' (brow_raise_weights)
+RAISE_REACH = {**{k: 2.0 for k in ALONE_FAPS}, **{k: 5.0 for k in LOWERING_FIELD_FAPS}}
 
 
 def edge_length_graph(face) -> sp.csr_matrix:
@@ -128,32 +132,74 @@ def pull_fields(face, fapu: dict[str, float], graph: sp.csr_matrix | None = None
     region = np.asarray(face.skin_region)
     faces = np.asarray(face.skin_faces)
     graph = edge_length_graph(face) if graph is None else graph
+    brows = brow_raise_weights(face, es0, graph)
     out = []
-    for k in field_faps(face):
+    for f in field_faps(face):
+        k = abs(f)
+        name = f"fap{k}" if f > 0 else f"fap{k}_lowering"
         point = face.feature_points[FAP_FEATURE_POINT[k - 1]]
         lid = eyelid_weight(face, k)
         if lid is not None:
-            out.append(PullField(f"fap{k}", FAP_DIRECTION[k - 1], lid))
+            out.append(PullField(name, FAP_DIRECTION[k - 1], lid))
+            continue
+        if f in brows:
+            out.append(PullField(name, FAP_DIRECTION[k - 1], brows[f]))
             continue
         radius = _FIELD_RADIUS_ES.get(k, 0.2) * es0
-        reach = RAISE_REACH.get(k, 1.0)
+        reach = RAISE_REACH.get(f, 1.0)  # a lowering field (f < 0): the round bump
         d = geodesic_distance(face, point, radius * reach, graph)
-        r = d / radius
+        r = np.minimum(d / radius, 1.0)
+        w = _wendland(r)
         if reach != 1.0:
             # a corner raised alone squashed the skin above it into folds that the guard
             # rocked against: the skin above the point comes along, fading `reach` times
             # farther than below it
             above = np.asarray(face.skin_vertices)[:, 1] > face.surface_point_position(point)[1]
-            r = np.where(above, d / (radius * reach), r)
-        r = np.minimum(r, 1.0)
-        w = (1.0 - r) ** 4 * (4.0 * r + 1.0)
+            w = np.where(above, _wendland(np.minimum(d / (radius * reach), 1.0)), w)
         # upper-lip points never pull the lower lip and vice versa
         own = {names[i] for i in region[faces[point.triangle]]}
         for word, other in (("upper", "lower"), ("lower", "upper")):
             if own and all(word in n for n in own):
                 w[np.isin(region, [i for i, n in enumerate(names) if other in n])] = 0.0
-        out.append(PullField(f"fap{k}", FAP_DIRECTION[k - 1], w))
+        out.append(PullField(name, FAP_DIRECTION[k - 1], w))
     return out
+
+
+def _wendland(r: np.ndarray) -> np.ndarray:
+    """Wendland's C2 fall-off over r in [0, 1]: 1 at 0, 0 at 1 and beyond."""
+    r = np.minimum(r, 1.0)
+    return (1.0 - r) ** 4 * (4.0 * r + 1.0)
+
+
+def brow_raise_weights(face, es0: float, graph: sp.csr_matrix) -> dict[int, np.ndarray]:
+    """(V,) pull-field weights of each brow raise (LOWERING_FIELD_FAPS the head has), made
+    together.
+
+    Below its point a raise pulls with the round bump (radius from _FIELD_RADIUS_ES); above
+    it, its lift fades with a raised cosine over RAISE_REACH times that radius, so that the
+    forehead comes along instead of buckling into a ridge where a bump's pull ended. Each
+    forehead vertex's lift is shared among the brow points by nearness (weights d^-4,
+    normalized), so six raises sent together lift it once, not six times, and a left brow
+    does not lift the right side of the forehead; between the bump and the lift the weight
+    blends over half the radius of height above the point."""
+    V = np.asarray(face.skin_vertices, dtype=np.float64)
+    found = [k for k in LOWERING_FIELD_FAPS if FAP_FEATURE_POINT[k - 1] in face.feature_points
+             and face.feature_points[FAP_FEATURE_POINT[k - 1]].part == "skin"]
+    if not found:
+        return {}
+    bump, lift, near, height = {}, {}, {}, {}
+    for k in found:
+        point = face.feature_points[FAP_FEATURE_POINT[k - 1]]
+        radius = _FIELD_RADIUS_ES[k] * es0
+        reach = radius * RAISE_REACH[k]
+        d = geodesic_distance(face, point, reach, graph)
+        bump[k] = _wendland(d / radius)
+        lift[k] = 0.5 * (1.0 + np.cos(np.pi * np.minimum(d / reach, 1.0)))
+        near[k] = np.where(np.isfinite(d), 1.0 / np.maximum(d, radius / 4.0), 0.0) ** 4
+        height[k] = np.clip((V[:, 1] - face.surface_point_position(point)[1]) / (radius / 2.0), 0.0, 1.0)
+    total = np.maximum(sum(near.values()), 1e-300)
+    return {k: (1.0 - height[k]) * bump[k] + height[k] * np.maximum(bump[k], near[k] / total * lift[k])
+            for k in found}
 
 
 # eyelid FAP -> (the lid's region, its eye's inner and outer corners); the lid's own point
@@ -323,19 +369,28 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
             cols = list(range(nm)) + [field_of[k]]
             cost = np.array([MUSCLE_COST] * nm + [FIELD_COST])
             lower_pos = np.array([0.0] * nm + [-np.inf])
-        J = np.column_stack([probe.fdp_motion(responses[c], fdp) for c in cols])
-        d = FAP_DIRECTION[k - 1]
         mirror = mirror_point(fdp)
+        # a left FAP moves the left side only: its mirror point is asked to stay still, the
+        # less so the nearer it is (points near the midline share their tissue)
+        weight = 0.0
         if mirror != fdp and mirror in probe.fdp:
-            # a left FAP moves the left side only: its mirror point is asked to stay still, the
-            # less so the nearer it is (points near the midline share their tissue)
             apart = np.linalg.norm(fdp_pos[fdp] - fdp_pos[mirror]) / es0
             weight = float(np.clip((apart - MIRROR_NEAR) / (MIRROR_FAR - MIRROR_NEAR), 0.0, 1.0))
-            J = np.vstack([J, weight * np.column_stack([probe.fdp_motion(responses[c], mirror) for c in cols])])
+
+        def motion(cols):
+            J = np.column_stack([probe.fdp_motion(responses[c], fdp) for c in cols])
+            if weight > 0.0:
+                J = np.vstack([J, weight * np.column_stack([probe.fdp_motion(responses[c], mirror) for c in cols])])
+            return J
+
+        J = motion(cols)
         target = np.zeros(len(J))
-        target[:3] = d
+        target[:3] = FAP_DIRECTION[k - 1]
         gain_pos[k - 1, cols] = _solve(J, target, cost, lower_pos) * unit[k - 1]
         if FAP_LIMITS[k - 1, 0] < 0:
+            if -k in field_of:  # lowered with a field of its own
+                cols = [field_of[-k] if c == field_of[k] else c for c in cols]
+                J = motion(cols)
             gain_neg[k - 1, cols] = _solve(J, -target, cost, lower_pos) * unit[k - 1]
 
     half = FAP_LIMITS[:, 1] / 2.0
@@ -352,7 +407,7 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
     mapping = {
         "layout": np.array([nm, nf, JAW_CONTROLS, FORMAT_VERSION], dtype=np.int64),
         "field_faps": np.array(field_faps(face), dtype=np.int64),
-        "field_radius": np.array([_FIELD_RADIUS_ES.get(k, 0.2) * fapu["ES"] * 1024 for k in field_faps(face)]),
+        "field_radius": np.array([_FIELD_RADIUS_ES.get(abs(k), 0.2) * fapu["ES"] * 1024 for k in field_faps(face)]),
         "gain_pos": gain_pos, "gain_neg": gain_neg, "table_values": table_values, "table_scale": table_scale,
         "jaw_follow": jaw_follow, "hold_scale": hold_scale, "pair_overlap": np.zeros(FAP_COUNT),
     }

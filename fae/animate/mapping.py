@@ -8,7 +8,9 @@ calibration, which writes it (fae.animate.calibrate), and the controls, which re
     JAW_OPEN          open_jaw, which does not move the lips (see below)
     LIP_FAPS          the lip FAPs whose points open_jaw holds
     LIP_PAIRS         (inner, outer) lip FAPs that move one lip at one place (see below)
-    field_faps(face)  the FAPs that get a pull field on this head, in control order
+    LOWERING_FIELD_FAPS  FAPs with a pull field of their own for negative values (see below)
+    field_faps(face)  the pull fields of this head, in control order: FAP k, or -k for the
+                      field of FAP k's negative values
 
 The standard defines open_jaw (FAP 3) as a "vertical jaw displacement (does not affect
 mouth opening)": the lip FAPs give their feature points' displacement from the neutral
@@ -32,6 +34,12 @@ direction, over how far they move its own (the two ways averaged, 0..1; measured
 linear response by calibration), and `merge_lip_pairs` (fae.animate.controls) scales a
 pair sent the same way so that the larger request is met at its point, not their sum:
 one FAP alone, or two points far apart, are unchanged.
+
+A brow raised as far as the standard's range goes (+-900 ENS, 48 mm on the generic head;
+expressions.fap's surprise asks 13-16 mm) lifted the forehead as a slab with a folded
+ridge where its pull ended: the raise's pull now reaches far up the forehead. The same
+field, negative, pulled the whole forehead down over the eyes, so the brow FAPs
+(LOWERING_FIELD_FAPS) lower with a field of their own, the round bump about the point.
 """
 
 from __future__ import annotations
@@ -39,21 +47,26 @@ from __future__ import annotations
 from fae.animate.ears import EAR_FAPS
 from fae.animate.faptables import FAP_FEATURE_POINT, JAW_FAPS, SKIN_TRANSLATION_FAPS
 
+# 6: the brows raise with a long pull shared among them and lower with a field of their own;
 # 5: inner and outer lip FAPs merged where their points overlap (pair_overlap); 4: lip FAPs are displacements the jaw does not change (jaw_follow), 2.1 at the gnathion; 3: the skin solver with the fold guard, crease smoothing and lip contact (fae.sim.folds)
 # and pull fields preferred to muscles; 2: implicit anchors, blended holds and derived ear
 # tables
-FORMAT_VERSION = 5
+FORMAT_VERSION = 6
 JAW_CONTROLS = 3
 JAW_OPEN = 3
 # the inner (4-13) and outer (51-60) lip FAPs
 LIP_FAPS = tuple(range(4, 14)) + tuple(range(51, 61))
 # each inner lip FAP and its outer twin: same lip, same direction (4 <-> 51 ... 13 <-> 60)
 LIP_PAIRS = tuple((k, k + 47) for k in range(4, 14))
+# the brows' raises (31-36), whose negative values have a pull field of their own
+LOWERING_FIELD_FAPS = tuple(range(31, 37))
 
 
 def field_faps(face) -> list[int]:
-    """FAPs that get a pull field on this head: skin-bound translations except the jaw's and
-    the ears' (fae.animate.ears)."""
-    return [k for k in SKIN_TRANSLATION_FAPS
-            if k not in JAW_FAPS and k not in EAR_FAPS and FAP_FEATURE_POINT[k - 1] in face.feature_points
-            and face.feature_points[FAP_FEATURE_POINT[k - 1]].part == "skin"]
+    """The pull fields of this head, in control order: FAP k for each skin-bound translation
+    except the jaw's and the ears' (fae.animate.ears), then -k, the field of FAP k's
+    negative values, for those of LOWERING_FIELD_FAPS."""
+    own = [k for k in SKIN_TRANSLATION_FAPS
+           if k not in JAW_FAPS and k not in EAR_FAPS and FAP_FEATURE_POINT[k - 1] in face.feature_points
+           and face.feature_points[FAP_FEATURE_POINT[k - 1]].part == "skin"]
+    return own + [-k for k in own if k in LOWERING_FIELD_FAPS]
