@@ -292,15 +292,12 @@ class _Probe:
     def muscle_responses(self, count: int) -> list[np.ndarray]:
         """The skin's response (V, 3) to each of the first `count` controls at unit
         activation, all solved at once (one triangular solve with `count` right-hand sides)."""
-        t = np.zeros((2, 3))
-        forces = []
-        for m in range(count):
-            act = np.zeros(self.model.muscle_count)
-            act[m] = 1.0
-            forces.append(self.ref.forces(self.q0, act, self.eye, t).reshape(-1)[self.free])
-        if not forces:
+        if count == 0:
             return []
-        U = self.lu.solve(np.column_stack(forces))
+        t = np.zeros((2, 3))
+        at_rest = self.ref.forces(self.q0, np.zeros(self.model.muscle_count), self.eye, t).reshape(-1)[self.free]
+        per_unit = self.ref.muscle_force_matrix(self.q0, self.eye, t)[self.free][:, :count].toarray()
+        U = self.lu.solve(per_unit + at_rest[:, None])
         return [self._skin_moved(U[:, m], self.q0, self.eye, t) for m in range(count)]
 
     def jaw_response(self, rig, which: int, eps: float) -> np.ndarray:

@@ -83,9 +83,31 @@ class ReferenceSolver:
     def muscles(self, q: np.ndarray, activation: np.ndarray, bone_rotation: np.ndarray,
                 bone_translation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(force (P, 3) N, stiffness (P,) N/m) of the muscles at positions q (fae.sim.muscles)."""
-        a, P = self.a, self.model.particle_count
+        P = self.model.particle_count
         if not self.model.influence_count:
             return np.zeros((P, 3)), np.zeros(P)
+        m, p, dirs, rate = self._influences(q, bone_rotation, bone_translation)
+        act = activation[m] * self.a["influence_weight"]
+        return _accumulate(P, p, dirs * act[:, None]), np.bincount(p, weights=rate * np.abs(act), minlength=P)
+
+    def muscle_force_matrix(self, q: np.ndarray, bone_rotation: np.ndarray, bone_translation: np.ndarray
+                            ) -> sp.csc_matrix:
+        """(3P, muscle_count) sparse N per unit activation: column m is muscle m's force
+        field (P, 3) flattened, at positions q (P, 3) metres (muscles(q, e_m, ...) for every
+        m at once)."""
+        P, M = self.model.particle_count, self.model.muscle_count
+        if not self.model.influence_count:
+            return sp.csc_matrix((3 * P, M))
+        m, p, dirs, _ = self._influences(q, bone_rotation, bone_translation)
+        w = self.a["influence_weight"][:, None] * dirs
+        rows = (3 * p[:, None] + np.arange(3)).ravel()
+        return sp.coo_matrix((w.ravel(), (rows, np.repeat(m, 3))), shape=(3 * P, M)).tocsc()
+
+    def _influences(self, q: np.ndarray, bone_rotation: np.ndarray, bone_translation: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Per muscle influence: (muscle (A,), particle (A,), unit pull direction (A, 3),
+        stiffness rate (A,) 1/m) at positions q, before activation and weight."""
+        a = self.a
         m, p = a["influence_muscle"], a["influence_particle"]
         kind, b = a["muscle_kind"][m], a["muscle_bone"][m]
         R = bone_rotation[b]
@@ -103,8 +125,7 @@ class ReferenceSolver:
         dirs = np.where((kind == MUSCLE_LINEAR)[:, None], lin, np.where((kind == MUSCLE_SPHINCTER)[:, None], sph, u))
         rate = np.where(kind == MUSCLE_LINEAR, np.where(dl > 1e-9, 1.0 / np.maximum(dl, 1e-3), 0.0),
                         np.where(kind == MUSCLE_SPHINCTER, 1.0 / scale, 0.0))
-        act = activation[m] * a["influence_weight"]
-        return _accumulate(P, p, dirs * act[:, None]), np.bincount(p, weights=rate * np.abs(act), minlength=P)
+        return m, p, dirs, rate
 
     def collide(self, q: np.ndarray, qd: np.ndarray, q_prev: np.ndarray, bone_rotation: np.ndarray,
                 bone_translation: np.ndarray, hold: np.ndarray | None = None, only: np.ndarray | None = None) -> None:
