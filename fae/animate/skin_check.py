@@ -46,11 +46,14 @@ LIP_REGIONS = ("lip_upper", "lip_lower")
 
 @dataclass
 class FrameCheck:
-    """One frame. folded (T,) bool per skin triangle (False where not visible); stretch and
-    compression: the largest and smallest edge length over rest length of visible edges;
-    lip_crossings: lip edges that pass through the other lip."""
+    """One frame. folded (T,) bool per skin triangle (False where not visible): turned over
+    or on a crease; turned (T,) bool: the folded triangles whose own normal has turned over
+    (the rest sit on a crease); stretch and compression: the largest and smallest edge
+    length over rest length of visible edges; lip_crossings: lip edges that pass through
+    the other lip."""
 
     folded: np.ndarray
+    turned: np.ndarray
     stretch: float
     compression: float
     lip_crossings: int
@@ -129,7 +132,8 @@ class SkinCheck:
         """Check one frame's skin (V, 3) metres, in the head's own frame (rotation removed)."""
         n = triangle_normals(skin, self.faces)
         cos = np.einsum("ij,ij->i", n, self.rest_normals)
-        folded = self.visible & (cos < FOLD_COS * np.linalg.norm(n, axis=1))
+        turned = self.visible & (cos < FOLD_COS * np.linalg.norm(n, axis=1))
+        folded = turned.copy()
         a, b = self.neighbours[:, 0], self.neighbours[:, 1]
         crease = np.einsum("ij,ij->i", n[a], n[b]) < 0.0
         folded[a[crease]] = True
@@ -138,7 +142,7 @@ class SkinCheck:
         crossings = 0
         for tris, edges in self.lips:
             crossings += int(segments_through_triangles(skin[edges[:, 0]], skin[edges[:, 1]], skin[tris]).sum())
-        return FrameCheck(folded=folded, stretch=float(ratio.max(initial=1.0)),
+        return FrameCheck(folded=folded, turned=turned, stretch=float(ratio.max(initial=1.0)),
                           compression=float(ratio.min(initial=1.0)), lip_crossings=crossings)
 
 
@@ -157,13 +161,15 @@ def check_stream(player, frames: Iterable, name: str = "", fps: float | None = N
                  check: SkinCheck | None = None) -> dict:
     """Play `frames` (a FapStream or DenseFrames) from rest and check every frame.
 
-    Returns {"stream", "frames", "frames_folded", "triangles_folded", "folded_by_region"
+    Returns {"stream", "frames", "frames_folded", "triangles_folded", "triangles_turned" (of
+    those, the ones whose own normal ever turned over; the rest only sat on a crease), "folded_by_region"
     {region: triangles}, "worst_frame", "worst_frame_folded", "max_stretch", "min_compression",
     "frames_lips_crossed", "max_lip_crossings", "ok"}; ok: nothing folded, strain within
     [MIN_COMPRESSION, MAX_STRETCH] and the lips never cross."""
     check = check or SkinCheck(player.face)
     player.reset()
     ever = np.zeros(len(check.faces), dtype=bool)
+    turned = np.zeros(len(check.faces), dtype=bool)
     count = folded_frames = lip_frames = max_crossings = 0
     worst, worst_count = -1, 0
     stretch, compression = 1.0, 1.0
@@ -173,6 +179,7 @@ def check_stream(player, frames: Iterable, name: str = "", fps: float | None = N
         if k:
             folded_frames += 1
             ever |= r.folded
+            turned |= r.turned
             if k > worst_count:
                 worst, worst_count = frame.index, k
         if r.lip_crossings:
@@ -186,6 +193,7 @@ def check_stream(player, frames: Iterable, name: str = "", fps: float | None = N
         regions[check.region_names[rid]] = int(np.sum(check.triangle_region[ever] == rid))
     ok = (not ever.any()) and stretch <= MAX_STRETCH and compression >= MIN_COMPRESSION and lip_frames == 0
     return {"stream": name, "frames": count, "frames_folded": folded_frames, "triangles_folded": int(ever.sum()),
+            "triangles_turned": int(turned.sum()),
             "folded_by_region": regions, "worst_frame": worst, "worst_frame_folded": worst_count,
             "max_stretch": round(stretch, 3), "min_compression": round(compression, 3),
             "frames_lips_crossed": lip_frames, "max_lip_crossings": max_crossings, "ok": bool(ok)}
