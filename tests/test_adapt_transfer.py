@@ -168,6 +168,32 @@ def test_a_crumpled_bone_is_found_folded_and_blended_back(template):
 
 
 @pytest.mark.slow
+def test_hidden_socket_skin_inside_the_cranium_is_lifted_off_it(template):
+    """An orbit deepened for a large eye can leave the socket's lining (skin behind the lids
+    that no one sees) inside the cranium where the bone could not yield without folding:
+    that skin moves out of the bone, and skin a viewer sees does not move."""
+    import copy
+
+    from fae.adapt.query import MeshQuery
+    from fae.adapt.transfer import hidden_skin_off_bones
+
+    model = copy.deepcopy(template)
+    bone = MeshQuery(model.parts["cranium"].vertices, np.asarray(model.parts["cranium"].faces, np.int64))
+    hidden = ~visible_skin(template)
+    X = model.skin_vertices.copy()
+    pts, dist, _, _ = bone.closest_points(X)
+    socket = np.flatnonzero(hidden & (dist < 0.004) & (np.asarray(model.skin_region)
+                                                       == template.region_names.index("eyelid_upper_l")))
+    assert len(socket) > 3
+    sunk = socket[:4]
+    X[sunk] = pts[sunk] + 0.002 * (pts[sunk] - X[sunk]) / dist[sunk, None]  # 2 mm into the bone
+    model.skin_vertices = X
+    assert (bone.signed_distances(X[sunk]) < 0).all()
+    assert hidden_skin_off_bones(template, model) >= len(sunk)
+    assert (bone.signed_distances(model.skin_vertices) > 0).all()
+    assert np.array_equal(model.skin_vertices[~hidden], X[~hidden])
+
+
 def test_fae_play_animates_the_adapted_head(adapted, tmp_path):
     from fae.cli import main
     from fae.io.fap import FapFrame, FapHeader, write_fap

@@ -211,6 +211,46 @@ def push_under_skin(model: FaceModel, part: str, min_depth: float = MIN_BONE_DEP
     return int(moved.sum())
 
 
+HIDDEN_SKIN_MARGIN = 3e-4  # m outside the bone
+HIDDEN_SKIN_RADIUS = 0.004  # m
+HIDDEN_SKIN_ROUNDS = 4
+
+
+def hidden_skin_off_bones(template: FaceModel, model: FaceModel, margin: float = HIDDEN_SKIN_MARGIN) -> int:
+    """Skin no scanner sees (visible_skin of the template: the sockets behind the eyelids,
+    the mouth's lining) that still lies inside the cranium or mandible after the bones
+    yielded (push_under_skin gives back what would fold the bone: the thin wall of an orbit
+    deepened for a large eye) moves out of it: to `margin` metres outside along the bone's
+    normal at its closest point, spread over HIDDEN_SKIN_RADIUS among the hidden skin
+    only, so that nothing a viewer sees moves. Changes model.skin_vertices in place;
+    returns how many skin vertices moved."""
+    X = model.skin_vertices
+    hidden = None
+    moved = np.zeros(len(X), dtype=bool)
+    for name in ("cranium", "mandible"):
+        if name not in model.parts:
+            continue
+        bone = MeshQuery(model.parts[name].vertices, np.asarray(model.parts[name].faces, np.int64))
+        for _ in range(HIDDEN_SKIN_ROUNDS):
+            depth = -bone.signed_distances(X, HIDDEN_SKIN_RADIUS)  # > 0: inside the bone
+            at = np.flatnonzero(np.isfinite(depth) & (depth > 0.0))
+            if len(at) == 0:
+                break
+            if hidden is None:
+                hidden = ~visible_skin(template)
+            at = at[hidden[at]]
+            if len(at) == 0:
+                break
+            pts = bone.closest_points(X[at], HIDDEN_SKIN_RADIUS)[0]
+            out = (pts - X[at]) / np.maximum(np.linalg.norm(pts - X[at], axis=1, keepdims=True), 1e-12)
+            D = smooth_push(X, out * (depth[at] + margin)[:, None], at, HIDDEN_SKIN_RADIUS)
+            D[~hidden] = 0.0
+            X = X + D
+            moved |= np.linalg.norm(D, axis=1) > 1e-7
+    model.skin_vertices = X
+    return int(moved.sum())
+
+
 def depth_under(skin_q: MeshQuery, skin_n: np.ndarray, skin_F: np.ndarray, X: np.ndarray, reach: float
                 ) -> tuple[np.ndarray, np.ndarray]:
     """Depth (k,) metres of points X (k, 3) under the skin along the skin's normal at their
@@ -384,8 +424,9 @@ def mouth_parts_behind_lips(model: FaceModel, skin: MeshQuery) -> dict[str, floa
 def keep_muscles_inside(model: FaceModel, skin: MeshQuery | None = None) -> list[str]:
     """Move the bone attachment of every linear muscle whose line leaves the soft tissue of
     `model` (skin changed, bones did not follow exactly) to the nearest bone vertex, within
-    MUSCLE_SEARCH_RADIUS, from which the line to its (unchanged) skin insertion stays inside
-    the skin (skin: its MeshQuery, when already built). Changes `model` in place; returns
+    MUSCLE_SEARCH_RADIUS (else twice that), from which the line to its (unchanged) skin
+    insertion stays inside the skin by MUSCLE_MARGIN (else at all; skin: its MeshQuery,
+    when already built). Changes `model` in place; returns
     the names of the muscles moved."""
     from fae.io.facemodel import SurfacePoint
 
@@ -404,15 +445,21 @@ def keep_muscles_inside(model: FaceModel, skin: MeshQuery | None = None) -> list
         if ok_now:
             continue
         BV, BF = model.mesh(mus.attachment.part)
-        near = np.flatnonzero(np.linalg.norm(BV - a, axis=1) <= MUSCLE_SEARCH_RADIUS)
+        # the nearest bone vertex whose line stays inside by the margin; failing that, one
+        # whose line stays inside at all; then the same twice as far (a thin cheek wall
+        # beside the mouth's cavity leaves the buccinator little room)
+        near = np.flatnonzero(np.linalg.norm(BV - a, axis=1) <= 2.0 * MUSCLE_SEARCH_RADIUS)
         near = near[np.argsort(np.linalg.norm(BV[near] - a, axis=1))]
         lines = BV[near][:, None, :] + ts[None, :, None] * (b - BV[near])[:, None, :]
-        ok = (q.signed_distances(lines.reshape(-1, 3)) < -MUSCLE_MARGIN).reshape(len(near), len(ts)).all(axis=1)
-        if np.any(ok):
-            v = int(near[np.argmax(ok)])
-            tri = int(np.flatnonzero((BF == v).any(axis=1))[0])
-            mus.attachment = SurfacePoint(mus.attachment.part, tri, (np.asarray(BF[tri]) == v).astype(np.float64))
-            moved.append(mus.name)
+        depth = q.signed_distances(lines.reshape(-1, 3)).reshape(len(near), len(ts)).max(axis=1)
+        within = np.linalg.norm(BV[near] - a, axis=1) <= MUSCLE_SEARCH_RADIUS
+        for ok in (within & (depth < -MUSCLE_MARGIN), within & (depth < 0.0), depth < -MUSCLE_MARGIN, depth < 0.0):
+            if np.any(ok):
+                v = int(near[np.argmax(ok)])
+                tri = int(np.flatnonzero((BF == v).any(axis=1))[0])
+                mus.attachment = SurfacePoint(mus.attachment.part, tri, (np.asarray(BF[tri]) == v).astype(np.float64))
+                moved.append(mus.name)
+                break
     return moved
 
 
@@ -521,6 +568,13 @@ def personalize(template: FaceModel, skin: np.ndarray, T: np.ndarray, unit: str,
         if MeshQuery(bone.vertices, np.asarray(bone.faces, np.int64)).inside(model.skin_vertices).any():
             pushed += push_under_skin(model, name, rounds=3 * PUSH_ROUNDS, reference=template.parts[name].vertices,
                                       skin=skin)
+    lifted = hidden_skin_off_bones(template, model)
+    if lifted:  # the bone there yields once more to the skin that left it
+        skin = surface(model.skin_vertices, model.skin_faces, skin.query)
+        for name in ("cranium", "mandible"):
+            if name in model.parts:
+                pushed += push_under_skin(model, name, min_depth=HIDDEN_SKIN_MARGIN, rounds=PUSH_ROUNDS,
+                                          reference=template.parts[name].vertices, skin=skin)
     # soft-tissue depth: distance to the nearest bone (both bones in one BVH)
     bones = [model.parts[n] for n in ("cranium", "mandible") if n in model.parts]
     if bones:
@@ -549,7 +603,7 @@ def personalize(template: FaceModel, skin: np.ndarray, T: np.ndarray, unit: str,
     report = {"method": method, "scan_unit": unit, "bone_vertices_pushed_under_skin": pushed,
               "fapu_ratio": fapu_ratio, "eye_scale": eye_scale, "orbits_deepened": orbits_deepened,
               "mouth_parts_moved_back_m": mouth_moved,
-              "muscle_attachments_moved": moved_muscles}
+              "muscle_attachments_moved": moved_muscles, "hidden_skin_lifted_off_bone": lifted}
     return model, report
 
 
