@@ -21,6 +21,7 @@ from fae.anatomy.geometry import (
     decimate,
     largest_component,
     mesh_from_sdf,
+    flip_to_delaunay,
     mirror_half,
     ray_hits,
     refine_long_triangles,
@@ -40,6 +41,16 @@ SKIN_HALF_FACES = 9000  # about 9,000 skin vertices in all before the neck is re
 # no edge is longer than MAX_EDGE (mm).
 NECK_REFINE_BELOW = -125.0
 MAX_EDGE = 10.0
+# Decimation also leaves caps (a corner of nearly 180 degrees: three corners almost in a
+# line, 0.2 mm high across 9 mm) where the skin is flat enough to flip their long edge:
+# such a triangle turns over at the slightest motion, so a fit lets the scan go around it
+# (a patch of the inner eye corner off a scan by 5-8 mm) and the skin check counts it as
+# a crease. Edges between faces within FLIP_DIHEDRAL degrees of flat are flipped to
+# Delaunay (the shape is unchanged: no vertex moves).
+FLIP_DIHEDRAL = 35.0
+FLIP_KEPT_REGIONS = ("lip_upper", "lip_lower", "mouth_cavity", "eyelid_upper_l", "eyelid_upper_r",
+                     "eyelid_lower_l", "eyelid_lower_r")
+NEEDLE_GAP = 0.05  # mm
 THICKNESS_CAP = 0.025  # m, soft-tissue depth reported where no bone lies below
 LAYER_DEPTH_FRACTIONS = [0.0, 0.35, 1.0]
 # the gnathion's direction from the face (y up, z forward): 30 degrees forward of straight down
@@ -69,19 +80,37 @@ IRIS_COLOR = np.array([0.10, 0.22, 0.30, 1.0], dtype=np.float32)
 PUPIL_COLOR = np.array([0.005, 0.005, 0.005, 1.0], dtype=np.float32)
 
 
+def _unflipped(V: np.ndarray) -> np.ndarray:
+    """(n,) bool: skin vertices (mm) that keep the decimation's edges: those of the lips,
+    the mouth's lining and the eyelids, whose margins meet and part (flipped there, the
+    mouth corners tore open on a wide viseme), and those within NEEDLE_GAP of another
+    vertex (a cluster of needles beside the nose: flipped, it cut through itself in a fit)."""
+    from scipy.spatial import cKDTree
+
+    region = skin_regions(V, None)
+    kept = np.isin(region, [REGION_NAMES.index(r) for r in FLIP_KEPT_REGIONS])
+    kept[cKDTree(V).query_pairs(NEEDLE_GAP, output_type="ndarray").ravel()] = True
+    return kept
+
+
 # --- meshes ----------------------------------------------------------------------------------
 
-def symmetric_mesh(sdf, lo, hi, step: float, half_faces: int, refine_below: float | None = None
-                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def symmetric_mesh(sdf, lo, hi, step: float, half_faces: int, refine_below: float | None = None,
+                   kept_edges=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Mirror-symmetric closed mesh of `sdf < 0` (mm): (V (n, 3) mm, F (m, 3), mirror (n,)).
 
     refine_below: faces whose centre lies below this height (mm) get no edge longer than
-    MAX_EDGE (the decimation leaves centimetre-long slivers where the surface is straight)."""
+    MAX_EDGE (the decimation leaves centimetre-long slivers where the surface is straight);
+    kept_edges: None, or a function of the vertices V (n, 3) mm giving (n,) bool: the edges
+    between faces within FLIP_DIHEDRAL of flat are flipped to Delaunay (caps removed),
+    except in faces with a corner it marks."""
     V, F = mesh_from_sdf(sdf, lo, hi, step, pad=False)
     V, F = largest_component(V, F)
     V, F = decimate(V, F, half_faces)
     if refine_below is not None:
         V, F = refine_long_triangles(V, F, MAX_EDGE, V[F].mean(axis=1)[:, 1] < refine_below)
+    if kept_edges is not None:
+        F = flip_to_delaunay(V, F, ~kept_edges(V)[F].any(axis=1), max_dihedral=FLIP_DIHEDRAL)
     return mirror_half(V, F, tol=1e-9)
 
 
@@ -303,7 +332,7 @@ def skin_thickness(V: np.ndarray, bones: list[tuple[np.ndarray, np.ndarray]], ca
 def build_template() -> FaceModel:
     """Build the generic head (about 15 s on one core). Deterministic."""
     V, F, mirror = symmetric_mesh(S.skin_sdf, (0.0, -240.0, -125.0), (100.0, 130.0, 130.0), SKIN_STEP, SKIN_HALF_FACES,
-                                  refine_below=NECK_REFINE_BELOW)
+                                  refine_below=NECK_REFINE_BELOW, kept_edges=_unflipped)
     region = skin_regions(V, F)
     parts_mm: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     for name, (sdf, lo, hi, step, half_faces) in _PART_SPECS.items():
