@@ -183,6 +183,13 @@ def test_errors_are_measured_in_the_scan_frame_with_coverage():
     Vh, Fh = kept_part(V, F, half)
     e2 = scan_fit_errors(skin, F, face, Vh, Fh)
     assert e2["face_coverage"] < 0.7 and abs(e2["face_to_scan_rms"] - 1.0) < 0.1
+    # the head without the neck: a "neck" (the bottom cap) 5 mm off is left out of that figure
+    neck = V[:, 1] < -80
+    skin2 = skin.copy()
+    skin2[neck] = V[neck] * 1.05
+    e3 = scan_fit_errors(skin2, F, face, V, F, neck=neck)
+    assert e3["scan_to_skin_rms"] > 1.5 and abs(e3["head_to_skin_rms"] - 1.0) < 0.1
+    assert 0.8 < e3["head_coverage"] <= 1.0
 
 
 def test_per_face_normals_of_the_template_are_unit(template):

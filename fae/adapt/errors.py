@@ -129,7 +129,7 @@ COVER_SHARE = 0.02  # of the head's diagonal: a point farther than this from the
 
 
 def scan_fit_errors(skin_V: np.ndarray, skin_F: np.ndarray, face: np.ndarray, scan_V: np.ndarray,
-                    scan_F: np.ndarray) -> dict[str, float]:
+                    scan_F: np.ndarray, neck: np.ndarray | None = None) -> dict[str, float]:
     """How far an adapted skin lies from the head part of its scan, in the scan's own frame.
 
     skin_V (n, 3), skin_F: the skin mapped into the scan's frame and unit (through its
@@ -140,7 +140,9 @@ def scan_fit_errors(skin_V: np.ndarray, skin_F: np.ndarray, face: np.ndarray, sc
     skin ends) or beyond COVER_SHARE of the diagonal have no counterpart there: they are
     left out of the RMS and counted against coverage, which is reported beside each RMS.
     Returns face_to_scan_rms, scan_to_skin_rms (scan units), both also / diagonal
-    (*_rel), face_coverage, scan_coverage, diagonal.
+    (*_rel), face_coverage, scan_coverage, diagonal. neck (n,) bool, the skin of the neck:
+    with it, head_to_skin_rms(_rel) and head_coverage are the scan_to_skin figures over the
+    scan points whose nearest skin vertex is not neck (cranium, face and ears).
     """
     skin_V = np.asarray(skin_V, dtype=np.float64)
     scan_V = np.asarray(scan_V, dtype=np.float64)
@@ -155,7 +157,11 @@ def scan_fit_errors(skin_V: np.ndarray, skin_F: np.ndarray, face: np.ndarray, sc
     on_scan = distances(skin_V[face], scan_V, scan_F)
     on_skin = distances(scan_V, skin_V, skin_F)
     out = {"diagonal": diagonal}
-    for key, d in (("face_to_scan", on_scan), ("scan_to_skin", on_skin)):
+    figures = [("face_to_scan", on_scan), ("scan_to_skin", on_skin)]
+    if neck is not None:  # each scan point belongs where its nearest skin vertex does
+        on_neck = np.asarray(neck, dtype=bool)[cKDTree(skin_V).query(scan_V)[1]]
+        figures.append(("head_to_skin", on_skin[~on_neck]))
+    for key, d in figures:
         hit = np.isfinite(d)
         rms = float(np.sqrt(np.mean(d[hit] ** 2))) if hit.any() else float("inf")
         out[f"{key}_rms"] = rms

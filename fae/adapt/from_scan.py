@@ -106,7 +106,7 @@ def adapt_to_scan(template: FaceModel, scan_V: np.ndarray, scan_F: np.ndarray, h
     S = model.scan_transform
     face = in_regions(template, FACE_REGIONS) & seen
     errors = scan_fit_errors(apply_transform(S, model.skin_vertices), F, face,
-                             apply_transform(np.linalg.inv(T), part_V), part_F)
+                             apply_transform(np.linalg.inv(T), part_V), part_F, neck=in_regions(template, ["neck"]))
     errors["face_vertices_scored"] = int(face.sum())  # the lids' rims over the eyeballs are not
     visible_faces = seen[F].all(axis=1)
     folded = folded_triangles(P, model.skin_vertices, F)
