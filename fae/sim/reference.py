@@ -105,8 +105,9 @@ class ReferenceSolver:
 
     def _influences(self, q: np.ndarray, bone_rotation: np.ndarray, bone_translation: np.ndarray
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Per muscle influence: (muscle (A,), particle (A,), unit pull direction (A, 3),
-        stiffness rate (A,) 1/m) at positions q, before activation and weight."""
+        """Per muscle influence: (muscle (A,), particle (A,), pull per unit activation and
+        weight (A, 3): a unit direction for linear and field muscles, the offset over the
+        muscle's scale for sphincters; stiffness rate (A,) 1/m) at positions q."""
         a = self.a
         m, p = a["influence_muscle"], a["influence_particle"]
         kind, b = a["muscle_kind"][m], a["muscle_bone"][m]
