@@ -260,7 +260,8 @@ def test_menpo3d_template(template, shared_data, template_folds):
     # The mask's eyes are nearly shut (IRISD a tenth of the template's): without the FAPU
     # gains its lids moved 13-16x their value x IRISD
     # Its face folds over 0.9 % of its area (1.5 % before the template's caps were flipped
-    # away, which took the template's own share from 0.5 % to 0.1 %, more than the mask's)
+    # away). The flips cut the template's own share further, 0.5 % -> 0.1 %, so 4x the
+    # template's no longer bounds the mask: an absolute floor of 1.2 % does.
     report, _ = check_target(template, rt, template_folds, min_pass=0.86, fold_factor=FOLD_FACTOR_SCANNED,
                              fold_floor=0.012)
     assert all(r["ok"] for r in report if r["fap"] in (19, 20))
