@@ -320,6 +320,42 @@ def test_eyelids_closed_to_1024_cover_the_whole_eye_and_stay_outside_the_eyeball
         assert share > 0.95 if closed else share < 0.3
 
 
+def test_a_closing_upper_lid_unfolds_its_crease_instead_of_stretching_its_front(player):
+    """Both upper lids closed to 1024 (12 mm): the lid's front, its crease and the brow's
+    underside come down together, so no visible edge stretches past 3x its rest length
+    (2.8x measured, at the margin's rim over the lining; 4.1x when only the lid's front
+    moved, its crease staying: its few millimetres had to cover the eye), none turns over
+    and the brows stay within a millimetre."""
+    from fae.animate.calibrate import eyelid_weight
+    from fae.animate.skin_check import SkinCheck
+    from fae.sim.build import eyeball_sphere
+
+    face = player.face
+    V = np.asarray(face.skin_vertices)
+    fp = face.feature_point_positions()
+    w = eyelid_weight(face, 19)
+    lid, brow = (np.argmin(np.linalg.norm(V - fp[n], axis=1)) for n in ("3.1", "4.3"))
+    assert w[lid] > 0.95 and w[brow] == 0.0
+    # over the lid's middle: the crease and the brow's underside, 7-8 mm over the margin,
+    # come along; the lining over the eyeball, deep in the socket, stays
+    centre, radius = eyeball_sphere(face, "eye_l")
+    gap = np.linalg.norm(V - centre, axis=1) - radius
+    column = (np.abs(V[:, 0] - fp["3.1"][0]) < 0.002) & (V[:, 2] > 0.0)
+    height = V[:, 1] - fp["3.1"][1]
+    crease = column & (gap > 0.002) & (height > 0.007) & (height < 0.008)
+    lining = column & (gap < 0.001) & (V[:, 2] < fp["3.1"][2] - 0.005)
+    assert crease.any() and lining.any()
+    assert w[crease].min() > 0.4 and w[lining].max() < 0.01
+    v = np.zeros(68)
+    v[[18, 19]] = 1024.0
+    skin = settle(player, v, frames=30)
+    r = SkinCheck(face).frame(skin)
+    assert r.stretch < 3.0 and r.turned.sum() == 0
+    for name in ("4.1", "4.2", "4.3", "4.4", "4.5", "4.6"):
+        i = np.argmin(np.linalg.norm(V - fp[name], axis=1))
+        assert np.linalg.norm(skin[i] - V[i]) < 1e-3, name
+
+
 def test_brows_raised_as_in_surprise_lift_the_forehead_whole(player):
     """expressions.fap's surprise raises the six brow points by 13-16 mm: the forehead rises
     with them instead of buckling into a ridge where their pull ends (65 triangles folded

@@ -256,3 +256,39 @@ def test_warp_fold_guard_matches_numpy_reference(model):
     assert np.abs(guarded - q).max() > 1e-6  # the guard is at work in this pose
     moved = np.abs(q - model.particle_q.numpy()).max()
     assert np.abs(state.particle_q.numpy() - q).max() < 1e-5 * max(1.0, moved / 1e-3)
+
+
+def test_a_stretched_edge_is_pulled_back_within_the_strain_limit(face, model):
+    """One epidermis particle pulled off its place by three times its longest edge stretches
+    its edges to several times their rest length; a step too short to move anything leaves it to the fold guard's
+    strain limit, which pulls it back (and its neighbours towards it) in the Warp step as
+    in its numpy twin."""
+    F = np.asarray(face.skin_faces)
+    q0 = model.particle_q.numpy().astype(np.float64)
+    movable = model.particle_inv_mass.numpy() > 0
+    skin_particle = model.skin_particle
+    # a movable epidermis particle whose neighbours are all movable too
+    nb = {}
+    for a, b in np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]):
+        nb.setdefault(a, set()).add(b)
+    v = next(v for v in range(len(skin_particle)) if skin_particle[v] >= 0 and movable[skin_particle[v]]
+             and all(skin_particle[u] >= 0 and movable[skin_particle[u]] for u in nb[v]))
+    i, others = skin_particle[v], [skin_particle[u] for u in nb[v]]
+
+    def worst(q):
+        return max(np.linalg.norm(q[i] - q[j]) / np.linalg.norm(q0[i] - q0[j]) for j in others)
+
+    q = q0.copy()
+    q[i] += np.array([0.0, 0.0, 3.0 * max(np.linalg.norm(q0[i] - q0[j]) for j in others)])
+    assert worst(q) > 3.0
+    state = model.state()
+    state.particle_q.assign(q.astype(np.float32))
+    control = model.control()
+    SkinSolver(model).step(model, state, control, 1e-7, state)
+    ref_q, _ = ReferenceSolver(model).step(q, np.zeros_like(q), np.zeros(model.muscle_count),
+                                           control.bone_rotation.numpy().astype(np.float64),
+                                           control.bone_translation.numpy().astype(np.float64), 1e-7)
+    got = state.particle_q.numpy().astype(np.float64)
+    assert np.abs(got - ref_q).max() < 1e-6
+    assert worst(got) < 0.75 * worst(q)
+    assert np.linalg.norm(got[others] - q0[others], axis=1).max() > 1e-5  # its neighbours come along

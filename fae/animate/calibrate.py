@@ -70,7 +70,7 @@ from fae.mpeg4.faps import FAP_COUNT
 from fae.mpeg4.fdps import mirror_point
 from fae.linalg import symmetric_splu
 from fae.mesh import adjacency
-from fae.sim.build import PullField, mesh_edges, skin_model, skin_positions
+from fae.sim.build import EYE_CLEARANCE, PullField, eyeball_sphere, mesh_edges, skin_model, skin_positions
 from fae.sim.reference import ReferenceSolver
 
 FIELD_ONLY_FAPS = (19, 20, 21, 22)
@@ -138,7 +138,7 @@ def pull_fields(face, fapu: dict[str, float], graph: sp.csr_matrix | None = None
         k = abs(f)
         name = f"fap{k}" if f > 0 else f"fap{k}_lowering"
         point = face.feature_points[FAP_FEATURE_POINT[k - 1]]
-        lid = eyelid_weight(face, k)
+        lid = eyelid_weight(face, k, graph)
         if lid is not None:
             out.append(PullField(name, FAP_DIRECTION[k - 1], lid))
             continue
@@ -202,15 +202,21 @@ def brow_raise_weights(face, es0: float, graph: sp.csr_matrix) -> dict[int, np.n
             for k in found}
 
 
-# eyelid FAP -> (the lid's region, its eye's inner and outer corners); the lid's own point
-# is the FAP's (3.1-3.4)
-_EYELIDS = {19: ("eyelid_upper_l", "3.11", "3.7"), 20: ("eyelid_upper_r", "3.12", "3.8"),
-            21: ("eyelid_lower_l", "3.11", "3.7"), 22: ("eyelid_lower_r", "3.12", "3.8")}
+# eyelid FAP -> (the lid's region, its eye's inner and outer corners, the eyeball part, the
+# brow point over an upper lid); the lid's own point is the FAP's (3.1-3.4)
+_EYELIDS = {19: ("eyelid_upper_l", "3.11", "3.7", "eye_l", "4.3"), 20: ("eyelid_upper_r", "3.12", "3.8", "eye_r", "4.4"),
+            21: ("eyelid_lower_l", "3.11", "3.7", "eye_l", None), 22: ("eyelid_lower_r", "3.12", "3.8", "eye_r", None)}
+# the skin an upper lid draws down with it as it closes: its own front and the forehead's
+# underside, up to the brow
+_LID_UNFOLDS_INTO = ("forehead",)
+# how far up that skin comes along: a share of the way from the margin to the brow's point
+# (all of it hooded the lid with the brow's underside; 0.7 folded the lid more)
+LID_UNFOLD_REACH = 0.85
 
 
-def eyelid_weight(face, k: int) -> np.ndarray | None:
+def eyelid_weight(face, k: int, graph: sp.csr_matrix | None = None) -> np.ndarray | None:
     """(V,) pull-field weights of eyelid FAP k (19-22), or None when the head lacks the lid's
-    region or its eye's corner points.
+    region or its eye's corner points (graph: `edge_length_graph(face)`, when at hand).
 
     A round bump about the lid's middle point brought its middle down in a V and left the
     eye open on both sides of it (closed at 1024, the lids met only at 3.1). The lid
@@ -222,17 +228,26 @@ def eyelid_weight(face, k: int) -> np.ndarray | None:
     lower lid) the margin, to 0 at the region's extent over the margin's middle, and of
     the depth behind the margin, to 0 at the opening's height (the lining deep in the
     socket stays). The eyeball, a collider of the skin (fae.sim.build), keeps the closing
-    lid in front of it."""
+    lid in front of it.
+
+    An upper lid covers the eye by unfolding the skin of its crease and under the brow,
+    about twice its own height at rest: weighted by the height above the margin, its few
+    millimetres of front stretched to four times their length while the crease stayed. Its
+    front (the skin farther than EYE_CLEARANCE from the eyeball: not the lining) weighs
+    instead at least s(t) x a raised cosine of the distance along the front skin from the
+    margin, 1 there, 0 at LID_UNFOLD_REACH of the way to the brow's point, so the lid, its
+    crease and the brow's underside come down together, each stretched a little."""
     if k not in _EYELIDS:
         return None
-    region_name, inner_name, outer_name = _EYELIDS[k]
+    region_name, inner_name, outer_name, eye_name, brow_name = _EYELIDS[k]
     names = list(face.region_names)
     fp = face.feature_point_positions()
     lid_name = FAP_FEATURE_POINT[k - 1]
     if region_name not in names or not all(n in fp for n in (inner_name, outer_name, lid_name)):
         return None
     V = np.asarray(face.skin_vertices, dtype=np.float64)
-    inside = np.asarray(face.skin_region) == names.index(region_name)
+    region = np.asarray(face.skin_region)
+    inside = region == names.index(region_name)
     a, b, lid = fp[inner_name], fp[outer_name], fp[lid_name]
     span = b[0] - a[0]
     if abs(span) < 1e-6 or not inside.any():
@@ -256,7 +271,25 @@ def eyelid_weight(face, k: int) -> np.ndarray | None:
     r = np.clip(above / extent, 0.0, 1.0)
     q = np.clip((margin_z - V[:, 2]) / abs(opening), 0.0, 1.0)
     w = np.clip(shape, 0.0, 1.0) * (1.0 - r) ** 4 * (4.0 * r + 1.0) * (1.0 - q) ** 4 * (4.0 * q + 1.0)
-    return np.where(inside, w, 0.0)
+    w = np.where(inside, w, 0.0)
+    sphere = eyeball_sphere(face, eye_name)
+    if brow_name is None or brow_name not in fp or sphere is None:
+        return w
+    centre, radius = sphere
+    front = inside & (np.linalg.norm(V - centre, axis=1) - radius >= EYE_CLEARANCE)
+    seeds = np.flatnonzero(front & (w > 0.95))
+    unfolding = (front | np.isin(region, [names.index(n) for n in _LID_UNFOLDS_INTO if n in names]))
+    unfolding &= (above > -0.04 * abs(opening)) & (t > -0.2) & (t < 1.2)
+    if len(seeds) == 0:
+        return w
+    G = edge_length_graph(face) if graph is None else graph
+    keep = sp.diags(unfolding.astype(np.float64))
+    d = dijkstra(keep @ G @ keep, directed=False, indices=seeds, min_only=True)
+    reach = d[np.argmin(np.linalg.norm(V - fp[brow_name], axis=1))]
+    if not np.isfinite(reach) or reach <= 0.0:
+        return w
+    along = 0.5 * (1.0 + np.cos(np.pi * np.clip(d / (LID_UNFOLD_REACH * reach), 0.0, 1.0)))
+    return np.maximum(w, np.where(unfolding & np.isfinite(d), np.clip(shape, 0.0, 1.0) * along, 0.0))
 
 
 class _Probe:

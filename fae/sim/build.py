@@ -39,8 +39,9 @@ penetrations of skin the bone moved onto deeper than `contact_depth` 4 mm are le
 the springs (see fae.sim.collision). Folds (fae.sim.folds): triangles of the two upper
 layers below `fold_min_area` 0.3 of their rest area (in their rest plane) are restored,
 epidermis particles whose Laplacian offset strays more than `crease_tolerance` 0.25 x their
-mean edge are moved back, and lip particles facing each other within `lip_reach` 3 mm stay
-in order, in up to `fold_passes` 3 passes per substep.
+mean edge are moved back, epidermis edges where the skin is seen are kept between
+`strain_min` 0.4 and `strain_max` 1.8 x their rest length, and lip particles facing each
+other within `lip_reach` 3 mm stay in order, in up to `fold_passes` 3 passes per substep.
 """
 
 from __future__ import annotations
@@ -61,6 +62,9 @@ from fae.sim.model import (BONE_COUNT, BONE_NAMES, LAYER_COUNT, MUSCLE_FIELD, MU
                            SkinModel)
 from fae.sim.sdf import sample_grid, signed_distance_grid
 from fae.sim.solver import stable_substep
+
+# skin seen only through the lips: its strain is not limited (it stretches as the mouth opens)
+HIDDEN_REGIONS = ("mouth_cavity",)
 
 DEFAULTS = {
     "layer_depth_fractions": [0.0, 0.5, 1.0],
@@ -86,6 +90,8 @@ DEFAULTS = {
     "fold_min_area": 0.3,
     "fold_passes": 3,
     "crease_tolerance": 0.25,
+    "strain_max": 1.8,
+    "strain_min": 0.4,
     "lip_reach": 0.003,
 }
 
@@ -450,12 +456,15 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
     tri = F[simulated[F].all(axis=1) & active[F].any(axis=1)]
     guard = np.concatenate([guarded_triangles(q, pid(k, tri), particle_jaw) for k in range(LAYER_COUNT - 1)])
     # and the epidermis's rest shape among neighbours, against creases
-    crease, crease_neighbours = crease_vertices(q, pid(0, sim_vertices), np.column_stack([pid(0, se[:, 0]), pid(0, se[:, 1])]),
-                                                particle_jaw, movable)
-    crease = crease[:nsv]  # the epidermis's particles come first
-    # and the lips' contact (both lips' epidermis where they face each other)
+    # and its edges' strain, where the skin is seen (not the mouth's lining)
     names = list(face.region_names)
     region = np.asarray(face.skin_region)
+    seen = ~np.isin(region, [names.index(r) for r in HIDDEN_REGIONS if r in names])
+    crease, crease_neighbours, crease_rest = crease_vertices(
+        q, pid(0, sim_vertices), np.column_stack([pid(0, se[:, 0]), pid(0, se[:, 1])]), particle_jaw, movable,
+        limited=seen[se].all(axis=1))
+    crease = crease[:nsv]  # the epidermis's particles come first
+    # and the lips' contact (both lips' epidermis where they face each other)
     lips = []
     for name in ("lip_upper", "lip_lower"):
         v = sim_vertices[region[sim_vertices] == names.index(name)] if name in names else np.zeros(0, dtype=np.int64)
@@ -531,7 +540,10 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
         fold_passes=int(p["fold_passes"]),
         crease_vertex=wp.array(crease, dtype=CreaseVertex, device=device),
         crease_neighbours=arr(crease_neighbours, int),
+        crease_rest_length=arr(crease_rest, float),
         crease_tolerance=float(p["crease_tolerance"]),
+        strain_max=float(p["strain_max"]),
+        strain_min=float(p["strain_min"]),
         lip_pair_count=len(lip),
         lip_pair=wp.array(lip, dtype=LipPair, device=device),
         sdf_values=sdf_values,

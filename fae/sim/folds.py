@@ -28,6 +28,13 @@ more than `crease_tolerance` x its mean rest edge (a fold line, a spike), the pa
 moved towards the place that restores it, by the excess over the tolerance (at most all of
 it). Both moves of a particle are averaged.
 
+Strain limits, in the same passes: an epidermis edge (where the skin is seen) stretched
+beyond `strain_max` or squeezed below `strain_min` x its rest length is pulled back by half
+the excess at each end (each end in its own turn, among its neighbours), so that what a
+pull asks of a few edges (a closing lid's front, a mouth corner) spreads over their
+neighbours before the skin looks torn. The moves are averaged with the others, so a pass
+mends a long band of strained edges only in part: the limits hold loosely.
+
 Lip contact, in the same passes: the particles of the upper and lower lip that face each
 other at rest (within `lip_reach`) are kept in order along the head's up direction carried
 by their holds: the lips meet and press, but one does not pass through the other.
@@ -171,15 +178,22 @@ class CreaseVertex:
 
 
 def crease_vertices(q: np.ndarray, particles: np.ndarray, edges: np.ndarray, jaw: np.ndarray,
-                    movable: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(structured array of `CreaseVertex` over all particles (P,), neighbours (N,) int32):
-    for each movable particle of `particles` (its layer's ids), its neighbours along the
+                    movable: np.ndarray, limited: np.ndarray | None = None
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(structured array of `CreaseVertex` over all particles (P,), neighbours (N,) int32,
+    their rest lengths (N,) float32 metres, 0 where the edge's strain is not limited): for
+    each movable particle of `particles` (its layer's ids), its neighbours along the
     particle pairs `edges` (E, 2) of that layer; others get no neighbours. q (P, 3) metres
-    at rest, jaw (P,), movable (P,) bool."""
+    at rest, jaw (P,), movable (P,) bool, limited (E,) bool: the edges whose strain
+    `smooth_creases` keeps within bounds (None: all)."""
     P = len(q)
+    limited = np.ones(len(edges), dtype=bool) if limited is None else np.asarray(limited, dtype=bool)
     pairs = np.concatenate([edges, edges[:, ::-1]]).astype(np.int64)
-    pairs = pairs[movable[pairs[:, 0]] & np.isin(pairs[:, 0], particles)]
-    pairs = pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
+    limit = np.concatenate([limited, limited])
+    keep = movable[pairs[:, 0]] & np.isin(pairs[:, 0], particles)
+    pairs, limit = pairs[keep], limit[keep]
+    order = np.lexsort((pairs[:, 1], pairs[:, 0]))
+    pairs, limit = pairs[order], limit[order]
     count = np.bincount(pairs[:, 0], minlength=P)
     start = np.concatenate([[0], np.cumsum(count)])
     mean = np.column_stack([np.bincount(pairs[:, 0], weights=q[pairs[:, 1], c], minlength=P) for c in range(3)])
@@ -190,19 +204,24 @@ def crease_vertices(q: np.ndarray, particles: np.ndarray, edges: np.ndarray, jaw
     out["delta"] = np.where((count > 0)[:, None], q - mean, 0.0)
     out["edge"] = length / np.maximum(count, 1)
     out["jaw"] = jaw
-    return out, pairs[:, 1].astype(np.int32)
+    rest = np.where(limit, np.linalg.norm(q[pairs[:, 0]] - q[pairs[:, 1]], axis=1), 0.0)
+    return out, pairs[:, 1].astype(np.int32), rest.astype(np.float32)
 
 
 @wp.kernel
 def smooth_creases(particle_q: wp.array(dtype=wp.vec3), vertices: wp.array(dtype=CreaseVertex),
-                   neighbours: wp.array(dtype=int), bone_rotation: wp.array(dtype=wp.mat33), tolerance: float,
-                   particle_count: int, chunk: int, only_moved: int, particle_moved: wp.array(dtype=int),
-                   particle_move: wp.array(dtype=wp.vec3), particle_moves: wp.array(dtype=float),
-                   guarded_count: wp.array(dtype=int)):
+                   neighbours: wp.array(dtype=int), neighbour_rest: wp.array(dtype=float),
+                   bone_rotation: wp.array(dtype=wp.mat33), tolerance: float, strain_max: float,
+                   strain_min: float, particle_count: int, chunk: int, only_moved: int,
+                   particle_moved: wp.array(dtype=int), particle_move: wp.array(dtype=wp.vec3),
+                   particle_moves: wp.array(dtype=float), guarded_count: wp.array(dtype=int)):
     """Each epidermis particle whose offset from its neighbours' mean strays from its rest
     offset (carried by its hold) by more than `tolerance` x its mean rest edge is moved
-    towards the place that restores it (a fold line or a spike); only_moved: only particles
-    that the previous pass moved, or next to one."""
+    towards the place that restores it (a fold line or a spike), and along each of its
+    limited edges (rest length > 0) stretched beyond `strain_max` or squeezed below
+    `strain_min` x its rest length by half the excess (its neighbour takes the other half
+    in its own turn); only_moved: only particles that the previous pass moved, or next to
+    one."""
     start = wp.tid() * chunk
     R0 = bone_rotation[0]
     R1 = bone_rotation[1]
@@ -216,12 +235,26 @@ def smooth_creases(particle_q: wp.array(dtype=wp.vec3), vertices: wp.array(dtype
                 moved = moved + particle_moved[neighbours[k]]
             if moved == 0:
                 continue
+        xi = particle_q[i]
         mean = wp.vec3(0.0, 0.0, 0.0)
         for k in range(cv.first, cv.end):
-            mean = mean + particle_q[neighbours[k]]
+            xj = particle_q[neighbours[k]]
+            mean = mean + xj
+            rest_length = neighbour_rest[k]
+            if rest_length > 0.0:
+                d = xi - xj
+                length = wp.length(d)
+                if length > strain_max * rest_length:
+                    wp.atomic_add(particle_move, i, d * (-0.5 * (length - strain_max * rest_length) / length))
+                    wp.atomic_add(particle_moves, i, 1.0)
+                    wp.atomic_add(guarded_count, 0, 1)
+                elif length < strain_min * rest_length and length > 1.0e-12:
+                    wp.atomic_add(particle_move, i, d * (0.5 * (strain_min * rest_length - length) / length))
+                    wp.atomic_add(particle_moves, i, 1.0)
+                    wp.atomic_add(guarded_count, 0, 1)
         mean = mean / float(cv.end - cv.first)
         rest = R0 * cv.delta * (1.0 - cv.jaw) + R1 * cv.delta * cv.jaw
-        err = particle_q[i] - mean - rest
+        err = xi - mean - rest
         excess = wp.length(err) / (tolerance * cv.edge) - 1.0
         if excess <= 0.0:
             continue

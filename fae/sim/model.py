@@ -63,8 +63,11 @@ class SkinModel:
                                    P0): neighbours and rest offset from their mean (none for
                                    fixed ones)
     crease_neighbours   (N,) int   the neighbour lists
+    crease_rest_length  (N,) float metres, rest length of each neighbour's edge; 0: its strain
+                                   is not limited
     crease_tolerance    a particle whose offset strays more than this x its mean rest edge is
                                    moved back (fae.sim.folds.smooth_creases)
+    strain_max, strain_min  an epidermis edge is kept within these x its rest length
     lip_pair_count      pairs of upper- and lower-lip particles kept in order (lip contact)
     lip_pair            (K,) fae.sim.folds.LipPair
     spring_indices      (S*2,) int particle pairs
@@ -139,7 +142,10 @@ class SkinModel:
     fold_passes: int
     crease_vertex: wp.array
     crease_neighbours: wp.array
+    crease_rest_length: wp.array
     crease_tolerance: float
+    strain_max: float
+    strain_min: float
     lip_pair_count: int
     lip_pair: wp.array
     sdf_values: list

@@ -332,8 +332,9 @@ class ReferenceSolver:
     def crease_moves(self, q: np.ndarray, bone_rotation: np.ndarray,
                      moved: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(particles (k,), moves (k, 3) metres): epidermis particles whose offset from their
-        neighbours' mean strays from the rest offset, and the move restoring it (as
-        fae.sim.folds.smooth_creases); moved: only particles that moved or touch one."""
+        neighbours' mean strays from the rest offset, and the move restoring it, then one move
+        per edge beyond its strain limits (as fae.sim.folds.smooth_creases); moved: only
+        particles that moved or touch one."""
         cv = self.a["crease_vertex"]
         nb = self.a["crease_neighbours"].astype(np.int64)
         count = (cv["end"] - cv["first"]).astype(np.int64)
@@ -354,7 +355,18 @@ class ReferenceSolver:
         err = q[has] - mean - rest
         excess = np.linalg.norm(err, axis=1) / (self.model.crease_tolerance * cv["edge"][has]) - 1.0
         hit = excess > 0.0
-        return has[hit], -err[hit] * np.minimum(1.0, excess[hit])[:, None]
+        # edges beyond their strain limits: half the excess each end
+        rest_length = self.a["crease_rest_length"].astype(np.float64)[rows]
+        d = q[owner] - q[nb[rows]]
+        length = np.linalg.norm(d, axis=1)
+        lo, hi = self.model.strain_min * rest_length, self.model.strain_max * rest_length
+        long = (rest_length > 0.0) & (length > hi)
+        short = (rest_length > 0.0) & (length < lo) & (length > 1e-12) & ~long
+        over = np.where(long, hi - length, np.where(short, lo - length, 0.0))
+        strained = long | short
+        limit_move = d[strained] * (0.5 * over[strained] / length[strained])[:, None]
+        return (np.concatenate([has[hit], owner[strained]]),
+                np.concatenate([-err[hit] * np.minimum(1.0, excess[hit])[:, None], limit_move]))
 
     def step(self, q: np.ndarray, qd: np.ndarray, activation: np.ndarray, bone_rotation: np.ndarray,
              bone_translation: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:

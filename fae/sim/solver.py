@@ -194,9 +194,10 @@ class SkinSolver:
                                    record_cmd=True) for later in (0, 1)]
                 n_crease = len(m.crease_vertex)
                 crease = [wp.launch(_folds.smooth_creases, dim=-(-n_crease // self.particle_chunk), device=m.device,
-                                    inputs=[dst.particle_q, m.crease_vertex, m.crease_neighbours, control.bone_rotation,
-                                            float(m.crease_tolerance), n_crease, self.particle_chunk, later,
-                                            self.particle_moved],
+                                    inputs=[dst.particle_q, m.crease_vertex, m.crease_neighbours,
+                                            m.crease_rest_length, control.bone_rotation, float(m.crease_tolerance),
+                                            float(m.strain_max), float(m.strain_min), n_crease,
+                                            self.particle_chunk, later, self.particle_moved],
                                     outputs=[self.particle_move, self.particle_moves, self.guarded_count],
                                     record_cmd=True) for later in (0, 1)]
                 lips = None
