@@ -361,7 +361,7 @@ class ReferenceSolver:
         length = np.linalg.norm(d, axis=1)
         lo, hi = self.model.strain_min * rest_length, self.model.strain_max * rest_length
         long = (rest_length > 0.0) & (length > hi)
-        short = (rest_length > 0.0) & (length < lo) & (length > 1e-12) & ~long
+        short = (rest_length > 0.0) & (length < lo) & (length > 1e-12)
         over = np.where(long, hi - length, np.where(short, lo - length, 0.0))
         strained = long | short
         limit_move = d[strained] * (0.5 * over[strained] / length[strained])[:, None]
