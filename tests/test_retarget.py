@@ -138,7 +138,10 @@ def test_synthetic_target_moves_like_the_template(template, synthetic, template_
     assert rt.report["local_scale_median_face"] == pytest.approx(rt.report["fapu_ratio"], rel=0.1)
     assert set(rt.model.parts) == {"eye_l", "eye_r"}  # the eyeballs, found as separate pieces
     assert rt.model.parts["eye_l"].bone == "eye_l"
-    report, frames = check_target(template, rt, template_folds, min_pass=0.9)
+    # its face folds over 0.016 % of its area (0.093 % before the lids unfolded their
+    # crease, the skin's strain was limited and crease moves became inelastic), the
+    # template's 0.0001 % (0.080 %): a floor of 0.05 % keeps the bound meaningful
+    report, frames = check_target(template, rt, template_folds, min_pass=0.9, fold_floor=5e-4)
     # everything the file holds, back in its own frame and unit, at rest for the neutral frame
     V = read_target(mesh, lm).vertices
     assert np.allclose(rt.target_vertices(frames[0].skin_vertices, frames[0].bone_transforms, frame="file"), V,
@@ -279,9 +282,9 @@ def test_bust(template, shared_data, tmp_path, template_folds):
     lm = tmp_path / "bust_landmarks.json"
     lm.write_text(json.dumps(json.loads(report.read_text())["feature_points_on_scan"]))
     rt = retarget(template, read_target(scan, lm))
-    # the bust folds over 0.28 % of its face (0.32 % before the lids unfolded their crease
-    # and the skin's strain was limited), the template 0.06 % (0.08 %): 4x the template's
-    # no longer bounds it, an absolute floor of 0.35 % does
+    # the bust folds over 0.30 % of its face (0.32 % before the lids unfolded their crease,
+    # the skin's strain was limited and crease moves became inelastic), the template none at
+    # all (0.08 %): 4x the template's no longer bounds it, an absolute floor of 0.35 % does
     _, frames = check_target(template, rt, template_folds, fold_factor=FOLD_FACTOR_SCANNED, fold_floor=0.0035)
     # the plinth and shoulders (below the chin by more than the head's height / 2) stay still
     V = rt.model.skin_vertices

@@ -26,7 +26,9 @@ either side has turned over. Each epidermis particle keeps its rest offset from 
 its neighbours (its Laplacian coordinate, carried by its hold); where the offset strays by
 more than `crease_tolerance` x its mean rest edge (a fold line, a spike), the particle is
 moved towards the place that restores it, by the excess over the tolerance (at most all of
-it). Both moves of a particle are averaged.
+it). Both moves of a particle are averaged. The crease move is inelastic: the particle's
+velocity against it goes (else the next step pushes the same way again, and a held pose
+rocks: the forehead under lowered brows moved up to 1 mm a frame forever).
 
 Strain limits, in the same passes: an epidermis edge (where the skin is seen) stretched
 beyond `strain_max` or squeezed below `strain_min` x its rest length is pulled back by half
@@ -214,14 +216,16 @@ def smooth_creases(particle_q: wp.array(dtype=wp.vec3), vertices: wp.array(dtype
                    bone_rotation: wp.array(dtype=wp.mat33), tolerance: float, strain_max: float,
                    strain_min: float, particle_count: int, chunk: int, only_moved: int,
                    particle_moved: wp.array(dtype=int), particle_move: wp.array(dtype=wp.vec3),
-                   particle_moves: wp.array(dtype=float), guarded_count: wp.array(dtype=int)):
+                   particle_moves: wp.array(dtype=float), guarded_count: wp.array(dtype=int),
+                   particle_crease: wp.array(dtype=wp.vec3)):
     """Each epidermis particle whose offset from its neighbours' mean strays from its rest
     offset (carried by its hold) by more than `tolerance` x its mean rest edge is moved
     towards the place that restores it (a fold line or a spike), and along each of its
     limited edges (rest length > 0) stretched beyond `strain_max` or squeezed below
     `strain_min` x its rest length by half the excess (its neighbour takes the other half
     in its own turn); only_moved: only particles that the previous pass moved, or next to
-    one."""
+    one. particle_crease: each particle's crease move (apply_guard takes away the velocity
+    that pushed against it)."""
     start = wp.tid() * chunk
     R0 = bone_rotation[0]
     R1 = bone_rotation[1]
@@ -258,9 +262,11 @@ def smooth_creases(particle_q: wp.array(dtype=wp.vec3), vertices: wp.array(dtype
         excess = wp.length(err) / (tolerance * cv.edge) - 1.0
         if excess <= 0.0:
             continue
-        wp.atomic_add(particle_move, i, -err * wp.min(1.0, excess))
+        crease_move = -err * wp.min(1.0, excess)
+        wp.atomic_add(particle_move, i, crease_move)
         wp.atomic_add(particle_moves, i, 1.0)
         wp.atomic_add(guarded_count, 0, 1)
+        particle_crease[i] = crease_move  # this particle's own thread alone writes it
 
 
 @wp.struct
@@ -322,7 +328,8 @@ def separate_lips(particle_q: wp.array(dtype=wp.vec3), pairs: wp.array(dtype=Lip
 
 @wp.kernel
 def apply_guard(particle_static: wp.array(dtype=ParticleStatic), particle_move: wp.array(dtype=wp.vec3),
-                particle_moves: wp.array(dtype=float), bone_rotation: wp.array(dtype=wp.mat33),
+                particle_moves: wp.array(dtype=float), particle_crease: wp.array(dtype=wp.vec3),
+                bone_rotation: wp.array(dtype=wp.mat33),
                 bone_translation: wp.array(dtype=wp.vec3),
                 head_sdf: wp.array3d(dtype=float), head_sdf_origin: wp.vec3, head_sdf_spacing: float,
                 jaw_sdf: wp.array3d(dtype=float), jaw_sdf_origin: wp.vec3, jaw_sdf_spacing: float,
@@ -346,6 +353,12 @@ def apply_guard(particle_static: wp.array(dtype=ParticleStatic), particle_move: 
                 particle_moved[i] = 1
                 x0 = particle_q[i]
                 x = x0 + particle_move[i] / m
+                # a crease move is inelastic: the velocity that pushed against it goes, else
+                # the next step pushes the same way and the skin rocks at a held pose
+                c = particle_crease[i]
+                against = wp.dot(particle_qd[i], c)
+                if against < 0.0:
+                    particle_qd[i] = particle_qd[i] - c * (against / wp.dot(c, c))
                 if ps.collider != 0:
                     v = particle_qd[i]
                     rest = ps.rest
@@ -361,3 +374,4 @@ def apply_guard(particle_static: wp.array(dtype=ParticleStatic), particle_move: 
                 particle_q[i] = x
             particle_move[i] = wp.vec3(0.0, 0.0, 0.0)
             particle_moves[i] = 0.0
+            particle_crease[i] = wp.vec3(0.0, 0.0, 0.0)

@@ -301,7 +301,7 @@ class ReferenceSolver:
         g = np.stack([cs * r[..., 0] - sn * r[..., 1], sn * r[..., 0] + cs * r[..., 1]], axis=2) - p
         move = (a[:, None] * g[..., :1] + b[:, None] * g[..., 1:]) * beta[:, None, None]
         idx, move = ids[hit].reshape(-1), move[hit].reshape(-1, 3)
-        crease_idx, crease_move = self.crease_moves(q, bone_rotation, moved)
+        crease_idx, crease_move, creased = self.crease_moves(q, bone_rotation, moved)
         lip_idx, lip_move = self.lip_moves(q, bone_rotation)
         idx = np.concatenate([idx, crease_idx, lip_idx])
         move = np.concatenate([move, crease_move, lip_move])
@@ -310,6 +310,12 @@ class ReferenceSolver:
         on = (count > 0) & (self.inv_mass > 0.0)
         q_prev = q.copy()
         q[on] += total[on] / count[on, None]
+        # a crease move is inelastic: the velocity against it goes (as fae.sim.folds.apply_guard)
+        i, c = crease_idx[:creased], crease_move[:creased]
+        keep = self.inv_mass[i] > 0.0
+        i, c = i[keep], c[keep]
+        against = np.sum(qd[i] * c, axis=1)
+        qd[i] -= c * (np.minimum(against, 0.0) / np.maximum(np.sum(c * c, axis=1), 1e-300))[:, None]
         self.collide(q, qd, q_prev, bone_rotation, bone_translation, hold, only=on)
         return int(hit.sum()) + len(crease_idx) + len(lip_idx) // 2, on
 
@@ -330,11 +336,11 @@ class ReferenceSolver:
         return np.concatenate([u[hit], low[hit]]), np.concatenate([half, -half])
 
     def crease_moves(self, q: np.ndarray, bone_rotation: np.ndarray,
-                     moved: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """(particles (k,), moves (k, 3) metres): epidermis particles whose offset from their
-        neighbours' mean strays from the rest offset, and the move restoring it, then one move
-        per edge beyond its strain limits (as fae.sim.folds.smooth_creases); moved: only
-        particles that moved or touch one."""
+                     moved: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, int]:
+        """(particles (k,), moves (k, 3) metres, c): epidermis particles whose offset from
+        their neighbours' mean strays from the rest offset, and the move restoring it (the
+        first c), then one move per edge beyond its strain limits (as
+        fae.sim.folds.smooth_creases); moved: only particles that moved or touch one."""
         cv = self.a["crease_vertex"]
         nb = self.a["crease_neighbours"].astype(np.int64)
         count = (cv["end"] - cv["first"]).astype(np.int64)
@@ -345,7 +351,7 @@ class ReferenceSolver:
             np.logical_or.at(near, owner, moved[nb])
             has = has[near[has]]
         if len(has) == 0:
-            return np.zeros(0, dtype=np.int64), np.zeros((0, 3))
+            return np.zeros(0, dtype=np.int64), np.zeros((0, 3)), 0
         rows = np.concatenate([np.arange(cv["first"][i], cv["end"][i]) for i in has]) if len(has) else np.zeros(0, int)
         owner = np.repeat(has, count[has])
         mean = _accumulate(self.model.particle_count, owner, q[nb[rows]])[has] / count[has, None]
@@ -366,7 +372,7 @@ class ReferenceSolver:
         strained = long | short
         limit_move = d[strained] * (0.5 * over[strained] / length[strained])[:, None]
         return (np.concatenate([has[hit], owner[strained]]),
-                np.concatenate([-err[hit] * np.minimum(1.0, excess[hit])[:, None], limit_move]))
+                np.concatenate([-err[hit] * np.minimum(1.0, excess[hit])[:, None], limit_move]), int(hit.sum()))
 
     def step(self, q: np.ndarray, qd: np.ndarray, activation: np.ndarray, bone_rotation: np.ndarray,
              bone_translation: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:

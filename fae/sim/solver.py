@@ -127,6 +127,7 @@ class SkinSolver:
         # the fold guard's moves, cleared by the pass that applies them (fae.sim.folds)
         self.particle_move = wp.zeros(model.particle_count, dtype=wp.vec3, device=model.device)
         self.particle_moves = wp.zeros(model.particle_count, dtype=float, device=model.device)
+        self.particle_crease = wp.zeros(model.particle_count, dtype=wp.vec3, device=model.device)
         self.guarded_count = wp.zeros(1, dtype=int, device=model.device)
         self.particle_moved = wp.zeros(model.particle_count, dtype=int, device=model.device)
         self._cpu = cpu
@@ -198,7 +199,8 @@ class SkinSolver:
                                             m.crease_rest_length, control.bone_rotation, float(m.crease_tolerance),
                                             float(m.strain_max), float(m.strain_min), n_crease,
                                             self.particle_chunk, later, self.particle_moved],
-                                    outputs=[self.particle_move, self.particle_moves, self.guarded_count],
+                                    outputs=[self.particle_move, self.particle_moves, self.guarded_count,
+                                             self.particle_crease],
                                     record_cmd=True) for later in (0, 1)]
                 lips = None
                 if m.lip_pair_count:
@@ -208,7 +210,7 @@ class SkinSolver:
                                      record_cmd=True)
                 guard = (guard, crease, lips)
                 apply = wp.launch(_folds.apply_guard, dim=-(-m.particle_count // self.particle_chunk), device=m.device,
-                                  inputs=[particle_static, self.particle_move, self.particle_moves,
+                                  inputs=[particle_static, self.particle_move, self.particle_moves, self.particle_crease,
                                           control.bone_rotation, control.bone_translation, *self._grids,
                                           float(m.contact_depth), m.particle_count, self.particle_chunk],
                                   outputs=[dst.particle_q, dst.particle_qd, self.particle_moved], record_cmd=True)
