@@ -248,12 +248,9 @@ def smooth_creases(particle_q: wp.array(dtype=wp.vec3), vertices: wp.array(dtype
             if rest_length > 0.0:
                 d = xi - xj
                 length = wp.length(d)
-                if length > strain_max * rest_length:
-                    wp.atomic_add(particle_move, i, d * (-0.5 * (length - strain_max * rest_length) / length))
-                    wp.atomic_add(particle_moves, i, 1.0)
-                    wp.atomic_add(guarded_count, 0, 1)
-                elif length < strain_min * rest_length and length > 1.0e-12:
-                    wp.atomic_add(particle_move, i, d * (0.5 * (strain_min * rest_length - length) / length))
+                over = wp.clamp(length, strain_min * rest_length, strain_max * rest_length) - length
+                if over != 0.0 and length > 1.0e-12:
+                    wp.atomic_add(particle_move, i, d * (0.5 * over / length))
                     wp.atomic_add(particle_moves, i, 1.0)
                     wp.atomic_add(guarded_count, 0, 1)
         mean = mean / float(cv.end - cv.first)

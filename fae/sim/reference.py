@@ -365,11 +365,8 @@ class ReferenceSolver:
         rest_length = self.a["crease_rest_length"].astype(np.float64)[rows]
         d = q[owner] - q[nb[rows]]
         length = np.linalg.norm(d, axis=1)
-        lo, hi = self.model.strain_min * rest_length, self.model.strain_max * rest_length
-        long = (rest_length > 0.0) & (length > hi)
-        short = (rest_length > 0.0) & (length < lo) & (length > 1e-12)
-        over = np.where(long, hi - length, np.where(short, lo - length, 0.0))
-        strained = long | short
+        over = np.clip(length, self.model.strain_min * rest_length, self.model.strain_max * rest_length) - length
+        strained = (rest_length > 0.0) & (over != 0.0) & (length > 1e-12)
         limit_move = d[strained] * (0.5 * over[strained] / length[strained])[:, None]
         return (np.concatenate([has[hit], owner[strained]]),
                 np.concatenate([-err[hit] * np.minimum(1.0, excess[hit])[:, None], limit_move]), int(hit.sum()))
