@@ -150,3 +150,24 @@ def test_lip_twins_sent_alike_move_the_larger_requests_point_as_far_as_it_asks(i
         big = 0 if abs(inner) >= abs(outer) else 1
         assert moved[big] == pytest.approx((inner, outer)[big], rel=1e-9)
         assert abs(moved[1 - big]) <= abs((inner, outer)[big]) * (1 + 1e-9)
+
+
+def test_the_scale_search_closes_in_on_a_skin_that_snaps():
+    """A response that jumps from 0.7x to 1.4x of the expected motion between two table
+    scales (the skin snapping between two settled states): the calibration's search keeps
+    trying scales strictly inside the bracket, so it ends as near the jump as it can."""
+    from fae.animate.calibrate import _miss, _next_scale
+
+    def response(scale):
+        return 0.7 * scale / 2.0 if scale < 2.37 else 1.4 * scale / 2.5
+
+    seen = [(2.0, response(2.0))]
+    for _ in range(8):
+        seen.append((s := _next_scale(seen), response(s)))
+    short = max(s for s, r in seen if r < 1.0)
+    over = min(s for s, r in seen if r > 1.0)
+    assert short < 2.37 <= over and over - short < 0.03, seen
+    # far from the bracket the step follows expected / measured, at most 2x
+    assert _next_scale([(1.0, 0.1)]) == pytest.approx(2.0)
+    assert _next_scale([(1.0, 0.8)]) == pytest.approx(1.25)
+    assert _miss(0.8) == pytest.approx(0.25) and _miss(1.25) == pytest.approx(0.25) and _miss(-1.0) > 100
