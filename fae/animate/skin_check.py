@@ -9,7 +9,12 @@ hinge fold shows as a dark line before either side has turned 90 degrees). Edge
 **strain** is an edge's length over its rest length, over the edges of visible triangles
 (not shorter than `STRAIN_MIN_EDGE` of the median edge). The lips **cross** when an edge
 of one lip passes through a triangle of the other (a segment-triangle test between the
-two lip regions): the lower lip has gone through the upper one, or the reverse.
+two lip regions): the lower lip has gone through the upper one, or the reverse. The
+**lining shows** when an edge of skin hidden at rest (the eyelids' lining behind their
+margins, the backs of the ears, the nostrils: skin no outward ray leaves, the mouth and lips
+left to the lip check) passes through a visible triangle near it: the lining has come out
+through the skin (the cheek rising into the lower lid's lining at the outer eye corner),
+and its dark back shows as a streak although no triangle has turned over.
 
     check = SkinCheck(face)
     for name, frames in default_streams(): ...          # the FAP sweep and the six expressions
@@ -42,6 +47,9 @@ SLIVER_HEIGHT = 0.01
 SWEEP_RAMP, SWEEP_HOLD = 4, 8  # frames of the FAP sweep: rise, hold at the limit
 EXPRESSION_RAMP, EXPRESSION_HOLD = 8, 12
 LIP_REGIONS = ("lip_upper", "lip_lower")
+# a hidden edge is tested against the visible triangles within this many metres of it at
+# rest (beyond each one's own size): the lining lies a few millimetres behind the skin
+LINING_REACH = 0.003
 
 
 @dataclass
@@ -50,37 +58,77 @@ class FrameCheck:
     or on a crease; turned (T,) bool: the folded triangles whose own normal has turned over
     (the rest sit on a crease); stretch and compression: the largest and smallest edge
     length over rest length of visible edges; lip_crossings: lip edges that pass through
-    the other lip."""
+    the other lip; lining_crossings: edges of skin hidden at rest that pass through a
+    visible triangle."""
 
     folded: np.ndarray
     turned: np.ndarray
     stretch: float
     compression: float
     lip_crossings: int
+    lining_crossings: int = 0
 
 
 def segments_through_triangles(a: np.ndarray, b: np.ndarray, T: np.ndarray) -> np.ndarray:
     """(S,) bool: whether segment a[i]-b[i] passes through any triangle of T (m, 3, 3).
 
-    a, b (S, 3); Moller-Trumbore on every pair (S x m), strictly inside both (a segment that
-    shares a corner with a triangle touches it, it does not cross it)."""
+    a, b (S, 3); every pair (S x m) tested by `segment_triangle_pairs_crossing`."""
     if len(a) == 0 or len(T) == 0:
         return np.zeros(len(a), dtype=bool)
-    d = (b - a)[:, None, :]
-    e1 = (T[:, 1] - T[:, 0])[None]
-    e2 = (T[:, 2] - T[:, 0])[None]
+    return segment_triangle_pairs_crossing(a[:, None], b[:, None], T[None]).any(axis=1)
+
+
+def segment_triangle_pairs_crossing(a: np.ndarray, b: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """(...) bool: whether segment a-b (..., 3) passes through triangle T (..., 3, 3), the
+    shapes broadcast against each other: Moller-Trumbore, strictly inside both (a segment
+    that shares a corner with a triangle touches it, it does not cross it)."""
+    d = b - a
+    e1, e2 = T[..., 1, :] - T[..., 0, :], T[..., 2, :] - T[..., 0, :]
     p = np.cross(d, e2)
-    det = np.einsum("stk,stk->st", e1, p)
+    det = np.sum(e1 * p, axis=-1)
     ok = np.abs(det) > 1e-18
     inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
-    s = a[:, None, :] - T[None, :, 0]
-    u = np.einsum("stk,stk->st", s, p) * inv
+    s = a - T[..., 0, :]
+    u = np.sum(s * p, axis=-1) * inv
     q = np.cross(s, e1)
-    v = np.einsum("stk,stk->st", d, q) * inv
-    t = np.einsum("stk,stk->st", e2, q) * inv
+    v = np.sum(d * q, axis=-1) * inv
+    t = np.sum(e2 * q, axis=-1) * inv
     eps = 1e-6
-    hit = ok & (u > eps) & (v > eps) & (u + v < 1 - eps) & (t > eps) & (t < 1 - eps)
-    return hit.any(axis=1)
+    return ok & (u > eps) & (v > eps) & (u + v < 1 - eps) & (t > eps) & (t < 1 - eps)
+
+
+def lining_pairs(face, visible_triangles: np.ndarray, reach: float = LINING_REACH) -> np.ndarray:
+    """(k, 4) int: hidden edge (its two skin vertices) and visible triangle (index, and a
+    corner) pairs to test per frame: the edges of skin that no outward ray leaves at rest
+    (fae.adapt.transfer.visible_skin; the mouth and lips left out) against the visible
+    triangles (T,) bool within `reach` metres of them at rest beyond the triangle's own
+    size, sharing no vertex."""
+    from scipy.spatial import cKDTree
+
+    from fae.adapt.transfer import visible_skin
+
+    V = np.asarray(face.skin_vertices, dtype=np.float64)
+    F = np.asarray(face.skin_faces, dtype=np.int64)
+    names = list(face.region_names)
+    region = np.asarray(face.skin_region)
+    lips = np.isin(region, [names.index(r) for r in (*HIDDEN_REGIONS, *LIP_REGIONS) if r in names])
+    hidden = ~visible_skin(face) & ~lips
+    E = _triangle_edges(F[hidden[F].any(axis=1) & ~lips[F].any(axis=1)])
+    E = E[hidden[E].any(axis=1)]
+    tris = np.flatnonzero(visible_triangles & ~hidden[F].any(axis=1))
+    if len(E) == 0 or len(tris) == 0:
+        return np.zeros((0, 4), dtype=np.int64)
+    centre = V[F[tris]].mean(axis=1)
+    size = np.linalg.norm(V[F[tris]] - centre[:, None], axis=2).max(axis=1)
+    mid = 0.5 * (V[E[:, 0]] + V[E[:, 1]])
+    half = 0.5 * np.linalg.norm(V[E[:, 0]] - V[E[:, 1]], axis=1)
+    near = cKDTree(centre).query_ball_point(mid, reach + size.max() + half.max())
+    e = np.repeat(np.arange(len(E)), [len(n) for n in near])
+    t = np.concatenate([np.asarray(n, dtype=np.int64) for n in near])
+    keep = np.linalg.norm(mid[e] - centre[t], axis=1) <= reach + size[t] + half[e]
+    e, t = e[keep], tris[t[keep]]
+    shared = (F[t] == E[e, :1]).any(axis=1) | (F[t] == E[e, 1:]).any(axis=1)
+    return np.column_stack([E[e[~shared]], t[~shared], np.zeros(int((~shared).sum()), dtype=np.int64)])
 
 
 class SkinCheck:
@@ -127,6 +175,7 @@ class SkinCheck:
         if all(r in names for r in LIP_REGIONS):
             up, low = (np.flatnonzero(np.isin(r, [names.index(x)]).all(axis=1)) for x in LIP_REGIONS)
             self.lips = [(F[up], _triangle_edges(F[low])), (F[low], _triangle_edges(F[up]))]
+        self.lining = lining_pairs(face, self.visible)
 
     def frame(self, skin: np.ndarray) -> FrameCheck:
         """Check one frame's skin (V, 3) metres, in the head's own frame (rotation removed)."""
@@ -142,8 +191,12 @@ class SkinCheck:
         crossings = 0
         for tris, edges in self.lips:
             crossings += int(segments_through_triangles(skin[edges[:, 0]], skin[edges[:, 1]], skin[tris]).sum())
+        L = self.lining
+        through = segment_triangle_pairs_crossing(skin[L[:, 0]], skin[L[:, 1]], skin[self.faces[L[:, 2]]])
+        lining = len(np.unique(L[through, :2], axis=0))
         return FrameCheck(folded=folded, turned=turned, stretch=float(ratio.max(initial=1.0)),
-                          compression=float(ratio.min(initial=1.0)), lip_crossings=crossings)
+                          compression=float(ratio.min(initial=1.0)), lip_crossings=crossings,
+                          lining_crossings=lining)
 
 
 def _triangle_edges(F: np.ndarray) -> np.ndarray:
@@ -164,13 +217,14 @@ def check_stream(player, frames: Iterable, name: str = "", fps: float | None = N
     Returns {"stream", "frames", "frames_folded", "triangles_folded", "triangles_turned" (of
     those, the ones whose own normal ever turned over; the rest only sat on a crease), "folded_by_region"
     {region: triangles}, "worst_frame", "worst_frame_folded", "max_stretch", "min_compression",
-    "frames_lips_crossed", "max_lip_crossings", "ok"}; ok: nothing folded, strain within
-    [MIN_COMPRESSION, MAX_STRETCH] and the lips never cross."""
+    "frames_lips_crossed", "max_lip_crossings", "frames_lining_shown", "max_lining_crossings",
+    "ok"}; ok: nothing folded, strain within [MIN_COMPRESSION, MAX_STRETCH], the lips never
+    cross and no lining comes out through the skin."""
     check = check or SkinCheck(player.face)
     player.reset()
     ever = np.zeros(len(check.faces), dtype=bool)
     turned = np.zeros(len(check.faces), dtype=bool)
-    count = folded_frames = lip_frames = max_crossings = 0
+    count = folded_frames = lip_frames = max_crossings = lining_frames = max_lining = 0
     worst, worst_count = -1, 0
     stretch, compression = 1.0, 1.0
     for frame in player.play(frames, fps=fps):
@@ -185,18 +239,23 @@ def check_stream(player, frames: Iterable, name: str = "", fps: float | None = N
         if r.lip_crossings:
             lip_frames += 1
             max_crossings = max(max_crossings, r.lip_crossings)
+        if r.lining_crossings:
+            lining_frames += 1
+            max_lining = max(max_lining, r.lining_crossings)
         stretch, compression = max(stretch, r.stretch), min(compression, r.compression)
         count += 1
     player.reset()
     regions = {}
     for rid in np.unique(check.triangle_region[ever]):
         regions[check.region_names[rid]] = int(np.sum(check.triangle_region[ever] == rid))
-    ok = (not ever.any()) and stretch <= MAX_STRETCH and compression >= MIN_COMPRESSION and lip_frames == 0
+    ok = (not ever.any()) and stretch <= MAX_STRETCH and compression >= MIN_COMPRESSION and lip_frames == 0 \
+        and lining_frames == 0
     return {"stream": name, "frames": count, "frames_folded": folded_frames, "triangles_folded": int(ever.sum()),
             "triangles_turned": int(turned.sum()),
             "folded_by_region": regions, "worst_frame": worst, "worst_frame_folded": worst_count,
             "max_stretch": round(stretch, 3), "min_compression": round(compression, 3),
-            "frames_lips_crossed": lip_frames, "max_lip_crossings": max_crossings, "ok": bool(ok)}
+            "frames_lips_crossed": lip_frames, "max_lip_crossings": max_crossings,
+            "frames_lining_shown": lining_frames, "max_lining_crossings": max_lining, "ok": bool(ok)}
 
 
 def fap_sweep() -> list[np.ndarray]:

@@ -5,8 +5,9 @@ every frame, in the head's own frame: visible skin triangles folded (a normal tu
 than 90 degrees from its rest normal, "turned", or on a crease: two neighbours that met
 smoothly at rest now more than 90 degrees apart; the mouth's lining, seen only through the
 lips, left out), the worst edge stretch and compression (edge length over rest length,
-limits 2 and 0.3), and the lips passing through each other (an edge of one lip through a
-triangle of the other). Without streams it plays every low-level FAP alone to the limits of
+limits 2 and 0.3), the lips passing through each other (an edge of one lip through a
+triangle of the other), and skin hidden at rest (the eyelids' lining, the backs of the
+ears, the nostrils) coming out through the visible skin ("lining": its dark back shows). Without streams it plays every low-level FAP alone to the limits of
 its range and the standard's six expressions at full intensity. Exit status 0 when every
 stream keeps the skin whole, 1 when any does not, 2 when the head or a stream cannot be read.
 """
@@ -70,13 +71,15 @@ def run(args) -> int:
     else:
         print(f"{path}: folded = visible skin triangles ever turned over or on a crease (turned: their own normal "
               f"turned over); stretch / compression = "
-              f"extreme edge length over rest length; lips = frames where the lips pass through each other")
+              f"extreme edge length over rest length; lips = frames where the lips pass through each other; "
+              f"lining = frames where skin hidden at rest comes out through the visible skin")
         print(f"{'stream':<44} {'frames':>6} {'folded':>7} {'turned':>6} {'(frames)':>8} {'stretch':>7} {'compr.':>6} "
-              f"{'lips':>5}  worst regions")
+              f"{'lips':>5} {'lining':>6}  worst regions")
         for r in reports:
             regions = ", ".join(f"{k} {v}" for k, v in sorted(r["folded_by_region"].items(), key=lambda kv: -kv[1])[:4])
             print(f"{str(r['stream'])[:44]:<44} {r['frames']:>6} {r['triangles_folded']:>7} {r['triangles_turned']:>6} "
                   f"{r['frames_folded']:>8} "
-                  f"{r['max_stretch']:>7.2f} {r['min_compression']:>6.2f} {r['frames_lips_crossed']:>5}  {regions}")
-        print("the skin stays whole" if whole else "the skin folds, tears or the lips cross: see above")
+                  f"{r['max_stretch']:>7.2f} {r['min_compression']:>6.2f} {r['frames_lips_crossed']:>5} "
+                  f"{r['frames_lining_shown']:>6}  {regions}")
+        print("the skin stays whole" if whole else "the skin folds, tears, the lips cross or a lining shows: see above")
     return 0 if whole else 1
