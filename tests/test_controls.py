@@ -169,5 +169,7 @@ def test_the_scale_search_closes_in_on_a_skin_that_snaps():
     assert short < 2.37 <= over and over - short < 0.03, seen
     # far from the bracket the step follows expected / measured, at most 2x
     assert _next_scale([(1.0, 0.1)]) == pytest.approx(2.0)
+    # a smaller scale that overshot a larger one leaves no bracket: the search stops there
+    assert _next_scale([(2.0, 0.8), (1.5, 1.3)]) is None
     assert _next_scale([(1.0, 0.8)]) == pytest.approx(1.25)
     assert _miss(0.8) == pytest.approx(0.25) and _miss(1.25) == pytest.approx(0.25) and _miss(-1.0) > 100

@@ -158,7 +158,8 @@ def test_verify_skin_reports_each_stream_as_json_and_its_status(tmp_path):
     assert stream["frames"] == 48
     assert r.returncode == (0 if report["ok"] else 1)
     assert report["ok"] == (stream["triangles_folded"] == 0 and stream["max_stretch"] <= 2.0
-                            and stream["min_compression"] >= 0.3)
+                            and stream["min_compression"] >= 0.3 and stream["frames_lips_crossed"] == 0
+                            and stream["frames_lining_shown"] == 0)
 
 
 XFACE = sorted(SHARED_FAP.glob("xface_*.fap")) if SHARED_FAP.is_dir() else []

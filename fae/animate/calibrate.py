@@ -31,7 +31,10 @@ states (a nose or lip pull that stretches edges to the fold guard's strain limit
 tissue beside it along: raise_nose on a bust went from 0.8x to 1.45x of its value between
 0.40 and 0.46 of its range), the scale is searched between the largest that fell short and
 the smallest that overshot, and each FAP keeps the measured scale nearest its value (the
-three busts: 43-45 of 50 FAPs within 15 % before, 47-49 after). The result, arrays only,
+last pass leaves a FAP already within REFINE_TOLERANCE at the scale it was measured at:
+a step more might cross a snap unmeasured; the three busts: 43-45 of 50 FAPs within 15 %
+before, 47-49 after). pair_overlap is measured in the last full pass, before the
+refinement. The result, arrays only,
 goes into `FaceModel.fap_mapping`:
 
     layout       (4,) int: muscle count, field count, jaw controls (3), format version
@@ -481,7 +484,8 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
     overlap: dict[int, list[float]] = {}  # twin-over-own motion ratios of the last pass (none: 0)
     # every (FAP, side) measured: [(table scale, measured over expected)], for the refinement
     measured: dict[tuple[int, float], list[tuple[float, float]]] = {}
-    for _ in range(passes):
+    for pass_index in range(passes):
+        last = pass_index == passes - 1
         controls_face.fap_mapping = mapping
         overlap = {}
         ctl = FapControls(controls_face, model)
@@ -528,6 +532,8 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
                 cols = [3, 4] if side > 0 else [1, 0]
                 measured.setdefault((k, side), []).append((float(table_scale[k - 1, cols[0]]), along / expected))
                 g = float(np.clip(expected / along, 0.5, 2.0)) if along > 1e-3 * expected else 2.0
+                if last and k not in JAW_FAPS and _miss(along / expected) <= REFINE_TOLERANCE:
+                    continue  # near its value at a measured scale: a step more might cross a snap
                 table_scale[k - 1, cols] *= g
                 if k == JAW_OPEN and side > 0:
                     jaw_follow *= g  # the jaw carries the lips as far as it opens
@@ -567,13 +573,13 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
                 seen = measured[(k, side)]
                 seen.append((float(table_scale[k - 1, cols[0]]), float(moved @ FAP_DIRECTION[k - 1]) * side
                              / (half[k - 1] * unit[k - 1])))
-                if _miss(seen[-1][1]) <= REFINE_TOLERANCE:
-                    continue
-                table_scale[k - 1, cols] = _next_scale(seen)
-                refining.append((k, side))
+                step = _next_scale(seen) if _miss(seen[-1][1]) > REFINE_TOLERANCE else None
+                if step is not None:
+                    table_scale[k - 1, cols] = step
+                    refining.append((k, side))
     for (k, side), seen in measured.items():
         if k not in JAW_FAPS and _miss(seen[-1][1]) > REFINE_TOLERANCE:
-            # the scale now set was never measured: the best one that was
+            # the scale now set was never measured (or was, and missed): the best one that was
             best = min(seen, key=lambda sr: _miss(sr[1]))[0]
             table_scale[k - 1, [3, 4] if side > 0 else [1, 0]] = best
     mapping["table_scale"] = table_scale
@@ -603,19 +609,21 @@ def _miss(ratio: float) -> float:
     return float(np.exp(abs(np.log(max(ratio, 1e-3)))) - 1.0)
 
 
-def _next_scale(seen: list[tuple[float, float]]) -> float:
+def _next_scale(seen: list[tuple[float, float]]) -> float | None:
     """The next table scale to try from the (scale, measured / expected) pairs seen so far
     (the motion grows with the scale): between the largest scale that fell short and the
     smallest that overshot, where both are known (interpolated in logs, kept off the ends
-    so the bracket shrinks), else the last scale times expected / measured (at most 2x)."""
+    so the bracket shrinks), else the last scale times expected / measured (at most 2x);
+    None where the motion did not grow with the scale (a smaller scale overshot a larger
+    one): no bracket to search, the best scale seen is kept."""
     scale, ratio = seen[-1]
     short = [sr for sr in seen if sr[1] < 1.0]
     over = [sr for sr in seen if sr[1] > 1.0]
     if not short or not over:
         return scale * float(np.clip(1.0 / max(ratio, 1e-6), 0.5, 2.0))
     (s0, r0), (s1, r1) = max(short), min(over)
-    if s1 <= s0:  # the motion did not grow with the scale: settle between the two
-        return float(np.sqrt(s0 * s1))
+    if s1 <= s0:
+        return None
     t = np.log(1.0 / max(r0, 1e-6)) / np.log(r1 / max(r0, 1e-6))
     t = float(np.clip(t, 0.25, 0.75))
     return float(np.exp(np.log(s0) + t * (np.log(s1) - np.log(s0))))

@@ -98,11 +98,12 @@ def segment_triangle_pairs_crossing(a: np.ndarray, b: np.ndarray, T: np.ndarray)
 
 
 def lining_pairs(face, visible_triangles: np.ndarray, reach: float = LINING_REACH) -> np.ndarray:
-    """(k, 4) int: hidden edge (its two skin vertices) and visible triangle (index, and a
-    corner) pairs to test per frame: the edges of skin that no outward ray leaves at rest
-    (fae.adapt.transfer.visible_skin; the mouth and lips left out) against the visible
-    triangles (T,) bool within `reach` metres of them at rest beyond the triangle's own
-    size, sharing no vertex."""
+    """(k, 3) int: (edge's two skin vertices, triangle index) pairs to test per frame: each
+    edge with an end that no outward ray leaves at rest (fae.adapt.transfer.visible_skin:
+    the lids' lining, the backs of the ears, the nostrils, and a few pits of the chin, neck
+    and scalp; the mouth and lips left out) against the triangles of `visible_triangles`
+    (T,) bool with no hidden corner, within `reach` metres of it at rest beyond the
+    triangle's own size, sharing no vertex with it."""
     from scipy.spatial import cKDTree
 
     from fae.adapt.transfer import visible_skin
@@ -117,7 +118,7 @@ def lining_pairs(face, visible_triangles: np.ndarray, reach: float = LINING_REAC
     E = E[hidden[E].any(axis=1)]
     tris = np.flatnonzero(visible_triangles & ~hidden[F].any(axis=1))
     if len(E) == 0 or len(tris) == 0:
-        return np.zeros((0, 4), dtype=np.int64)
+        return np.zeros((0, 3), dtype=np.int64)
     centre = V[F[tris]].mean(axis=1)
     size = np.linalg.norm(V[F[tris]] - centre[:, None], axis=2).max(axis=1)
     mid = 0.5 * (V[E[:, 0]] + V[E[:, 1]])
@@ -128,7 +129,7 @@ def lining_pairs(face, visible_triangles: np.ndarray, reach: float = LINING_REAC
     keep = np.linalg.norm(mid[e] - centre[t], axis=1) <= reach + size[t] + half[e]
     e, t = e[keep], tris[t[keep]]
     shared = (F[t] == E[e, :1]).any(axis=1) | (F[t] == E[e, 1:]).any(axis=1)
-    return np.column_stack([E[e[~shared]], t[~shared], np.zeros(int((~shared).sum()), dtype=np.int64)])
+    return np.column_stack([E[e[~shared]], t[~shared]])
 
 
 class SkinCheck:
