@@ -33,7 +33,7 @@ tissue beside it along: raise_nose on a bust went from 0.8x to 1.45x of its valu
 the smallest that overshot, and each FAP keeps the measured scale nearest its value (the
 last pass leaves a FAP already within REFINE_TOLERANCE at the scale it was measured at:
 a step more might cross a snap unmeasured; the three busts: 43-45 of 50 FAPs within 15 %
-before, 47-49 after). pair_overlap is measured in the last full pass, before the
+before, 48-49 after). pair_overlap is measured in the last full pass, before the
 refinement. The result, arrays only,
 goes into `FaceModel.fap_mapping`:
 
