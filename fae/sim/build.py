@@ -235,6 +235,18 @@ EYE_PARTS = ("eye_l", "eye_r")
 EYE_REACH = 0.006
 EYE_CLEARANCE = 0.001
 EYE_SLACK = 0.0002
+# Round each eye, the skin of the lower lids and cheeks (EYE_BAND_REGIONS) within
+# EYE_BAND_REACH of the eyeball keeps its layering: the skin a viewer sees keeps
+# EYE_OUTER_KEEP of its rest distance from the eyeball, and the skin hidden behind the lid
+# (its lining) goes no farther out than its rest distance + EYE_LINING_SLACK. A rising
+# cheek rolled the lower lid's margin inward and its outer skin passed behind the lining,
+# whose dark back then showed below the eye.
+EYE_BAND_REACH = 0.012
+EYE_OUTER_KEEP = 0.8
+EYE_LINING_SLACK = 0.001
+# (not the upper lids: opening wide, a lid folds its skin and lining up into its crease,
+# and held in such a band they were squeezed to a tenth of their length)
+EYE_BAND_REGIONS = ("eyelid_lower_l", "eyelid_lower_r", "cheek_l", "cheek_r")
 
 
 def eyeball_sphere(face: FaceModel, name: str) -> tuple[np.ndarray, float] | None:
@@ -248,23 +260,34 @@ def eyeball_sphere(face: FaceModel, name: str) -> tuple[np.ndarray, float] | Non
     return centre, float(np.linalg.norm(E - centre, axis=1).mean())
 
 
-def eye_spheres(face: FaceModel, q: np.ndarray, candidates: np.ndarray) -> np.ndarray:
-    """(P, 4): for each particle at rest q (P, 3) among `candidates` (P,) bool within
+def eye_spheres(face: FaceModel, q: np.ndarray, candidates: np.ndarray, outer: np.ndarray | None = None,
+                lining: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(P, 4), (P,): for each particle at rest q (P, 3) among `candidates` (P,) bool within
     EYE_REACH of an eyeball (eyeball_sphere), that eyeball's centre and the radius it keeps
-    outside of; zeros elsewhere."""
+    outside of; then within EYE_BAND_REACH, the particles of `outer` (P,) bool keep at least
+    EYE_OUTER_KEEP of their rest distance from it, and those of `lining` go no farther than
+    their rest distance + EYE_LINING_SLACK (the second array; 0: no limit); zeros elsewhere."""
     out = np.zeros((len(q), 4))
+    far = np.zeros(len(q))
     best = np.full(len(q), np.inf)
+    outer = np.zeros(len(q), dtype=bool) if outer is None else outer
+    lining = np.zeros(len(q), dtype=bool) if lining is None else lining
     for name in EYE_PARTS:
         sphere = eyeball_sphere(face, name)
         if sphere is None:
             continue
         centre, radius = sphere
         gap = np.linalg.norm(q - centre, axis=1) - radius
-        use = candidates & (gap > EYE_SLACK) & (gap < EYE_REACH) & (gap < best)
-        out[use, :3] = centre
+        band = candidates & (gap < EYE_BAND_REACH) & (gap < best)
+        use = band & (gap > EYE_SLACK) & (gap < EYE_REACH)
+        out[band, :3] = centre
+        out[band, 3] = 0.0
         out[use, 3] = radius + np.minimum(gap[use] - EYE_SLACK, EYE_CLEARANCE)
-        best[use] = gap[use]
-    return out
+        keep = band & outer & (gap > EYE_SLACK)
+        out[keep, 3] = np.maximum(out[keep, 3], radius + EYE_OUTER_KEEP * gap[keep])
+        far[band] = np.where(lining[band], radius + np.maximum(gap[band], 0.0) + EYE_LINING_SLACK, 0.0)
+        best[band] = gap[band]
+    return out, far
 
 
 def _surface_samples(V: np.ndarray, F: np.ndarray) -> np.ndarray:
@@ -487,7 +510,14 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
     # a particle closer to its rest place (in a bone's frame) than this cannot be inside that
     # bone (a distance field changes by at most the distance moved; 1 mm spare for the grid)
     clearance = np.clip(phi_rest - 0.001, 0.0, 1.0).T
-    sphere = eye_spheres(face, q, movable & (layer_of < LAYER_COUNT - 1))
+    from fae.adapt.transfer import visible_skin
+
+    seen_skin = visible_skin(face)
+    outer, lining = np.zeros(P, dtype=bool), np.zeros(P, dtype=bool)
+    banded = np.isin(region, [names.index(r) for r in EYE_BAND_REGIONS if r in names])
+    for mark, which in ((outer, seen_skin), (lining, ~seen_skin)):
+        mark[pid(0, sim_vertices[(banded & which)[sim_vertices]])] = True
+    sphere, sphere_max = eye_spheres(face, q, movable & (layer_of < LAYER_COUNT - 1), outer, lining)
 
 
     # Stable substep: the springs' largest eigenvalue of M^-1 K over all configurations and
@@ -511,6 +541,7 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
         particle_collider=arr(collide.astype(np.int32), int),
         particle_clearance=arr(clearance.astype(np.float32), wp.vec2),
         particle_sphere=arr(sphere.astype(np.float32), wp.vec4),
+        particle_sphere_max=arr(sphere_max.astype(np.float32), float),
         spring_count=len(spr),
         spring_indices=arr(spr.reshape(-1).astype(np.int32), int),
         spring_rest_length=arr(rest_len.astype(np.float32), float),

@@ -214,20 +214,27 @@ def bone_contact(x_prev: wp.vec3, x: wp.vec3, v: wp.vec3, rest: wp.vec3, hold: w
 
 
 @wp.func
-def sphere_contact(x: wp.vec3, v: wp.vec3, sphere: wp.vec4, R: wp.mat33, t: wp.vec3):
-    """(x, v) of a particle kept outside an eyeball: centre sphere[0:3] in the skull's rest
-    frame (pose R, t), radius sphere[3]; inside, it goes out along the radius and loses its
-    inward velocity (a sphere has no far side to pass back through, unlike a thin bone)."""
+def sphere_contact(x: wp.vec3, v: wp.vec3, sphere: wp.vec4, sphere_max: float, R: wp.mat33, t: wp.vec3):
+    """(x, v) of a particle kept in a shell about an eyeball: centre sphere[0:3] in the
+    skull's rest frame (pose R, t), at least sphere[3] from it and, where sphere_max > 0, at
+    most sphere_max; a particle outside the shell goes back along the radius and loses its
+    velocity across it (a sphere has no far side to pass back through, unlike a thin bone)."""
     c = R * wp.vec3(sphere[0], sphere[1], sphere[2]) + t
     d = x - c
     r = wp.length(d)
-    if r >= sphere[3] or r < 1.0e-9:
+    if r < 1.0e-9:
         return x, v
     n = d / r
     vn = wp.dot(v, n)
-    if vn < 0.0:
-        v = v - n * vn
-    return c + n * sphere[3], v
+    if r < sphere[3]:
+        if vn < 0.0:
+            v = v - n * vn
+        return c + n * sphere[3], v
+    if sphere_max > 0.0 and r > sphere_max:
+        if vn > 0.0:
+            v = v - n * vn
+        return c + n * sphere_max, v
+    return x, v
 
 
 @wp.func

@@ -364,9 +364,9 @@ def apply_guard(particle_static: wp.array(dtype=ParticleStatic), particle_move: 
                                                   head_sdf_spacing, R0, t0, jaw_sdf, jaw_sdf_origin, jaw_sdf_spacing,
                                                   R1, t1, contact_depth)
                     particle_qd[i] = v
-                if ps.sphere[3] > 0.0:
+                if ps.sphere[3] > 0.0 or ps.sphere_max > 0.0:
                     v = particle_qd[i]
-                    x, v = sphere_contact(x, v, ps.sphere, R0, t0)
+                    x, v = sphere_contact(x, v, ps.sphere, ps.sphere_max, R0, t0)
                     particle_qd[i] = v
                 particle_q[i] = x
             particle_move[i] = wp.vec3(0.0, 0.0, 0.0)

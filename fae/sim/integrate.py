@@ -46,7 +46,7 @@ class ParticleStatic:
     for a negative index; the pass is 18 % faster on the CPU). Fields as the SkinModel's
     particle_q (rest), particle_jaw, particle_inv_mass, particle_anchor_stiffness,
     row_influence_start[i] and [i + 1], particle_below, particle_normal, particle_height,
-    particle_collider, particle_clearance, particle_sphere."""
+    particle_collider, particle_clearance, particle_sphere, particle_sphere_max."""
 
     rest: wp.vec3
     jaw: float
@@ -60,6 +60,7 @@ class ParticleStatic:
     collider: int
     clearance: wp.vec2
     sphere: wp.vec4
+    sphere_max: float
 
 
 @wp.kernel
@@ -122,7 +123,7 @@ def step_particles(particle_q: wp.array(dtype=wp.vec3), particle_qd: wp.array(dt
             x, v = skull_then_jaw_contact(x0, x, v, rest, target, ps.clearance, head_sdf, head_sdf_origin,
                                           head_sdf_spacing, R0, t0, jaw_sdf, jaw_sdf_origin, jaw_sdf_spacing, R1, t1,
                                           contact_depth)
-        if ps.sphere[3] > 0.0:
-            x, v = sphere_contact(x, v, ps.sphere, R0, t0)
+        if ps.sphere[3] > 0.0 or ps.sphere_max > 0.0:
+            x, v = sphere_contact(x, v, ps.sphere, ps.sphere_max, R0, t0)
         particle_qd_out[tid] = v
         particle_q_out[tid] = x

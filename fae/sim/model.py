@@ -54,6 +54,9 @@ class SkinModel:
     particle_sphere     (P,) vec4  an eyeball the particle stays outside of: centre (metres,
                                    the skull's rest frame) and radius (metres, the eyeball's
                                    plus the particle's clearance); radius 0: none
+    particle_sphere_max (P,) float metres, the farthest from that eyeball's centre the particle
+                                   may go (skin hidden behind the lids: the lining stays
+                                   behind the lid's front); 0: no limit
     contact_depth       metres: deeper penetrations are left to the springs (fae.sim.collision)
     triangle_count      triangles of the two upper layers guarded against folding (fae.sim.folds)
     triangle_guard      (T,) fae.sim.folds.GuardedTriangle: particles, rest shape, rest normal
@@ -113,6 +116,7 @@ class SkinModel:
     particle_collider: wp.array
     particle_clearance: wp.array
     particle_sphere: wp.array
+    particle_sphere_max: wp.array
     spring_count: int
     spring_indices: wp.array
     spring_rest_length: wp.array

@@ -222,7 +222,8 @@ class ReferenceSolver:
             qd[idx] -= n * np.minimum(vn, 0.0)[:, None]
         # then the eyeballs (fae.sim.collision.sphere_contact), whatever the bones did
         sphere = self.a["particle_sphere"].astype(np.float64)
-        eye = (sphere[:, 3] > 0.0) & (self.a["particle_inv_mass"] > 0.0)
+        far = self.a["particle_sphere_max"].astype(np.float64)
+        eye = ((sphere[:, 3] > 0.0) | (far > 0.0)) & (self.a["particle_inv_mass"] > 0.0)
         if only is not None:
             eye &= only
         idx = np.flatnonzero(eye)
@@ -230,12 +231,16 @@ class ReferenceSolver:
             c = sphere[idx, :3] @ bone_rotation[0].T + bone_translation[0]
             d = q[idx] - c
             r = np.linalg.norm(d, axis=1)
-            inside = (r < sphere[idx, 3]) & (r >= 1e-9)
-            idx, c, d, r = idx[inside], c[inside], d[inside], r[inside]
-            n = d / r[:, None]
-            q[idx] = c + n * sphere[idx, 3:4]
-            vn = np.sum(qd[idx] * n, axis=1)
-            qd[idx] -= n * np.minimum(vn, 0.0)[:, None]
+            ok = r >= 1e-9
+            inside = ok & (r < sphere[idx, 3])
+            outside = ok & ~inside & (far[idx] > 0.0) & (r > far[idx])
+            for hit, to, sign in ((inside, sphere[idx, 3], 1.0), (outside, far[idx], -1.0)):
+                j = idx[hit]
+                n = d[hit] / r[hit, None]
+                q[j] = c[hit] + n * to[hit, None]
+                vn = np.sum(qd[j] * n, axis=1)
+                # the velocity across the shell's wall goes (into the eye, or out of the shell)
+                qd[j] -= n * (np.minimum(vn, 0.0) if sign > 0 else np.maximum(vn, 0.0))[:, None]
 
     def layer_order(self, q: np.ndarray, qd: np.ndarray, q_prev: np.ndarray, bone_rotation: np.ndarray) -> None:
         """Keep upper-layer particles above their vertex in the layer below (in place)."""

@@ -107,7 +107,8 @@ def _pack(model: SkinModel) -> tuple[wp.array, wp.array, wp.array]:
                          ("inv_mass", model.particle_inv_mass), ("anchor_stiffness", model.particle_anchor_stiffness),
                          ("below", model.particle_below), ("normal", model.particle_normal),
                          ("height", model.particle_height), ("collider", model.particle_collider),
-                         ("clearance", model.particle_clearance), ("sphere", model.particle_sphere)):
+                         ("clearance", model.particle_clearance), ("sphere", model.particle_sphere),
+                         ("sphere_max", model.particle_sphere_max)):
         static[name] = values.numpy()
     static["influence_first"], static["influence_end"] = start[:-1], start[1:]
     return (wp.array(spring_start.astype(np.int32), dtype=int, device=model.device),
