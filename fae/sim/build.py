@@ -515,8 +515,10 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
     seen_skin = visible_skin(face)
     outer, lining = np.zeros(P, dtype=bool), np.zeros(P, dtype=bool)
     banded = np.isin(region, [names.index(r) for r in EYE_BAND_REGIONS if r in names])
-    for mark, which in ((outer, seen_skin), (lining, ~seen_skin)):
-        mark[pid(0, sim_vertices[(banded & which)[sim_vertices]])] = True
+    lids = np.isin(region, [names.index(r) for r in EYE_BAND_REGIONS if r in names and r.startswith("eyelid")])
+    # (a few cheek vertices under the lid are hidden from outward rays too: not lining)
+    for mark, which in ((outer, banded & seen_skin), (lining, lids & ~seen_skin)):
+        mark[pid(0, sim_vertices[which[sim_vertices]])] = True
     sphere, sphere_max = eye_spheres(face, q, movable & (layer_of < LAYER_COUNT - 1), outer, lining)
 
 

@@ -53,7 +53,8 @@ class SkinModel:
                                    frame than this, the particle cannot be inside the bone
     particle_sphere     (P,) vec4  an eyeball the particle stays outside of: centre (metres,
                                    the skull's rest frame) and radius (metres, the eyeball's
-                                   plus the particle's clearance); radius 0: none
+                                   plus the particle's clearance); radius 0: no minimum (the
+                                   centre still serves particle_sphere_max)
     particle_sphere_max (P,) float metres, the farthest from that eyeball's centre the particle
                                    may go (skin hidden behind the lids: the lining stays
                                    behind the lid's front); 0: no limit
