@@ -109,6 +109,8 @@ WARM_PASSES = 1
 # then FAPs off by more than REFINE_TOLERANCE are measured again, at most REFINE_PASSES times
 REFINE_PASSES = 4
 REFINE_TOLERANCE = 0.1
+# the table_scale columns a side's probe measures: its half and full range
+SCALE_COLUMNS = {1.0: [3, 4], -1.0: [1, 0]}
 SETTLE_THREADS = 4  # at most; Warp's CPU kernels release the GIL
 # FAPs probed alone: the mouth corners' raise, which a batch mate whose footprint does not
 # meet its own on the linear response still moves through the lips' contact
@@ -481,6 +483,11 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
         finally:
             contexts.put((solver, scratch))
 
+    def moved_along(point: str, k: int, skin: np.ndarray) -> float:
+        # metres feature point `point` moved along FAP k's direction in the settled skin
+        return float((face.surface_point_position(face.feature_points[point], skin) - fdp_pos[point])
+                     @ FAP_DIRECTION[k - 1])
+
     overlap: dict[int, list[float]] = {}  # twin-over-own motion ratios of the last pass (none: 0)
     # every (FAP, side) measured: [(table scale, measured over expected)], for the refinement
     measured: dict[tuple[int, float], list[tuple[float, float]]] = {}
@@ -511,13 +518,10 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
                 for k in LIP_FAPS:
                     fdp = FAP_FEATURE_POINT[k - 1]
                     if fdp in probe.fdp and (np.any(gain_pos[k - 1]) or np.any(gain_neg[k - 1])):
-                        moved = face.surface_point_position(face.feature_points[fdp], skin) - fdp_pos[fdp]
-                        jaw_follow[k - 1] = float(moved @ FAP_DIRECTION[k - 1]) / (half[JAW_OPEN - 1] * unit[k - 1])
+                        jaw_follow[k - 1] = moved_along(fdp, k, skin) / (half[JAW_OPEN - 1] * unit[k - 1])
                         carried[k] = jaw_follow[k - 1]
             for k in todo:
-                fdp = FAP_FEATURE_POINT[k - 1]
-                moved = face.surface_point_position(face.feature_points[fdp], skin) - fdp_pos[fdp]
-                along = float(moved @ FAP_DIRECTION[k - 1]) * side
+                along = moved_along(FAP_FEATURE_POINT[k - 1], k, skin) * side
                 twin = twin_of.get(k)
                 if twin is not None and FAP_FEATURE_POINT[twin - 1] in probe.fdp and abs(along) > 0:
                     # the twin's point moves with k only inside k's footprint (elsewhere a
@@ -525,11 +529,10 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
                     tp = FAP_FEATURE_POINT[twin - 1]
                     ratio = 0.0
                     if footprint[k][probe.fdp[tp][0]].all():
-                        t_moved = face.surface_point_position(face.feature_points[tp], skin) - fdp_pos[tp]
-                        ratio = float(np.clip(t_moved @ FAP_DIRECTION[twin - 1] * side / along, 0.0, 1.0))
+                        ratio = float(np.clip(moved_along(tp, twin, skin) * side / along, 0.0, 1.0))
                     overlap.setdefault(k, []).append(ratio)
                 expected = half[k - 1] * unit[k - 1]
-                cols = [3, 4] if side > 0 else [1, 0]
+                cols = SCALE_COLUMNS[side]
                 measured.setdefault((k, side), []).append((float(table_scale[k - 1, cols[0]]), along / expected))
                 g = float(np.clip(expected / along, 0.5, 2.0)) if along > 1e-3 * expected else 2.0
                 if last and k not in JAW_FAPS and _miss(along / expected) <= REFINE_TOLERANCE:
@@ -544,16 +547,15 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
                 fdp = FAP_FEATURE_POINT[k - 1]
                 if abs(follow_asked[k - 1]) < 0.05 or abs(carry) < 0.05:
                     continue
-                left = float((face.surface_point_position(face.feature_points[fdp], held) - fdp_pos[fdp])
-                             @ FAP_DIRECTION[k - 1]) / (half[JAW_OPEN - 1] * unit[k - 1])
+                left = moved_along(fdp, k, held) / (half[JAW_OPEN - 1] * unit[k - 1])
                 taken = (carry - left) / follow_asked[k - 1]
                 hold_scale[k - 1] *= float(np.clip(1.0 / taken, 0.5, 2.0)) if taken > 0.0 else 2.0
 
     # Refinement: a FAP whose last correction was large is measured again at its new scale
-    # (in its batch, beside the mates that are measured again too); where the skin snaps between two settled states
-    # (a pull that stretches edges to the strain limit drags the tissue beside it along),
-    # the scale is searched between the largest that fell short and the smallest that
-    # overshot. In the end each keeps the scale measured nearest its expected motion.
+    # (in its batch, beside the mates that are measured again too); where the skin snaps
+    # between two settled states (a pull that stretches edges to the strain limit drags the
+    # tissue beside it along), the scale is searched between the largest that fell short and
+    # the smallest that overshot. In the end each keeps the scale measured nearest its value.
     refining = [key for key, seen in measured.items()
                 if key[0] not in JAW_FAPS and _miss(seen[-1][1]) > REFINE_TOLERANCE]
     for _ in range(REFINE_PASSES):
@@ -567,12 +569,10 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
         refining = []
         for (side, todo, _, _), skin in zip(jobs, skins):
             for k in todo:
-                fdp = FAP_FEATURE_POINT[k - 1]
-                moved = face.surface_point_position(face.feature_points[fdp], skin) - fdp_pos[fdp]
-                cols = [3, 4] if side > 0 else [1, 0]
+                cols = SCALE_COLUMNS[side]
                 seen = measured[(k, side)]
-                seen.append((float(table_scale[k - 1, cols[0]]), float(moved @ FAP_DIRECTION[k - 1]) * side
-                             / (half[k - 1] * unit[k - 1])))
+                seen.append((float(table_scale[k - 1, cols[0]]),
+                             moved_along(FAP_FEATURE_POINT[k - 1], k, skin) * side / (half[k - 1] * unit[k - 1])))
                 step = _next_scale(seen) if _miss(seen[-1][1]) > REFINE_TOLERANCE else None
                 if step is not None:
                     table_scale[k - 1, cols] = step
@@ -581,7 +581,7 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
         if k not in JAW_FAPS and _miss(seen[-1][1]) > REFINE_TOLERANCE:
             # the scale now set was never measured (or was, and missed): the best one that was
             best = min(seen, key=lambda sr: _miss(sr[1]))[0]
-            table_scale[k - 1, [3, 4] if side > 0 else [1, 0]] = best
+            table_scale[k - 1, SCALE_COLUMNS[side]] = best
     mapping["table_scale"] = table_scale
     mapping["pair_overlap"] = pair_overlap_of(overlap)
     out = copy.copy(face)
