@@ -320,12 +320,37 @@ def test_eyelids_closed_to_1024_cover_the_whole_eye_and_stay_outside_the_eyeball
         assert share > 0.95 if closed else share < 0.3
 
 
+def test_a_blink_as_streams_send_it_closes_the_eye(player):
+    """The shared streams blink with close_t_l/r_eyelid 512, 1024, 1024, 512 at 25 fps. At
+    its deepest the upper lid's point 3.1 comes within 15 % of the opening (3.1 over 3.3,
+    12 mm) of the lower lid's (1.1 mm measured; 4 mm, a third of the eye open, while the
+    lid followed a step in 3-4 frames and its limit was scaled as its half range), and a
+    lid held at 1024 within 5 % (0.1 mm; 1.8 mm before its limit was measured)."""
+    face = player.face
+    gap = {}
+    for name, shape in (("blink", [512, 1024, 1024, 512, 0]), ("held", [1024] * 25)):
+        player.reset()
+        opening = []
+        for a in shape:
+            v = np.zeros(68)
+            v[[18, 19]] = a
+            skin = player.step(v, dt=1 / 25)
+            fp = {n: face.surface_point_position(face.feature_points[n], skin) for n in ("3.1", "3.2", "3.3", "3.4")}
+            opening.append(max(fp["3.1"][1] - fp["3.3"][1], fp["3.2"][1] - fp["3.4"][1]))
+        gap[name] = min(opening) if name == "blink" else opening[-1]
+    rest = face.feature_point_positions()
+    rest_opening = rest["3.1"][1] - rest["3.3"][1]
+    assert gap["blink"] < 0.15 * rest_opening
+    assert abs(gap["held"]) < 0.05 * rest_opening
+
+
 def test_a_closing_upper_lid_unfolds_its_crease_instead_of_stretching_its_front(player):
     """Both upper lids closed to 1024 (12 mm): the lid's front, its crease and the brow's
-    underside come down together, so no visible edge stretches past 3x its rest length
-    (2.7x measured, at the margin's rim over the lining; 4.1x when only the lid's front
-    moved, its crease staying: its few millimetres had to cover the eye), none turns over
-    and the brows stay within a millimetre."""
+    underside come down together, so no visible edge stretches past 4x its rest length
+    (3.6x measured, at the margin's rim between the front and the lining, with the lid
+    down on the lower lid; 2.7x while it stopped 1.8 mm short; 4.1x when only the lid's
+    front moved, its crease staying: its few millimetres had to cover the eye), none turns
+    over and the brows stay within a millimetre."""
     from fae.animate.calibrate import eyelid_weight
     from fae.animate.skin_check import SkinCheck
     from fae.sim.build import eyeball_sphere
@@ -350,7 +375,7 @@ def test_a_closing_upper_lid_unfolds_its_crease_instead_of_stretching_its_front(
     v[[18, 19]] = 1024.0
     skin = settle(player, v, frames=30)
     r = SkinCheck(face).frame(skin)
-    assert r.stretch < 3.0 and r.turned.sum() == 0
+    assert r.stretch < 4.0 and r.turned.sum() == 0
     for name in ("4.1", "4.2", "4.3", "4.4", "4.5", "4.6"):
         i = np.argmin(np.linalg.norm(V - fp[name], axis=1))
         assert np.linalg.norm(skin[i] - V[i]) < 1e-3, name

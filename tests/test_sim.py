@@ -86,6 +86,44 @@ def test_warp_step_matches_numpy_reference(model):
     assert np.abs(state.particle_qd.numpy() - qd).max() < 1e-3
 
 
+def test_a_field_with_less_drag_moves_its_skin_sooner_to_the_same_place(face):
+    """A pull field that asks for less drag (the eyelids' does) lowers it on the skin it
+    pulls, by its weight, and nowhere else; that skin covers more of a step in the first
+    frame and settles where the skin's own drag takes it; the Warp step still equals its
+    numpy twin and the substep stays within the bound."""
+    from fae.sim.build import DEFAULTS, PullField
+
+    V = np.asarray(face.skin_vertices)
+    centre = V[np.argmax(V[:, 2])]  # the nose's tip: in front, skin all round
+    weight = np.clip(1.0 - np.linalg.norm(V - centre, axis=1) / 0.02, 0.0, 1.0)
+    moved = {}
+    for drag in (None, 20.0):
+        m = skin_model(face, fields=[PullField("pull", np.array([0.0, 1.0, 0.0]), weight, drag=drag)])
+        d = m.particle_drag.numpy()
+        assert m.dt_max * substep_count(m, 1 / 25) >= 1 / 25 - 1e-12
+        activation = np.zeros(m.muscle_count)
+        activation[m.muscle_names.index("pull")] = 0.15
+        rot, tr = np.tile(np.eye(3), (2, 1, 1)), np.zeros((2, 3))
+        if drag is None:
+            assert np.allclose(d, DEFAULTS["drag"])
+        else:
+            tip = m.skin_particle[np.argmax(weight)]
+            assert d[tip] == pytest.approx(drag) and d.max() == pytest.approx(DEFAULTS["drag"])
+            state, q, _, _ = _twin_steps(m, activation, rot, tr, frames=2)
+            step = np.abs(q - m.particle_q.numpy()).max()
+            assert step > 1e-3 and np.abs(state.particle_q.numpy() - q).max() < 1e-5 * step / 1e-3
+        solver, state, control = SkinSolver(m), m.state(), m.control()
+        control.set(muscle_activation=activation, bone_rotation=rot, bone_translation=tr)
+        tip = int(np.argmax(weight))
+        path = []
+        for _ in range(40):
+            solver.step(m, state, control, 1 / 25, state)
+            path.append(skin_positions(m, state.particle_q.numpy())[tip, 1] - V[tip, 1])
+        moved[drag] = np.array(path)
+    assert moved[None][-1] > 1e-3 and moved[20.0][-1] == pytest.approx(moved[None][-1], rel=0.02)
+    assert moved[20.0][0] / moved[20.0][-1] > 1.3 * moved[None][0] / moved[None][-1]
+
+
 def test_left_muscle_moves_the_left_side_only(face, model):
     m = model.muscle_names.index("zygomatic_major_l")
     activation = np.zeros(model.muscle_count)

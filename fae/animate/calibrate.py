@@ -25,7 +25,8 @@ operating amplitude verify-faps checks) for FAPs in batches whose footprints, gr
 edge rings, do not overlap (the jaw FAPs alone); the settled displacement along the
 direction is measured and the table scale at +-half and full range multiplied by
 expected / measured (clipped to [0.5, 2] per pass; `passes` 3 by default, 1 from a similar
-head's mapping). (4) refinement: a FAP still off by more than REFINE_TOLERANCE is measured
+head's mapping); the upper lids' closing (FULL_RANGE_FAPS) is measured at its positive
+limit too, for its full-range scale. (4) refinement: a FAP still off by more than REFINE_TOLERANCE is measured
 again at its new scale, up to REFINE_PASSES times; where the skin snaps between two settled
 states (a nose or lip pull that stretches edges to the fold guard's strain limit drags the
 tissue beside it along: raise_nose on a bust went from 0.8x to 1.45x of its value between
@@ -109,8 +110,14 @@ WARM_PASSES = 1
 # then FAPs off by more than REFINE_TOLERANCE are measured again, at most REFINE_PASSES times
 REFINE_PASSES = 4
 REFINE_TOLERANCE = 0.1
-# the table_scale columns a side's probe measures: its half and full range
-SCALE_COLUMNS = {1.0: [3, 4], -1.0: [1, 0]}
+# a probe's amplitude (+-1: half range, 2: the positive limit) -> the table_scale columns it
+# sets: a half-range probe sets its half and full range, but a FAP of FULL_RANGE_FAPS has
+# its positive limit measured on its own
+SCALE_COLUMNS = {1.0: [3, 4], -1.0: [1, 0], 2.0: [4]}
+# FAPs measured at their positive limit too: the upper lids' closing. Streams blink at 1024
+# (the lid down by IRISD0, onto the lower lid), where the lid's response to the scale of
+# half range had fallen to 0.85: a held blink left a 1.8 mm slit of eyeball showing
+FULL_RANGE_FAPS = (19, 20)
 SETTLE_THREADS = 4  # at most; Warp's CPU kernels release the GIL
 # FAPs probed alone: the mouth corners' raise, which a batch mate whose footprint does not
 # meet its own on the linear response still moves through the lips' contact
@@ -156,7 +163,7 @@ def pull_fields(face, fapu: dict[str, float], graph: sp.csr_matrix | None = None
         point = face.feature_points[FAP_FEATURE_POINT[k - 1]]
         lid = eyelid_weight(face, k, graph)
         if lid is not None:
-            out.append(PullField(name, FAP_DIRECTION[k - 1], lid))
+            out.append(PullField(name, FAP_DIRECTION[k - 1], lid, drag=LID_DRAG))
             continue
         if f in brows:
             out.append(PullField(name, FAP_DIRECTION[k - 1], brows[f]))
@@ -228,6 +235,12 @@ _LID_UNFOLDS_INTO = ("forehead",)
 # how far up that skin comes along: a share of the way from the margin to the brow's point
 # (all of it hooded the lid with the brow's underside; 0.7 folded the lid more)
 LID_UNFOLD_REACH = 0.85
+# 1/s: the drag of the skin a lid's pull moves (the skin's is 70, fae.sim.build). A blink
+# sent as 512, 1024, 1024, 512 (the shared streams') left a third of the eye open at its
+# deepest with the skin's: the lid reached 0.40, 0.75, 0.88 of a step in its first three
+# frames. With 30: 0.59, 0.85, 0.96, and the same settled lid; the stable substep stays
+# above 20 ms (two per 25 fps frame)
+LID_DRAG = 30.0
 
 
 def eyelid_weight(face, k: int, graph: sp.csr_matrix | None = None) -> np.ndarray | None:
@@ -499,8 +512,9 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
         jaw_alone = FapControls(controls_face, model)
         jaw_alone.jaw_follow = np.zeros(FAP_COUNT)
         follow_asked = jaw_follow.copy()  # what the lips take back in this pass's hold job
-        jobs = _probe_jobs(batches, [(k, side) for side in (1.0, -1.0) for k in faps
-                                     if (side > 0 and np.any(gain_pos[k - 1]))
+        jobs = _probe_jobs(batches, [(k, side) for side in SCALE_COLUMNS for k in faps
+                                     if (side == 1.0 and np.any(gain_pos[k - 1]))
+                                     or (side == 2.0 and k in FULL_RANGE_FAPS and np.any(gain_pos[k - 1]))
                                      or (side < 0 and FAP_LIMITS[k - 1, 0] < 0 and np.any(gain_neg[k - 1]))], half)
         if JAW_OPEN in faps and np.any(follow_asked):
             values = np.zeros(FAP_COUNT)
@@ -513,7 +527,7 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
             if kind == "hold":
                 held = skin
                 continue
-            if side > 0 and JAW_OPEN in todo:
+            if side == 1.0 and JAW_OPEN in todo:
                 # what open_jaw alone carries the lip points by, to be taken back by their FAPs
                 for k in LIP_FAPS:
                     fdp = FAP_FEATURE_POINT[k - 1]
@@ -521,7 +535,7 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
                         jaw_follow[k - 1] = moved_along(fdp, k, skin) / (half[JAW_OPEN - 1] * unit[k - 1])
                         carried[k] = jaw_follow[k - 1]
             for k in todo:
-                along = moved_along(FAP_FEATURE_POINT[k - 1], k, skin) * side
+                along = moved_along(FAP_FEATURE_POINT[k - 1], k, skin) * np.sign(side)
                 twin = twin_of.get(k)
                 if twin is not None and FAP_FEATURE_POINT[twin - 1] in probe.fdp and abs(along) > 0:
                     # the twin's point moves with k only inside k's footprint (elsewhere a
@@ -529,16 +543,16 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
                     tp = FAP_FEATURE_POINT[twin - 1]
                     ratio = 0.0
                     if footprint[k][probe.fdp[tp][0]].all():
-                        ratio = float(np.clip(moved_along(tp, twin, skin) * side / along, 0.0, 1.0))
+                        ratio = float(np.clip(moved_along(tp, twin, skin) * np.sign(side) / along, 0.0, 1.0))
                     overlap.setdefault(k, []).append(ratio)
-                expected = half[k - 1] * unit[k - 1]
-                cols = SCALE_COLUMNS[side]
+                expected = abs(side) * half[k - 1] * unit[k - 1]
+                cols = _scale_columns(k, side)
                 measured.setdefault((k, side), []).append((float(table_scale[k - 1, cols[0]]), along / expected))
                 g = float(np.clip(expected / along, 0.5, 2.0)) if along > 1e-3 * expected else 2.0
                 if last and k not in JAW_FAPS and _miss(along / expected) <= REFINE_TOLERANCE:
                     continue  # near its value at a measured scale: a step more might cross a snap
                 table_scale[k - 1, cols] *= g
-                if k == JAW_OPEN and side > 0:
+                if k == JAW_OPEN and side == 1.0:
                     jaw_follow *= g  # the jaw carries the lips as far as it opens
         if carried and jobs[-1][3] == "hold":
             # the lips' hold against the jaw: what they took back (the jaw's carry less what
@@ -569,10 +583,10 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
         refining = []
         for (side, todo, _, _), skin in zip(jobs, skins):
             for k in todo:
-                cols = SCALE_COLUMNS[side]
+                cols = _scale_columns(k, side)
                 seen = measured[(k, side)]
-                seen.append((float(table_scale[k - 1, cols[0]]),
-                             moved_along(FAP_FEATURE_POINT[k - 1], k, skin) * side / (half[k - 1] * unit[k - 1])))
+                seen.append((float(table_scale[k - 1, cols[0]]), moved_along(FAP_FEATURE_POINT[k - 1], k, skin)
+                             * np.sign(side) / (abs(side) * half[k - 1] * unit[k - 1])))
                 step = _next_scale(seen) if _miss(seen[-1][1]) > REFINE_TOLERANCE else None
                 if step is not None:
                     table_scale[k - 1, cols] = step
@@ -581,7 +595,7 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
         if k not in JAW_FAPS and _miss(seen[-1][1]) > REFINE_TOLERANCE:
             # the scale now set was never measured (or was, and missed): the best one that was
             best = min(seen, key=lambda sr: _miss(sr[1]))[0]
-            table_scale[k - 1, SCALE_COLUMNS[side]] = best
+            table_scale[k - 1, _scale_columns(k, side)] = best
     mapping["table_scale"] = table_scale
     mapping["pair_overlap"] = pair_overlap_of(overlap)
     out = copy.copy(face)
@@ -589,11 +603,19 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
     return out
 
 
+def _scale_columns(k: int, side: float) -> list[int]:
+    """The table_scale columns of FAP k that a probe at amplitude `side` sets (SCALE_COLUMNS)."""
+    if side == 1.0 and k in FULL_RANGE_FAPS:
+        return [3]
+    return SCALE_COLUMNS[side]
+
+
 def _probe_jobs(batches: list[list[int]], todo: list[tuple[int, float]], half: np.ndarray) -> list[tuple]:
     """Settle jobs (side, FAPs, values (68,), "probe") for the (FAP, side) pairs `todo`:
-    one per batch and side holding those of its FAPs at +-half range."""
+    one per batch and side holding those of its FAPs at side x half range (side: 1, -1, or
+    2 for the positive limit)."""
     jobs = []
-    for side in (1.0, -1.0):
+    for side in SCALE_COLUMNS:
         for batch in batches:
             faps = [k for k in batch if (k, side) in todo]
             if faps:

@@ -24,6 +24,8 @@ Parameters (keys of `layer_params`, else these defaults): stiffness per unit mas
 (1/s^2) `kappa_epidermis` 600, `kappa_middle` 300, `kappa_deep` 300, `kappa_vertical`
 1000, `kappa_cross` 400, `kappa_anchor` 10000 (deepest layer to its hold), `kappa_tether`
 500 (upper layers to theirs); `drag` 70 1/s; `density` 1100 kg/m^3;
+(a pull field may lower the drag of the skin it pulls: `PullField.drag`, the eyelids'
+30, fae.animate.calibrate);
 `muscle_acceleration` 50 m/s^2 (force per unit activation and weight, per kg);
 `jaw_reach` 15 mm, `jaw_sure` 0.5, `jaw_corner_blend` 0.2, `jaw_blend_rings` 4 (see
 `jaw_weights`). How fast the skin follows a muscle is set by the drag against the
@@ -103,11 +105,14 @@ class PullField:
     name        unique name
     direction   (3,) unit vector in the head frame
     skin_weight (V,) float64 in [0, 1], weight of each skin vertex (zero: untouched)
+    drag        1/s: the drag of the skin it pulls, blended from the skin's by the weight
+                (None: the skin's `drag`); lower follows the pull sooner
     """
 
     name: str
     direction: np.ndarray
     skin_weight: np.ndarray
+    drag: float | None = None
 
 
 def dilate(mask: np.ndarray, A: sp.csr_matrix, rings: int) -> np.ndarray:
@@ -374,8 +379,10 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
     # How much each skin vertex's hold follows the jaw (0: skull, 1: mandible).
     jaw = jaw_weights(face, layers[-1], A, p)
 
-    # Muscle and field weights on skin vertices.
+    # Muscle and field weights on skin vertices; each vertex's drag (1/s), lowered by the
+    # fields that ask for a quicker skin, by their weight (the strongest such field's)
     muscle_arrays, muscle_w, muscle_names, muscle_layers = [], [], [], []
+    vertex_drag = np.full(nv, float(p["drag"]))
     for (arr, w), m in zip(_muscle_weights(face, V), face.muscles):
         muscle_arrays.append(arr)
         muscle_w.append(w)
@@ -391,6 +398,9 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
         muscle_w.append(w)
         muscle_names.append(fld.name)
         muscle_layers.append((0, 1))
+        if fld.drag is not None:
+            vertex_drag = np.minimum(vertex_drag, float(p["drag"]) + (float(fld.drag) - float(p["drag"]))
+                                     * np.clip(w, 0.0, 1.0))
 
     # The simulated set: near any muscle or field, plus one ring that sits on its hold;
     # elsewhere the skin moves with its hold (`skin_positions`): the neck, the scalp and the
@@ -526,7 +536,16 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
     # the weakest (implicit) anchor (see fae.sim.solver).
     omega2 = max_stiffness_rate(P, spr, ks, mass, movable)
     anchor_rate = float(np.min(anchor_k[movable] / mass[movable])) if np.any(movable) else 0.0
+    drag = np.tile(vertex_drag[sim_vertices], LAYER_COUNT)
     dt_max = stable_substep(omega2, anchor_rate, float(p["drag"]), float(p["cfl"]))
+    quick = movable & (drag < float(p["drag"]))
+    if np.any(quick):
+        # the skin a field lets follow sooner (less drag) has its own, softer, bound: the
+        # largest eigenvalue of its rows of the network (a principal submatrix, never above
+        # the whole's); its modes reach the rest of the skin only through the drag there
+        dt_max = min(dt_max, stable_substep(max_stiffness_rate(P, spr, ks, mass, quick),
+                                            float(np.min(anchor_k[quick] / mass[quick])),
+                                            float(np.min(drag[quick])), float(p["cfl"])))
 
     def arr(x, dtype):
         return wp.array(np.ascontiguousarray(x), dtype=dtype, device=device)
@@ -544,6 +563,7 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
         particle_clearance=arr(clearance.astype(np.float32), wp.vec2),
         particle_sphere=arr(sphere.astype(np.float32), wp.vec4),
         particle_sphere_max=arr(sphere_max.astype(np.float32), float),
+        particle_drag=arr(drag.astype(np.float32), float),
         spring_count=len(spr),
         spring_indices=arr(spr.reshape(-1).astype(np.int32), int),
         spring_rest_length=arr(rest_len.astype(np.float32), float),

@@ -46,7 +46,7 @@ class ParticleStatic:
     for a negative index; the pass is 18 % faster on the CPU). Fields as the SkinModel's
     particle_q (rest), particle_jaw, particle_inv_mass, particle_anchor_stiffness,
     row_influence_start[i] and [i + 1], particle_below, particle_normal, particle_height,
-    particle_collider, particle_clearance, particle_sphere, particle_sphere_max."""
+    particle_collider, particle_clearance, particle_sphere, particle_sphere_max, particle_drag."""
 
     rest: wp.vec3
     jaw: float
@@ -61,6 +61,7 @@ class ParticleStatic:
     clearance: wp.vec2
     sphere: wp.vec4
     sphere_max: float
+    drag: float
 
 
 @wp.kernel
@@ -74,7 +75,7 @@ def step_particles(particle_q: wp.array(dtype=wp.vec3), particle_qd: wp.array(dt
                    bone_translation: wp.array(dtype=wp.vec3),
                    head_sdf: wp.array3d(dtype=float), head_sdf_origin: wp.vec3, head_sdf_spacing: float,
                    jaw_sdf: wp.array3d(dtype=float), jaw_sdf_origin: wp.vec3, jaw_sdf_spacing: float,
-                   contact_depth: float, damping: float, dt: float, particle_count: int, chunk: int,
+                   contact_depth: float, dt: float, particle_count: int, chunk: int,
                    particle_q_out: wp.array(dtype=wp.vec3), particle_qd_out: wp.array(dtype=wp.vec3)):
     start = wp.tid() * chunk
     R0 = bone_rotation[0]
@@ -105,7 +106,7 @@ def step_particles(particle_q: wp.array(dtype=wp.vec3), particle_qd: wp.array(dt
                 f = f + dirm * (act * influence_weight[r])
                 ka = ka + km * wp.abs(act) * influence_weight[r]
         f = f + (target - x) * ps.anchor_stiffness
-        v = (v + f * (w * dt)) / (1.0 + dt * damping + dt * dt * w * ka)
+        v = (v + f * (w * dt)) / (1.0 + dt * ps.drag + dt * dt * w * ka)
         x = x + v * dt
         k = ps.below
         if k >= 0:

@@ -58,6 +58,8 @@ class SkinModel:
     particle_sphere_max (P,) float metres, the farthest from that eyeball's centre the particle
                                    may go (skin hidden behind the lids: the lining stays
                                    behind the lid's front); 0: no limit
+    particle_drag       (P,) float 1/s: velocity drag applied implicitly each substep (`damping`,
+                                   less where a pull field asks for a quicker skin)
     contact_depth       metres: deeper penetrations are left to the springs (fae.sim.collision)
     triangle_count      triangles of the two upper layers guarded against folding (fae.sim.folds)
     triangle_guard      (T,) fae.sim.folds.GuardedTriangle: particles, rest shape, rest normal
@@ -105,7 +107,7 @@ class SkinModel:
     skin_jaw            (V,) numpy float, jaw weight of each skin vertex's hold
     skin_rest           (V, 3) numpy float64 metres, skin at rest
     dt_max              seconds: the largest stable substep (see solver)
-    damping             1/s: velocity drag applied implicitly each substep
+    damping             1/s: the skin's velocity drag (particle_drag where no field lowers it)
     """
 
     device: str
@@ -118,6 +120,7 @@ class SkinModel:
     particle_clearance: wp.array
     particle_sphere: wp.array
     particle_sphere_max: wp.array
+    particle_drag: wp.array
     spring_count: int
     spring_indices: wp.array
     spring_rest_length: wp.array

@@ -28,6 +28,7 @@ class ReferenceSolver:
         self.inv_mass = a["particle_inv_mass"].astype(np.float64)
         # per particle: anchor stiffness / mass (1/s^2), the implicit part of a substep
         self.anchor_rate = a["particle_anchor_stiffness"] * self.inv_mass
+        self.drag = a["particle_drag"].astype(np.float64)
         self.rest = a["particle_q"].astype(np.float64)
         self.jaw = a["particle_jaw"].astype(np.float64)[:, None]
 
@@ -393,7 +394,7 @@ class ReferenceSolver:
         for _ in range(n):
             f_muscle, k_muscle = self.muscles(q, act, R, t)
             f = self.spring_forces(q) + (hold - q) * ka + f_muscle
-            implicit = 1.0 + h * self.model.damping + h * h * (self.anchor_rate + k_muscle * self.inv_mass)
+            implicit = 1.0 + h * self.drag + h * h * (self.anchor_rate + k_muscle * self.inv_mass)
             qd = (qd + f * w * h) / implicit[:, None]
             qd[fixed] = 0.0
             q_prev = q

@@ -22,7 +22,9 @@ anchors (the stiffest part of the skin, kappa_anchor 10000 1/s^2) and muscles (a
 at its activation limit is stiffer than all the springs) cost none. `dt_max` is the largest
 h that satisfies this for the springs' largest w^2 (Lanczos over the spring network's
 weighted graph Laplacian, which bounds M^-1 K_s in every configuration without compressed
-springs, see fae.sim.build) and the weakest anchor, with a safety factor cfl = 0.9 on w.
+springs, see fae.sim.build) and the weakest anchor, with a safety factor cfl = 0.9 on w;
+where a pull field lowers the drag (the eyelids'), the same bound over that skin's own
+rows of the network with its lowest drag.
 On the shipped head dt_max is 20 ms: two substeps per 25 or 30 fps frame, one at 50 fps
 and up (8.4 ms, five substeps per 25 fps frame, with the same springs twice as stiff and
 drag and anchors explicit).
@@ -108,7 +110,7 @@ def _pack(model: SkinModel) -> tuple[wp.array, wp.array, wp.array]:
                          ("below", model.particle_below), ("normal", model.particle_normal),
                          ("height", model.particle_height), ("collider", model.particle_collider),
                          ("clearance", model.particle_clearance), ("sphere", model.particle_sphere),
-                         ("sphere_max", model.particle_sphere_max)):
+                         ("sphere_max", model.particle_sphere_max), ("drag", model.particle_drag)):
         static[name] = values.numpy()
     static["influence_first"], static["influence_end"] = start[:-1], start[1:]
     return (wp.array(spring_start.astype(np.int32), dtype=int, device=model.device),
@@ -183,7 +185,7 @@ class SkinSolver:
                         m.muscle_kind, self._muscle_point, self._muscle_axis_u, self._muscle_axis_v,
                         m.muscle_scale, control.muscle_activation, control.bone_rotation,
                         control.bone_translation, *self._grids, float(m.contact_depth),
-                        float(m.damping), float(h), m.particle_count, self.particle_chunk],
+                        float(h), m.particle_count, self.particle_chunk],
                 outputs=[dst.particle_q, dst.particle_qd], record_cmd=True)
             guard = apply = None
             if m.triangle_count:
