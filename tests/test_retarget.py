@@ -255,19 +255,18 @@ def test_menpo3d_template(template, shared_data, template_folds):
     if not folder.is_dir():
         pytest.skip("menpo3d template not in the shared data")
     rt = retarget(template, read_target(folder / "template.ply", folder / "template.ljson"))
-    # 43 of 50 FAPs (86 %; 46-47 before the template's caps were flipped): the inner lip
-    # corners' stretch reaches 0.55-0.74 of value x MW and the lower lids 1.43-1.44 (their
-    # points bind where the template's motion is larger or smaller than at its own feature
-    # points); raise_nose 0.59, as the template's own 0.64; two lower-lip raises at 0.75,
-    # on the edge, as on the template itself.
+    # 49 of 50 FAPs (98 %): the left inner lip corner's stretch reaches 0.65 of value x MW
+    # (its point lies 6 mm inside the mouth from the outer corner's, where the template has
+    # one point for both). The lids take their FAPU gain from their own motion: with a
+    # uniform motion's gain the lower lids moved 1.43x (47/50; 43-47 in older builds).
     # The mask's eyes are nearly shut (IRISD a tenth of the template's): without the FAPU
     # gains its lids moved 13-16x their value x IRISD
     # Its face folds over 0.9 % of its area (1.5 % before the template's caps were flipped
     # away). The flips cut the template's own share further, 0.5 % -> 0.1 %, so 4x the
     # template's no longer bounds the mask: an absolute floor of 1.2 % does.
-    report, _ = check_target(template, rt, template_folds, min_pass=0.86, fold_factor=FOLD_FACTOR_SCANNED,
+    report, _ = check_target(template, rt, template_folds, min_pass=0.96, fold_factor=FOLD_FACTOR_SCANNED,
                              fold_floor=0.012)
-    assert all(r["ok"] for r in report if r["fap"] in (19, 20))
+    assert all(r["ok"] for r in report if r["fap"] in (19, 20, 21, 22))
 
 
 @pytest.mark.slow

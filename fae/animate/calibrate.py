@@ -379,6 +379,31 @@ class _Probe:
         return self._skin_response(f, q, R, t) / eps
 
 
+def _control_responses(probe: _Probe, rig, count: int) -> list[np.ndarray]:
+    """The skin's linear response (V, 3) to each control: the first `count` (muscles and
+    fields) per unit activation, then the jaw's angle, thrust and shift per radian / metre."""
+    return probe.muscle_responses(count) + [probe.jaw_response(rig, 0, 1e-3), probe.jaw_response(rig, 1, 1e-4),
+                                            probe.jaw_response(rig, 2, 1e-4)]
+
+
+def linear_fap_motion(face, faps) -> dict[int, np.ndarray]:
+    """FAP k -> (V, 3) metres per unit of its value: the skin's linear response at rest to
+    each FAP of `faps` sent alone and positive, through `face`'s calibrated mapping
+    (gain_pos; the table scales, which correct the amplitude, left out). FAPs the mapping
+    does not move are left out."""
+    from fae.animate.rigid import RigidRig
+
+    fapu = fapu_of(face)
+    fields = pull_fields(face, fapu)
+    model = skin_model(face, fields=fields)
+    gain = np.asarray(face.fap_mapping["gain_pos"], dtype=np.float64)
+    todo = [k for k in faps if np.any(gain[k - 1])]
+    if not todo:
+        return {}
+    responses = _control_responses(_Probe(face, model), RigidRig(face, fapu), len(face.muscles) + len(fields))
+    return {k: sum(gain[k - 1, c] * responses[c] for c in np.flatnonzero(gain[k - 1])) for k in todo}
+
+
 def _solve(J: np.ndarray, target: np.ndarray, cost: np.ndarray, lower: np.ndarray) -> np.ndarray:
     norms = np.linalg.norm(J, axis=0)
     ok = norms > 1e-9
@@ -414,8 +439,7 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
     C = nm + nf + JAW_CONTROLS
     field_of = {k: nm + i for i, k in enumerate(field_faps(face))}
 
-    responses = probe.muscle_responses(nm + nf)
-    responses += [probe.jaw_response(rig, 0, 1e-3), probe.jaw_response(rig, 1, 1e-4), probe.jaw_response(rig, 2, 1e-4)]
+    responses = _control_responses(probe, rig, nm + nf)
 
     gain_pos, gain_neg = np.zeros((FAP_COUNT, C)), np.zeros((FAP_COUNT, C))
     fdp_pos = face.feature_point_positions()

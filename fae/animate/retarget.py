@@ -20,7 +20,8 @@ vertex a 3x3 T = R_fit S R_template^T (fae.adapt.binding.frame_transforms: the p
 local frames and box scales, eq. 5-9) turns a motion vector of the template into one of
 the fitted skin, i.e. of the target; a smooth per-axis factor over the target's skin
 (fapu_gain_field) then pins the motion of each FAP's feature point to value x the target's
-own FAPU, as the standard defines it. Motion fades to zero where the target extends beyond
+own FAPU, as the standard defines it (the eyelids' from the template's own linear motion
+for each lid FAP, fae.animate.calibrate.linear_fap_motion, the others' from a uniform one). Motion fades to zero where the target extends beyond
 what the template covers (shoulders, plinth, hair: COVERAGE_NEAR..COVERAGE_FAR metres from
 the fitted skin). The target's separate pieces that sit on the fitted head's eyeballs,
 teeth or tongue become rigid parts moved by the template's eye, head, jaw and tongue
@@ -67,6 +68,14 @@ PIN_REACH = 0.03  # metres around the given feature points within which the fit 
 FDP_REGION_REACH = 0.006  # metres: a feature point looks this far for triangles of its own region
 GAIN_REACH = 0.03  # metres around the FAPs' feature points over which their FAPU gains spread
 GAIN_LIMITS = (0.05, 4.0)  # the least and most a FAPU gain scales the carried motion by
+# FAPs whose FAPU gain comes from their own motion (fapu_gain_field): the eyelids, whose
+# points on a mask with the eyes nearly shut bind where the lid's motion differs from that
+# at the template's point (menpo3d's lower lids at 1.43x with a uniform motion's gain).
+# Not the lips: a lip point and its twin are one point of the template and several
+# millimetres apart on a target (menpo3d's inner and outer mouth corners, 6 mm), and the
+# factors each FAP's own motion asks for there, spread over the skin between them, pushed
+# the corners' stretch and the lower lip's raises to 1.3-1.6x
+MOTION_GAIN_FAPS = (19, 20, 21, 22)
 NECK_FADE = (0.02, 0.09)  # metres below the chin (2.1) where the head pose starts and ends fading out
 
 
@@ -207,7 +216,8 @@ class Retarget:
 
 
 def fapu_gain_field(model: FaceModel, carried: Callable[[np.ndarray], np.ndarray], template_fapu: dict[str, float],
-                    target_fapu: dict[str, float], reach: float = GAIN_REACH) -> tuple[np.ndarray, dict]:
+                    target_fapu: dict[str, float], reach: float = GAIN_REACH,
+                    fap_motion: dict[int, tuple[np.ndarray, float]] | None = None) -> tuple[np.ndarray, dict]:
     """(k, 3) the factor per target skin vertex (model.skin_vertices (k, 3), face frame) and
     face axis by which the carried motion is scaled, and per feature point the factors met.
 
@@ -220,7 +230,13 @@ def fapu_gain_field(model: FaceModel, carried: Callable[[np.ndarray], np.ndarray
     motion -> (k, 3) target motion, without any gain field), and factor = (target FAPU /
     template FAPU of that FAP's unit) / gain, clamped to GAIN_LIMITS (a gain <= 0, an axis
     the frames turn over, gives none); an axis no FAP of the point moves along takes the
-    geometric mean of those that do. The factor scales the whole motion along its face
+    geometric mean of those that do. With `fap_motion` (FAP k -> (u, 3) the template's
+    motion for one unit of k at the vertices used, and how far that moves the template's
+    own point along k's direction), a FAP it holds takes its gain from that motion instead
+    of a uniform one: gain = what the carried motion moves the target's point along k's
+    direction over what it moves the template's, so a point that binds where the template's
+    motion is larger or smaller than at the template's own point still moves by value x
+    its FAPU. The factor scales the whole motion along its face
     axis, including what the frames turn into it from the others. Between the points the
     log-factors spread as the smoothest field over the target's surface that meets them
     (softly: fae.adapt.binding.pinned_to_points, along the skin, never across the mouth's
@@ -241,6 +257,9 @@ def fapu_gain_field(model: FaceModel, carried: Callable[[np.ndarray], np.ndarray
         axis = int(np.argmax(np.abs(FAP_DIRECTION[k - 1])))
         corners = F[point.triangle]
         gain = float(point.bary @ uniform[axis][corners, axis])
+        if fap_motion is not None and k in fap_motion and fap_motion[k][1] > 0.0:
+            motion, own = fap_motion[k]
+            gain = float(point.bary @ carried(motion)[corners] @ FAP_DIRECTION[k - 1]) / own
         if not gain > 0.0:  # the frames turn this axis over here: no magnitude to correct
             continue
         factor = np.clip(target_fapu[unit] / template_fapu[unit] / gain, *GAIN_LIMITS)
@@ -261,6 +280,27 @@ def fapu_gain_field(model: FaceModel, carried: Callable[[np.ndarray], np.ndarray
     # brow's 0.9): kept within the factors met and 1
     field_ = np.clip(field_, np.minimum(met.min(axis=0), 0.0), np.maximum(met.max(axis=0), 0.0))
     return np.exp(field_), {n: np.exp(met[i]).round(4).tolist() for i, n in enumerate(names)}
+
+
+def _template_fap_motion(template: FaceModel, used: np.ndarray) -> dict[int, tuple[np.ndarray, float]]:
+    """FAP k -> ((u, 3) the template skin's linear motion per unit of k at the vertices
+    `used`, metres; how far it moves the template's own feature point of k along k's
+    direction) for the eyelids' FAPs (MOTION_GAIN_FAPS), empty for a template without a
+    mapping."""
+    from fae.animate.calibrate import linear_fap_motion
+    from fae.animate.faptables import FAP_DIRECTION, FAP_FEATURE_POINT
+
+    if not template.fap_mapping or "gain_pos" not in template.fap_mapping:
+        return {}
+    faps = [k for k in MOTION_GAIN_FAPS if FAP_FEATURE_POINT[k - 1] in template.feature_points
+            and template.feature_points[FAP_FEATURE_POINT[k - 1]].part == "skin"]
+    out = {}
+    for k, motion in linear_fap_motion(template, faps).items():
+        # the point's own displacement (its barycentric blend of the field)
+        own = float(template.surface_point_position(template.feature_points[FAP_FEATURE_POINT[k - 1]], motion)
+                    @ FAP_DIRECTION[k - 1])
+        out[k] = (motion[used], own)
+    return out
 
 
 def _reanchored(M: np.ndarray, a: np.ndarray, b: np.ndarray, s: float) -> np.ndarray:
@@ -502,7 +542,8 @@ def retarget(template: FaceModel, target: TargetMesh, say: Callable[[str], None]
                   frame_transform=np.ascontiguousarray(Tv[used]), gather=G, coverage=coverage,
                   anchors=anchors, scale=ratio, report=report, vertex_count=n, normal_groups=seams)
     rt.fapu_gain, report["fapu_gains"] = fapu_gain_field(
-        model, lambda axis: rt.displacements(np.broadcast_to(axis, (len(used), 3))), template_fapu, target_fapu)
+        model, lambda motion: rt.displacements(np.broadcast_to(motion, (len(used), 3))), template_fapu, target_fapu,
+        fap_motion=_template_fap_motion(template, used))
     return rt
 
 
