@@ -187,8 +187,9 @@ XFACE = sorted(SHARED_FAP.glob("xface_*.fap")) if SHARED_FAP.is_dir() else []
 def test_real_streams_keep_the_lips_apart_and_the_folds_few(name):
     """The xface streams on the shipped head: the lips pass through each other in at most
     three frames (pressed together as xface_beg and xface_hate press them: 0-2), at
-    most 80 visible triangles ever fold or crease (26-76 measured, the margins of eyelids
-    that now close among them: 26-64 while a blink left a third of the eye open; 22-74
+    most 90 visible triangles ever fold or crease (26-82 measured, the margins of eyelids
+    that now close among them, 10-18 a lid, which moves with the lid's scale at its limit:
+    1 % more took them from 10 to 18; 26-64 while a blink left a third of the eye open; 22-74
     before the lids unfolded their crease and the
     skin's strain was limited; 24-102 while a mouth
     corner sent by its inner and outer FAPs moved twice as far, 52-281 while open_jaw
@@ -206,7 +207,7 @@ def test_real_streams_keep_the_lips_apart_and_the_folds_few(name):
     player = Player(playable_head(read_facemodel(shipped_head_path())))
     r = check_stream(player, read_fap(SHARED_FAP / name), name)
     assert r["frames_lips_crossed"] <= 3
-    assert r["triangles_folded"] <= 80
+    assert r["triangles_folded"] <= 90
     assert r["triangles_turned"] <= 4
     assert r["max_stretch"] <= 3.2
     assert r["frames_lining_shown"] <= 3

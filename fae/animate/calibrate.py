@@ -114,15 +114,16 @@ REFINE_TOLERANCE = 0.1
 # sets: a half-range probe sets its half and full range, but a FAP of FULL_RANGE_FAPS has
 # its positive limit measured on its own
 SCALE_COLUMNS = {1.0: [3, 4], -1.0: [1, 0], 2.0: [4]}
-# FAPs measured at their positive limit too: the upper lids' closing. Streams blink at 1024
-# (the lid down by IRISD0, onto the lower lid), where the lid's response to the scale of
-# half range had fallen to 0.85: a held blink left a 1.8 mm slit of eyeball showing
+# FAPs measured at their positive limit (1080) too: the upper lids' closing. Streams blink
+# at 1024 (the lid down by IRISD0, onto the lower lid), where the lid's response to the
+# scale of half range had fallen to 0.85: a held blink left a 1.8 mm slit of eyeball showing
 FULL_RANGE_FAPS = (19, 20)
 SETTLE_THREADS = 4  # at most; Warp's CPU kernels release the GIL
 # a probe's settle ends once the points it measures move less than SETTLE_TOLERANCE of their
-# motion in a frame, from SETTLE_MIN_FRAMES on (at most `settle_frames`): on Demosthenes
-# 13 frames instead of 20 on average, the measured motion within 2.7 % of the 20th frame's
-# for 95 % of the probes (a fixed 14 frames: 8 %)
+# motion in each of two frames running, from SETTLE_MIN_FRAMES on (at most `settle_frames`;
+# two, since a lid's skin of lower drag may turn round at an overshoot): on Demosthenes
+# about 15 frames instead of 20 on average, the measured motion within 3 % of the 20th
+# frame's for 95 % of the probes (a fixed 14 frames: 8 %)
 SETTLE_MIN_FRAMES = 8
 SETTLE_TOLERANCE = 0.002
 # FAPs probed alone: the mouth corners' raise, which a batch mate whose footprint does not
@@ -390,12 +391,18 @@ def linear_fap_motion(face, faps) -> dict[int, np.ndarray]:
     """FAP k -> (V, 3) metres per unit of its value: the skin's linear response at rest to
     each FAP of `faps` sent alone and positive, through `face`'s calibrated mapping
     (gain_pos; the table scales, which correct the amplitude, left out). FAPs the mapping
-    does not move are left out."""
+    does not move are left out, and all of them when the mapping does not fit the head's
+    muscles and fields (MappingMismatch: calibrate again)."""
+    from fae.animate.controls import MappingMismatch
     from fae.animate.rigid import RigidRig
 
     fapu = fapu_of(face)
     fields = pull_fields(face, fapu)
     model = skin_model(face, fields=fields)
+    try:
+        FapControls(face, model)
+    except MappingMismatch:
+        return {}
     gain = np.asarray(face.fap_mapping["gain_pos"], dtype=np.float64)
     todo = [k for k in faps if np.any(gain[k - 1])]
     if not todo:
@@ -771,6 +778,7 @@ def settle(model, solver, controls, values: np.ndarray, rig, frames: int = 40, f
     control.set(muscle_activation=activation, bone_rotation=R, bone_translation=t)
     prev = state.particle_q.numpy().copy()
     along = None
+    still = 0  # frames running in which the watched points moved less than SETTLE_TOLERANCE
     particles = None
     if watch is not None and np.all(model.skin_particle[watch[0]] >= 0):
         particles = model.skin_particle[watch[0]]
@@ -783,8 +791,9 @@ def settle(model, solver, controls, values: np.ndarray, rig, frames: int = 40, f
         prev = q
         if particles is not None:
             now = np.einsum("wk,wkj,wj->w", watch[1], q[particles], watch[2]) - start
-            if (i + 1 >= SETTLE_MIN_FRAMES and along is not None
-                    and np.all(np.abs(now - along) < SETTLE_TOLERANCE * np.maximum(np.abs(now), 1e-4))):
+            calm = along is not None and np.all(np.abs(now - along) < SETTLE_TOLERANCE * np.maximum(np.abs(now), 1e-4))
+            still = still + 1 if calm else 0
+            if i + 1 >= SETTLE_MIN_FRAMES and still >= 2:
                 break
             along = now
     return skin_positions(model, state.particle_q.numpy().astype(np.float64), R, t)

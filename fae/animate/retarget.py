@@ -259,7 +259,8 @@ def fapu_gain_field(model: FaceModel, carried: Callable[[np.ndarray], np.ndarray
         gain = float(point.bary @ uniform[axis][corners, axis])
         if fap_motion is not None and k in fap_motion and fap_motion[k][1] > 0.0:
             motion, own = fap_motion[k]
-            gain = float(point.bary @ carried(motion)[corners] @ FAP_DIRECTION[k - 1]) / own
+            moved = float(point.bary @ carried(motion)[corners] @ FAP_DIRECTION[k - 1]) / own
+            gain = moved if moved > 0.0 else gain  # carried the wrong way: the uniform motion's
         if not gain > 0.0:  # the frames turn this axis over here: no magnitude to correct
             continue
         factor = np.clip(target_fapu[unit] / template_fapu[unit] / gain, *GAIN_LIMITS)

@@ -105,7 +105,8 @@ class PullField:
     name        unique name
     direction   (3,) unit vector in the head frame
     skin_weight (V,) float64 in [0, 1], weight of each skin vertex (zero: untouched)
-    drag        1/s: the drag of the skin it pulls, blended from the skin's by the weight
+    drag        1/s: the drag of the skin it pulls (all three layers under a vertex,
+                though it pulls the upper two), blended from the skin's by the weight
                 (None: the skin's `drag`); lower follows the pull sooner
     """
 

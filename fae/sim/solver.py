@@ -9,7 +9,8 @@ Scheme. A frame of length dt is split into n = ceil(dt / dt_max) equal substeps 
     then up to `fold_passes` passes of the fold guard, crease smoothing and lip contact
     (fae.sim.folds), each move stopping at the bones.
 
-Stability. The drag c (1/s), each particle's anchor k_a (a zero-length spring to its hold)
+Stability. The drag c (1/s, per particle: lower where a pull field asks, fae.sim.build),
+each particle's anchor k_a (a zero-length spring to its hold)
 and the stiffness k_m of the muscles contracted on it are implicit, the springs explicit.
 For one mode of the springs of frequency w (w^2 an eigenvalue of M^-1 K_s) on a particle
 with anchor rate kappa_a = k_a / m, the step's amplification matrix has determinant
