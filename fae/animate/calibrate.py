@@ -765,7 +765,7 @@ def settle(model, solver, controls, values: np.ndarray, rig, frames: int = 40, f
     watch: the points a probe measures, (W, 3) int skin vertices, (W, 3) barycentric
     weights, (W, 3) unit directions; from SETTLE_MIN_FRAMES on, the skin counts as settled
     once each point's motion along its direction changed by less than SETTLE_TOLERANCE of
-    itself over a frame (the rest of the skin may still creep)."""
+    itself over each of two frames running (the rest of the skin may still creep)."""
     if scratch is None:
         state, control = model.state(), model.control()
     else:
