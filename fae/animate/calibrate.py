@@ -552,6 +552,10 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
         return float((face.surface_point_position(face.feature_points[point], skin) - fdp_pos[point])
                      @ FAP_DIRECTION[k - 1])
 
+    def expected_motion(k: int, side: float) -> float:
+        # metres FAP k's probe on `side` should move its point (amplitude |side| half-ranges)
+        return abs(side) * half[k - 1] * unit[k - 1]
+
     overlap: dict[int, list[float]] = {}  # twin-over-own motion ratios of the last pass (none: 0)
     # every (FAP, side) measured: [(table scale, measured over expected)], for the refinement
     measured: dict[tuple[int, float], list[tuple[float, float]]] = {}
@@ -596,7 +600,7 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
                     if footprint[k][probe.fdp[tp][0]].all():
                         ratio = float(np.clip(moved_along(tp, twin, skin) * np.sign(side) / along, 0.0, 1.0))
                     overlap.setdefault(k, []).append(ratio)
-                expected = abs(side) * half[k - 1] * unit[k - 1]
+                expected = expected_motion(k, side)
                 cols = _scale_columns(k, side)
                 measured.setdefault((k, side), []).append((float(table_scale[k - 1, cols[0]]), along / expected))
                 g = float(np.clip(expected / along, 0.5, 2.0)) if along > 1e-3 * expected else 2.0
@@ -636,8 +640,8 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
             for k in todo:
                 cols = _scale_columns(k, side)
                 seen = measured[(k, side)]
-                seen.append((float(table_scale[k - 1, cols[0]]), moved_along(FAP_FEATURE_POINT[k - 1], k, skin)
-                             * np.sign(side) / (abs(side) * half[k - 1] * unit[k - 1])))
+                along = moved_along(FAP_FEATURE_POINT[k - 1], k, skin) * np.sign(side)
+                seen.append((float(table_scale[k - 1, cols[0]]), along / expected_motion(k, side)))
                 step = _next_scale(seen) if _miss(seen[-1][1]) > REFINE_TOLERANCE else None
                 if step is not None:
                     table_scale[k - 1, cols] = step
