@@ -22,7 +22,9 @@ FAP and side, bounded least squares (scipy lsq_linear) for the controls moving i
 point by one metre along the standard direction while, for a sided FAP, its mirror point
 stays still (those rows weighted by how far apart the two points are, see MIRROR_NEAR). (3) nonlinear correction: the real solver is run at +-half range (the
 operating amplitude verify-faps checks) for FAPs in batches whose footprints, grown by two
-edge rings, do not overlap (the jaw FAPs alone); the settled displacement along the
+edge rings, do not overlap (the jaw FAPs alone), each batch on its footprint alone (grown
+by PART_RINGS rings; the rest of the skin held, fae.sim.build.skin_model's `only`: the
+same steps on 40 % of the particles on average; the jaw's on the whole skin); the settled displacement along the
 direction is measured and the table scale at +-half and full range multiplied by
 expected / measured (clipped to [0.5, 2] per pass; `passes` 3 by default, 1 from a similar
 head's mapping); the upper lids' closing (FULL_RANGE_FAPS) is measured at its positive
@@ -66,6 +68,7 @@ from __future__ import annotations
 import copy
 import os
 import queue
+import threading
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -82,7 +85,8 @@ from fae.mpeg4.faps import FAP_COUNT
 from fae.mpeg4.fdps import mirror_point
 from fae.linalg import symmetric_splu
 from fae.mesh import adjacency
-from fae.sim.build import EYE_CLEARANCE, PullField, eyeball_sphere, mesh_edges, skin_model, skin_positions
+from fae.sim.build import (EYE_CLEARANCE, PullField, dilate, eyeball_sphere, mesh_edges, skin_model,
+                           skin_positions)
 from fae.sim.reference import ReferenceSolver
 
 FIELD_ONLY_FAPS = (19, 20, 21, 22)
@@ -119,6 +123,7 @@ SCALE_COLUMNS = {1.0: [3, 4], -1.0: [1, 0], 2.0: [4]}
 # scale of half range had fallen to 0.85: a held blink left a 1.8 mm slit of eyeball showing
 FULL_RANGE_FAPS = (19, 20)
 SETTLE_THREADS = 4  # at most; Warp's CPU kernels release the GIL
+PART_RINGS = 3  # edge rings of free skin around a batch's footprint in its probes
 # a probe's settle ends once the points it measures move less than SETTLE_TOLERANCE of their
 # motion in each of two frames running, from SETTLE_MIN_FRAMES on (at most `settle_frames`;
 # two, since a lid's skin of lower drag may turn round at an overshoot): on Demosthenes
@@ -519,20 +524,37 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
     # the settles of one pass do not depend on each other (each starts from rest and holds only
     # its batch's FAPs): they run on every core, each thread with its own solver and state
     workers = max(1, min(SETTLE_THREADS, os.cpu_count() or 1))
-    contexts: queue.SimpleQueue = queue.SimpleQueue()
-    for _ in range(workers):
-        contexts.put((SkinSolver(model), settle_scratch(model)))
+    # a batch without a jaw FAP moves only its footprint: its probes run on that part of the
+    # skin alone (PART_RINGS more rings free around it; the rest held, as it is at rest),
+    # the same steps at a quarter of the cost on average; the jaw's on the whole skin
+    batch_of = {k: i for i, b in enumerate(batches) for k in b}
+    A = adjacency(np.asarray(face.skin_faces), len(face.skin_vertices))
+    parts = {-1: model}  # batch -> its part, made by the first job that needs it
+    contexts = {i: queue.SimpleQueue() for i in range(-1, len(batches))}
+    part_locks = {i: threading.Lock() for i in range(len(batches))}
+
+    def part_of(key: int):
+        with part_locks[key]:
+            if key not in parts:
+                only = dilate(np.any([footprint[k] for k in batches[key]], axis=0), A, PART_RINGS)
+                parts[key] = skin_model(face, device=device, fields=fields, like=model, only=only)
+        return parts[key]
 
     def settled(job):
-        solver, scratch = contexts.get()
+        key = -1 if job[3] == "hold" or any(k in JAW_FAPS for k in job[1]) else batch_of[job[1][0]]
+        part = model if key < 0 else part_of(key)
+        try:
+            solver, scratch = contexts[key].get_nowait()
+        except queue.Empty:
+            solver, scratch = SkinSolver(part), settle_scratch(part)
         try:
             # open_jaw is probed without the lips taking back what it carries (jaw_follow):
             # that is what it measures; the "hold" job probes it with them
             controls = jaw_alone if JAW_OPEN in job[1] and job[3] == "probe" else ctl
-            return settle(model, solver, controls, job[2], rig, frames=settle_frames, scratch=scratch,
+            return settle(part, solver, controls, job[2], rig, frames=settle_frames, scratch=scratch,
                           watch=None if job[3] == "hold" else watch_points(job[1]))
         finally:
-            contexts.put((solver, scratch))
+            contexts[key].put((solver, scratch))
 
     def watch_points(todo: list[int]) -> tuple | None:
         # the points a probe of FAPs `todo` measures (their own, and their lip twins' and, for
@@ -732,7 +754,6 @@ def _disjoint_batches(face, model, faps, responses, gain_pos, gain_neg, unit
                       ) -> tuple[list[list[int]], dict[int, np.ndarray]]:
     """FAPs grouped so that no two in a group move the same skin (footprint + 2 rings), and
     each FAP's footprint ((V,) bool skin vertices)."""
-    from fae.sim.build import dilate
 
     A = adjacency(np.asarray(face.skin_faces), len(face.skin_vertices))
     footprint = {}

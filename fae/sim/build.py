@@ -350,10 +350,16 @@ def _muscle_weights(face: FaceModel, points: np.ndarray) -> list[tuple[dict, np.
 
 
 def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | None = None,
-               params: dict | None = None) -> SkinModel:
+               params: dict | None = None, only: np.ndarray | None = None,
+               like: SkinModel | None = None) -> SkinModel:
     """The SkinModel of `face` on `device` ("cpu" or "cuda"), with extra pull `fields`.
 
     params override `face.layer_params` and the module defaults (see module docstring).
+    only: (V,) bool, the skin vertices that may move; the rest moves with its hold, as
+    skin far from any muscle does (a part of the face simulated alone: a calibration's
+    probe of FAPs that move only that part). like: the model of the same face, fields and
+    params without `only`, whose jaw weights and stable substep the part takes (the same
+    steps, so the part settles as that skin does in the whole).
     """
     p = dict(DEFAULTS)
     p.update({k: v for k, v in (face.layer_params or {}).items() if k in DEFAULTS})
@@ -372,19 +378,25 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
     if fr.shape != (LAYER_COUNT,) or fr[0] != 0.0 or not np.all(np.diff(fr) > 0):
         raise ValueError(f"layer_params.layer_depth_fractions: expected [0, f1, f2] increasing, got {fr.tolist()}")
 
-    normals = vertex_normals(V, F)
+    # (what depends on the face alone a part shares with the whole: its edges, adjacency,
+    # normals, muscle weights and seen skin)
+    shared = like._face_setup if like is not None and like._face_setup is not None else None
+    edges, A, normals, weights = shared[:4] if shared else (None, None, None, None)
+    if shared is None:
+        edges = mesh_edges(F)
+        A = adjacency_from_edges(nv, edges)
+        normals = vertex_normals(V, F)
+        weights = _muscle_weights(face, V)
     layers = [V - normals * (thickness * fr[k])[:, None] for k in range(LAYER_COUNT)]
-    edges = mesh_edges(F)
-    A = adjacency_from_edges(nv, edges)
 
     # How much each skin vertex's hold follows the jaw (0: skull, 1: mandible).
-    jaw = jaw_weights(face, layers[-1], A, p)
+    jaw = jaw_weights(face, layers[-1], A, p) if like is None else like.skin_jaw
 
     # Muscle and field weights on skin vertices; each vertex's drag (1/s), lowered by the
     # fields that ask for a quicker skin, by their weight (the strongest such field's)
     muscle_arrays, muscle_w, muscle_names, muscle_layers = [], [], [], []
     vertex_drag = np.full(nv, float(p["drag"]))
-    for (arr, w), m in zip(_muscle_weights(face, V), face.muscles):
+    for (arr, w), m in zip(weights, face.muscles):
         muscle_arrays.append(arr)
         muscle_w.append(w)
         muscle_names.append(m.name)
@@ -410,6 +422,8 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
     for w in muscle_w:
         touched |= w > 0
     active = dilate(touched, A, int(p["active_rings"]))
+    if only is not None:
+        active &= np.asarray(only, dtype=bool)
     simulated = dilate(active, A, 1)
     sim_vertices = np.flatnonzero(simulated)
     nsv = len(sim_vertices)
@@ -523,7 +537,7 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
     clearance = np.clip(phi_rest - 0.001, 0.0, 1.0).T
     from fae.adapt.transfer import visible_skin
 
-    seen_skin = visible_skin(face)
+    seen_skin = shared[4] if shared else visible_skin(face)
     outer, lining = np.zeros(P, dtype=bool), np.zeros(P, dtype=bool)
     banded = np.isin(region, [names.index(r) for r in EYE_BAND_REGIONS if r in names])
     lids = np.isin(region, [names.index(r) for r in EYE_BAND_REGIONS if r in names and r.startswith("eyelid")])
@@ -532,28 +546,31 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
         mark[pid(0, sim_vertices[which[sim_vertices]])] = True
     sphere, sphere_max = eye_spheres(face, q, movable & (layer_of < LAYER_COUNT - 1), outer, lining)
 
-
     # Stable substep: the springs' largest eigenvalue of M^-1 K over all configurations and
-    # the weakest (implicit) anchor (see fae.sim.solver).
-    omega2 = max_stiffness_rate(P, spr, ks, mass, movable)
-    anchor_rate = float(np.min(anchor_k[movable] / mass[movable])) if np.any(movable) else 0.0
+    # the weakest (implicit) anchor (see fae.sim.solver); a part's rows are a principal
+    # submatrix of the whole's (its eigenvalues never above): the whole's step holds for it
     drag = np.tile(vertex_drag[sim_vertices], LAYER_COUNT)
-    dt_max = stable_substep(omega2, anchor_rate, float(p["drag"]), float(p["cfl"]))
-    quick = movable & (drag < float(p["drag"]))
-    if np.any(quick):
-        # the skin a field lets follow sooner (less drag) has its own, softer, bound: the
-        # largest eigenvalue of its rows of the network (a principal submatrix, never above
-        # the whole's); its modes reach the rest of the skin only through the drag there
-        dt_max = min(dt_max, stable_substep(max_stiffness_rate(P, spr, ks, mass, quick),
-                                            float(np.min(anchor_k[quick] / mass[quick])),
-                                            float(np.min(drag[quick])), float(p["cfl"])))
+    if like is not None:
+        dt_max = like.dt_max
+    else:
+        omega2 = max_stiffness_rate(P, spr, ks, mass, movable)
+        anchor_rate = float(np.min(anchor_k[movable] / mass[movable])) if np.any(movable) else 0.0
+        dt_max = stable_substep(omega2, anchor_rate, float(p["drag"]), float(p["cfl"]))
+        quick = movable & (drag < float(p["drag"]))
+        if np.any(quick):
+            # the skin a field lets follow sooner (less drag) has its own, softer, bound: the
+            # largest eigenvalue of its rows of the network (a principal submatrix, never above
+            # the whole's); its modes reach the rest of the skin only through the drag there
+            dt_max = min(dt_max, stable_substep(max_stiffness_rate(P, spr, ks, mass, quick),
+                                                float(np.min(anchor_k[quick] / mass[quick])),
+                                                float(np.min(drag[quick])), float(p["cfl"])))
 
     def arr(x, dtype):
         return wp.array(np.ascontiguousarray(x), dtype=dtype, device=device)
 
     skin_particle = np.where(active, local, -1)
     ma = muscle_arrays
-    return SkinModel(
+    model = SkinModel(
         device=device,
         particle_count=P,
         particle_q=arr(q32, wp.vec3),
@@ -611,6 +628,8 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
         jaw_pivot=np.asarray(face.jaw_pivot, dtype=np.float64).copy(),
         jaw_axis=np.asarray(face.jaw_axis, dtype=np.float64).copy(),
     )
+    model._face_setup = (edges, A, normals, weights, seen_skin)
+    return model
 
 
 def skin_positions(model: SkinModel, particle_q: np.ndarray, bone_rotation: np.ndarray | None = None,
