@@ -38,6 +38,8 @@ may pull its skin.
 from __future__ import annotations
 
 import itertools
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -261,20 +263,23 @@ def head_pose(head: TemplateHead, scan_V: np.ndarray) -> tuple[float, np.ndarray
                 delta = high.mean(axis=0) - (s * R @ centre + t)
                 t = t + delta - up * np.dot(delta, up)  # across up only: the crown stays at the top
                 starts.append((s, R, t))
-    scored = []
     coarse = S[:: max(1, len(S) // COARSE_SCAN)]  # the many starts are told apart coarsely
     coarse_tree = cKDTree(coarse)
     coarse_A = A[:: max(1, len(A) // COARSE_HEAD)]
-    for s, R, t in starts:
-        s, R, t = _icp(head, coarse_A, coarse, coarse_tree, s, R, t, iterations=5)
-        scored.append((score(s, R, t, coarse, coarse_tree), s, R, t))
-    scored.sort(key=lambda x: x[0])
-    best = (np.inf, 1.0, np.eye(3), np.zeros(3))
-    for _, s, R, t in scored[:REFINED_STARTS]:
-        s, R, t = _icp(head, A, S, tree, s, R, t, iterations=20, workers=-1)  # large queries: every core
-        e = score(s, R, t)
-        if e < best[0]:
-            best = (e, s, R, t)
+
+    def coarse_fit(start):
+        s, R, t = _icp(head, coarse_A, coarse, coarse_tree, *start, iterations=5)
+        return score(s, R, t, coarse, coarse_tree), s, R, t
+
+    def fine_fit(start):
+        s, R, t = _icp(head, A, S, tree, *start[1:], iterations=20)
+        return score(s, R, t), s, R, t
+
+    # the starts are independent: on every core (the tree queries and numpy release the GIL)
+    with ThreadPoolExecutor(max(1, min(4, os.cpu_count() or 1))) as pool:
+        scored = sorted(pool.map(coarse_fit, starts), key=lambda x: x[0])
+        refined = list(pool.map(fine_fit, scored[:REFINED_STARTS]))
+    best = min(refined, key=lambda x: x[0])
     e, s, R, t = best
     # the face decides the last turn: a head turned on its neck, hair or a wreath must not
     s, R, t, _ = similarity_icp(head.face, tree, S, s, R, t, iterations=20, keep=0.8)
