@@ -279,7 +279,10 @@ def head_pose(head: TemplateHead, scan_V: np.ndarray) -> tuple[float, np.ndarray
     with ThreadPoolExecutor(max(1, min(4, os.cpu_count() or 1))) as pool:
         scored = sorted(pool.map(coarse_fit, starts), key=lambda x: x[0])
         refined = list(pool.map(fine_fit, scored[:REFINED_STARTS]))
-    best = min(refined, key=lambda x: x[0])
+    best = (np.inf, 1.0, np.eye(3), np.zeros(3))  # (no start, or none scored: the identity)
+    for fit in refined:
+        if fit[0] < best[0]:
+            best = fit
     e, s, R, t = best
     # the face decides the last turn: a head turned on its neck, hair or a wreath must not
     s, R, t, _ = similarity_icp(head.face, tree, S, s, R, t, iterations=20, keep=0.8)

@@ -526,11 +526,14 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
     workers = max(1, min(SETTLE_THREADS, os.cpu_count() or 1))
     # a batch without a jaw FAP moves only its footprint: its probes run on that part of the
     # skin alone (PART_RINGS more rings free around it; the rest held, as it is at rest),
-    # the same steps at a quarter of the cost on average; the jaw's on the whole skin
+    # the same steps on 40 % of the particles on average (half the thread time); the jaw's
+    # on the whole skin
     batch_of = {k: i for i, b in enumerate(batches) for k in b}
     A = adjacency(np.asarray(face.skin_faces), len(face.skin_vertices))
     parts = {-1: model}  # batch -> its part, made by the first job that needs it
     contexts = {i: queue.SimpleQueue() for i in range(-1, len(batches))}
+    # the whole model's first step runs every kernel alone, before any thread launches one
+    contexts[-1].put((SkinSolver(model), settle_scratch(model)))
     part_locks = {i: threading.Lock() for i in range(len(batches))}
 
     def part_of(key: int):
@@ -790,7 +793,8 @@ def settle(model, solver, controls, values: np.ndarray, rig, frames: int = 40, f
     watch: the points a probe measures, (W, 3) int skin vertices, (W, 3) barycentric
     weights, (W, 3) unit directions; from SETTLE_MIN_FRAMES on, the skin counts as settled
     once each point's motion along its direction changed by less than SETTLE_TOLERANCE of
-    itself over each of two frames running (the rest of the skin may still creep)."""
+    itself over each of two frames running (the rest of the skin may still creep; skin
+    that is not simulated is on its hold from the start and is not watched)."""
     if scratch is None:
         state, control = model.state(), model.control()
     else:
@@ -805,9 +809,12 @@ def settle(model, solver, controls, values: np.ndarray, rig, frames: int = 40, f
     along = None
     still = 0  # frames running in which the watched points moved less than SETTLE_TOLERANCE
     particles = None
-    if watch is not None and np.all(model.skin_particle[watch[0]] >= 0):
-        particles = model.skin_particle[watch[0]]
-        start = np.einsum("wk,wkj,wj->w", watch[1], prev[particles], watch[2])
+    if watch is not None and np.any(model.skin_particle[watch[0]] >= 0):
+        # skin that is not simulated sits on its hold from the first frame: only the
+        # simulated corners of a point's triangle can still move it
+        particles = np.maximum(model.skin_particle[watch[0]], 0)
+        weights = np.where(model.skin_particle[watch[0]] >= 0, watch[1], 0.0)
+        start = np.einsum("wk,wkj,wj->w", weights, prev[particles], watch[2])
     for i in range(frames):
         solver.step(model, state, control, 1.0 / fps, state)
         q = state.particle_q.numpy().copy()  # on the CPU .numpy() is a view of the state
@@ -815,7 +822,7 @@ def settle(model, solver, controls, values: np.ndarray, rig, frames: int = 40, f
             break
         prev = q
         if particles is not None:
-            now = np.einsum("wk,wkj,wj->w", watch[1], q[particles], watch[2]) - start
+            now = np.einsum("wk,wkj,wj->w", weights, q[particles], watch[2]) - start
             calm = along is not None and np.all(np.abs(now - along) < SETTLE_TOLERANCE * np.maximum(np.abs(now), 1e-4))
             still = still + 1 if calm else 0
             if i + 1 >= SETTLE_MIN_FRAMES and still >= 2:
