@@ -43,7 +43,8 @@ layers below `fold_min_area` 0.3 of their rest area (in their rest plane) are re
 epidermis particles whose Laplacian offset strays more than `crease_tolerance` 0.25 x their
 mean edge are moved back, epidermis edges where the skin is seen are kept between
 `strain_min` 0.4 and `strain_max` 1.8 x their rest length, and lip particles facing each
-other within `lip_reach` 3 mm stay in order, in up to `fold_passes` 3 passes per substep.
+other within `lip_reach` 3 mm stay in order (and each upper lid's lining within as much of
+its front's margin no lower than at rest), in up to `fold_passes` 3 passes per substep.
 """
 
 from __future__ import annotations
@@ -253,6 +254,7 @@ EYE_LINING_SLACK = 0.001
 # (not the upper lids: opening wide, a lid folds its skin and lining up into its crease,
 # and held in such a band they were squeezed to a tenth of their length)
 EYE_BAND_REGIONS = ("eyelid_lower_l", "eyelid_lower_r", "cheek_l", "cheek_r")
+UPPER_LID_REGIONS = ("eyelid_upper_l", "eyelid_upper_r")
 
 
 def eyeball_sphere(face: FaceModel, name: str) -> tuple[np.ndarray, float] | None:
@@ -524,6 +526,23 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
         v = sim_vertices[region[sim_vertices] == names.index(name)] if name in names else np.zeros(0, dtype=np.int64)
         lips.append(pid(0, v))
     lip = lip_pairs(q, lips[0], lips[1], particle_jaw, float(p["lip_reach"]))
+    from fae.adapt.transfer import visible_skin
+
+    seen_skin = shared[4] if shared else visible_skin(face)
+    # and each upper lid's lining, kept from sinking below its front's margin (the same
+    # contact, the lining as the upper partner): a blink's closing pulled the lining 2-3.5 mm
+    # below the front, and the margin creased where the two met
+    simulated_vertex = np.zeros(nv, dtype=bool)
+    simulated_vertex[sim_vertices] = True
+    for name in UPPER_LID_REGIONS:
+        if name not in names:
+            continue
+        lid = region == names.index(name)
+        hidden = lid & ~seen_skin
+        rim = lid & seen_skin & (A @ hidden.astype(np.float64) > 0)
+        lip = np.concatenate([lip, lip_pairs(q, pid(0, np.flatnonzero(hidden & simulated_vertex)),
+                                             pid(0, np.flatnonzero(rim & simulated_vertex)), particle_jaw,
+                                             float(p["lip_reach"]))])
     lip = lip[movable[lip["upper"]] | movable[lip["lower"]]]
 
     # Bone distance grids and which particles must stay outside them.
@@ -541,9 +560,6 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
     # a particle closer to its rest place (in a bone's frame) than this cannot be inside that
     # bone (a distance field changes by at most the distance moved; 1 mm spare for the grid)
     clearance = np.clip(phi_rest - 0.001, 0.0, 1.0).T
-    from fae.adapt.transfer import visible_skin
-
-    seen_skin = shared[4] if shared else visible_skin(face)
     outer, lining = np.zeros(P, dtype=bool), np.zeros(P, dtype=bool)
     banded = np.isin(region, [names.index(r) for r in EYE_BAND_REGIONS if r in names])
     lids = np.isin(region, [names.index(r) for r in EYE_BAND_REGIONS if r in names and r.startswith("eyelid")])

@@ -306,7 +306,8 @@ def separate_lips(particle_q: wp.array(dtype=wp.vec3), pairs: wp.array(dtype=Lip
                   guarded_count: wp.array(dtype=int)):
     """Lips meet and press but do not pass: an upper-lip particle that has sunk below its
     lower-lip partner (along the head's up direction carried by their holds) and the partner
-    are moved apart, half the overlap each."""
+    are moved apart, half the overlap each. (An upper lid's lining over its front's margin
+    is such a pair too: fae.sim.build.)"""
     k = wp.tid()
     if k >= pair_count:
         return

@@ -74,7 +74,8 @@ class SkinModel:
     crease_tolerance    a particle whose offset strays more than this x its mean rest edge is
                                    moved back (fae.sim.folds.smooth_creases)
     strain_max, strain_min  an epidermis edge is kept within these x its rest length
-    lip_pair_count      pairs of upper- and lower-lip particles kept in order (lip contact)
+    lip_pair_count      pairs of upper- and lower-lip particles kept in order (lip contact;
+                        and of each upper lid's lining over its front's margin)
     lip_pair            (K,) fae.sim.folds.LipPair
     spring_indices      (S*2,) int particle pairs
     spring_rest_length  (S,) float metres
