@@ -24,8 +24,8 @@ stays still (those rows weighted by how far apart the two points are, see MIRROR
 operating amplitude verify-faps checks) for FAPs in batches whose footprints, grown by two
 edge rings, do not overlap (the jaw FAPs alone), each batch on its footprint alone (grown
 by PART_RINGS rings; the rest of the skin held, fae.sim.build.skin_model's `only`: the
-same steps on 40 % of the particles on average; the jaw's on the whole skin); the settled displacement along the
-direction is measured and the table scale at +-half and full range multiplied by
+same steps on 40 % of the particles on average; the jaw's on the whole skin); the
+settled displacement along the direction is measured and the table scale at +-half and full range multiplied by
 expected / measured (clipped to [0.5, 2] per pass; `passes` 3 by default, 1 from a similar
 head's mapping); the upper lids' closing (FULL_RANGE_FAPS) is measured at its positive
 limit too, for its full-range scale. (4) refinement: a FAP still off by more than REFINE_TOLERANCE is measured
@@ -757,7 +757,6 @@ def _disjoint_batches(face, model, faps, responses, gain_pos, gain_neg, unit
                       ) -> tuple[list[list[int]], dict[int, np.ndarray]]:
     """FAPs grouped so that no two in a group move the same skin (footprint + 2 rings), and
     each FAP's footprint ((V,) bool skin vertices)."""
-
     A = adjacency(np.asarray(face.skin_faces), len(face.skin_vertices))
     footprint = {}
     for k in faps:

@@ -43,8 +43,9 @@ layers below `fold_min_area` 0.3 of their rest area (in their rest plane) are re
 epidermis particles whose Laplacian offset strays more than `crease_tolerance` 0.25 x their
 mean edge are moved back, epidermis edges where the skin is seen are kept between
 `strain_min` 0.4 and `strain_max` 1.8 x their rest length, and lip particles facing each
-other within `lip_reach` 3 mm stay in order (and each upper lid's lining within as much of
-its front's margin no lower than at rest), in up to `fold_passes` 3 passes per substep.
+other within `lip_reach` 3 mm stay in order (so does each upper lid's lining within as much
+of its front's margin: it sinks no further below the margin than at rest), in up to
+`fold_passes` 3 passes per substep.
 """
 
 from __future__ import annotations
