@@ -91,15 +91,26 @@ class SurfaceFit:
     folded: int = 0
 
 
-def folded_triangles(X0: np.ndarray, X: np.ndarray, F: np.ndarray, angle: float = FOLD_ANGLE) -> np.ndarray:
+def fold_reference(X0: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The reference side of `folded_triangles` for X0 (n, 3), F (m, 3): ((m, 3) unit
+    normals, (m,) bool triangles with a normal), for a caller that tests many surfaces
+    against one reference (a fit tests 150)."""
+    N0 = face_normal_vectors(X0, F)
+    a0 = np.linalg.norm(N0, axis=1)
+    return N0 / np.maximum(a0, 1e-300)[:, None], a0 > DEGENERATE_SHARE * np.median(a0)
+
+
+def folded_triangles(X0: np.ndarray, X: np.ndarray, F: np.ndarray, angle: float = FOLD_ANGLE,
+                     reference: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """(m,) bool: triangles of F whose normal on X (n, 3) turned more than `angle` degrees
     from their normal on the reference X0 (n, 3). Triangles without a normal (area below
     DEGENERATE_SHARE of the median, on either surface: the template has collapsed ones
-    at its seams) are never counted."""
-    N0, N = face_normal_vectors(X0, F), face_normal_vectors(X, F)
-    a0, a = np.linalg.norm(N0, axis=1), np.linalg.norm(N, axis=1)
-    real = (a0 > DEGENERATE_SHARE * np.median(a0)) & (a > DEGENERATE_SHARE * np.median(a))
-    c = np.sum(N0 * N, axis=1) / np.maximum(a0 * a, 1e-300)
+    at its seams) are never counted. reference: fold_reference(X0, F), made once."""
+    U0, real0 = fold_reference(X0, F) if reference is None else reference
+    N = face_normal_vectors(X, F)
+    a = np.linalg.norm(N, axis=1)
+    real = real0 & (a > DEGENERATE_SHARE * np.median(a))
+    c = np.sum(U0 * N, axis=1) / np.maximum(a, 1e-300)
     return real & (c < np.cos(np.radians(angle)))
 
 
@@ -196,19 +207,20 @@ def affine_to_scan(X: np.ndarray, scan: Surface, use: np.ndarray, iterations: in
 
 
 def blend_away_folds(P: np.ndarray, X_safe: np.ndarray, X: np.ndarray, F: np.ndarray,
-                     ring: sp.csr_matrix | None = None, rounds: int | None = None) -> tuple[np.ndarray, int]:
+                     ring: sp.csr_matrix | None = None, rounds: int | None = None,
+                     reference: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, int]:
     """X (n, 3) blended back towards X_safe (n, 3) wherever it folds against the template P
     (n, 3): weight 0 on the folded triangles and BLEND_RINGS rings around them, rising back
     to 1 over as many rings (ring: adjacency_matrix(F, n)); repeated with wider zones while
     anything still folds. Where X_safe folds itself, the blend keeps that fold (it is the
     caller's job to pass a fold-free X_safe). Returns the result and how many vertices
-    were blended."""
+    were blended. reference: fold_reference(P, F), if the caller has it."""
     n = len(P)
     ring = adjacency_matrix(F, n) if ring is None else ring
     weight = np.ones(n)
     Y = X
     for r in range(BLEND_ROUNDS if rounds is None else rounds):
-        bad = folded_triangles(P, Y, F)
+        bad = folded_triangles(P, Y, F, reference=reference)
         if not bad.any():
             break
         zone = np.zeros(n, dtype=bool)
@@ -245,17 +257,18 @@ def harmonic_displacement(L: sp.csr_matrix, D: np.ndarray, known: np.ndarray) ->
 
 
 def whole(P: np.ndarray, X_safe: np.ndarray, X: np.ndarray, F: np.ndarray, ring: sp.csr_matrix,
-          edges: np.ndarray, query: MeshQuery, rounds: int = 6) -> tuple[np.ndarray, int, int]:
+          edges: np.ndarray, query: MeshQuery, rounds: int = 6,
+          reference: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, int, int]:
     """X (n, 3) blended back towards X_safe (n, 3), which neither folds against P nor cuts
     through itself, wherever X does either: folds (blend_away_folds) and crossings
     (fae.adapt.untangle) in turn, since each blend can undo the other's work. Returns X
-    and how many vertices each kind of blend touched."""
+    and how many vertices each kind of blend touched. reference: fold_reference(P, F)."""
     blended = untangled = 0
     for _ in range(rounds):
-        X, b = blend_away_folds(P, X_safe, X, F, ring)
+        X, b = blend_away_folds(P, X_safe, X, F, ring, reference=reference)
         X, weight = untangle(F, X, X_safe, edges=edges, query=query)
         blended, untangled = blended + b, untangled + int(np.sum(weight < 1.0))
-        if not folded_triangles(P, X, F).any():
+        if not folded_triangles(P, X, F, reference=reference).any():
             break
     return X, blended, untangled
 
@@ -313,6 +326,7 @@ def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray
     stages = []
     reaches = np.geomspace(REACH[0], REACH[1], len(STIFFNESS))
     ring = adjacency_matrix(F, n)
+    fold_ref = fold_reference(P, F)  # every round tests its step against the template
     # every movable vertex has a data row (weight 1) in every round, so a stage factors its
     # matrix once; a vertex without a compatible scan point this round is asked to stay
     blended_total = 0
@@ -336,7 +350,7 @@ def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray
             if B is not None:
                 rhs += fade * LANDMARK_WEIGHT * (B.T @ (landmarks[2] - B @ X))
             X_next = X + solve(rhs)
-            bad = folded_triangles(P, X_next, F)
+            bad = folded_triangles(P, X_next, F, reference=fold_ref)
             if bad.any():
                 # the scan's pull that folds a place is let go there (from the next stage on, the
                 # place moves smoothly with its neighbours instead of being blended back again)
@@ -345,15 +359,15 @@ def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray
                 for _ring in range(QUIET_RINGS):
                     zone |= (ring @ zone.astype(np.float64)) > 0
                 quiet |= zone
-            X, blended = blend_away_folds(P, X, X_next, F, ring)  # what still folds is blended back
+            X, blended = blend_away_folds(P, X, X_next, F, ring, reference=fold_ref)  # what still folds: blended back
             blended_total += blended
         rms = float(np.sqrt(np.mean(np.sum((X[idx] - Q) ** 2, axis=1)))) if len(idx) else np.inf
         # nor may a stage cut through itself (an ear pressed into the scalp, the mouth's lining
         # through a lip): blended back to the last stage wherever it does
-        X, _, untangled = whole(P, X_whole, X, F, ring, edges, query)
+        X, _, untangled = whole(P, X_whole, X, F, ring, edges, query, reference=fold_ref)
         X_whole = X
         stages.append({"stiffness": a, "reach_m": float(reach), "pairs": int(len(idx)), "pair_rms_m": rms,
-                       "folded": int(folded_triangles(P, X, F).sum()), "quiet_vertices": int(quiet.sum()),
+                       "folded": int(folded_triangles(P, X, F, reference=fold_ref).sum()), "quiet_vertices": int(quiet.sum()),
                        "blended_vertices": blended_total,
                        "untangled_vertices": untangled, "seconds": time.perf_counter() - t0})
     # skin the scan does not reach (a neck below its cut, a crown above a face scan) takes
@@ -365,8 +379,8 @@ def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray
     if on_scan.any():
         far[~on_scan] = cKDTree(P[on_scan]).query(P[~on_scan])[0] > EXTEND_START
     X_ext = P + harmonic_displacement(L_graph, X - P, ~far)
-    X_ext, ext_blended, ext_untangled = whole(P, X_whole, X_ext, F, ring, edges, query)
-    extended = not folded_triangles(P, X_ext, F).any()
+    X_ext, ext_blended, ext_untangled = whole(P, X_whole, X_ext, F, ring, edges, query, reference=fold_ref)
+    extended = not folded_triangles(P, X_ext, F, reference=fold_ref).any()
     if extended:
         X = X_whole = X_ext
     # paper 001's local step: onto the scan where it is close, never folding a triangle
@@ -382,7 +396,7 @@ def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray
         Y[back] = X[back]
     # the projection neither folds nor cuts through itself: blended back to the last stage
     # (which does neither) where it would; each blend can undo the other's work, so in turn
-    Y, blended, untangled = whole(P, X_whole, Y, F, ring, edges, query)
+    Y, blended, untangled = whole(P, X_whole, Y, F, ring, edges, query, reference=fold_ref)
     stages.append({"extended_to": int((~on_scan).sum()) if extended else 0,
                    "extension_blended": ext_blended, "extension_untangled": ext_untangled, "projected": int(len(idx)),
                    "blended_vertices": blended, "untangled_vertices": untangled,
