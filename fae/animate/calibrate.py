@@ -25,8 +25,8 @@ operating amplitude verify-faps checks) for FAPs in batches whose footprints, gr
 edge rings, do not overlap (the jaw FAPs alone), each batch on its footprint alone (grown
 by PART_RINGS rings; the rest of the skin held, fae.sim.build.skin_model's `only`: the
 same steps on 40 % of the particles on average; the jaw's on the whole skin); the
-settled displacement along the direction is measured and the table scale at +-half and full range multiplied by
-expected / measured (clipped to [0.5, 2] per pass; `passes` 3 by default, 1 from a similar
+settled displacement along the direction is measured and the table scale at +-half and
+full range multiplied by expected / measured (clipped to [0.5, 2] per pass; `passes` 3 by default, 1 from a similar
 head's mapping); the upper lids' closing (FULL_RANGE_FAPS) is measured at its positive
 limit too, for its full-range scale. (4) refinement: a FAP still off by more than REFINE_TOLERANCE is measured
 again at its new scale, up to REFINE_PASSES times; where the skin snaps between two settled

@@ -533,16 +533,14 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
     # and each upper lid's lining, kept from sinking below its front's margin (the same
     # contact, the lining as the upper partner): a blink's closing pulled the lining 2-3.5 mm
     # below the front, and the margin creased where the two met
-    simulated_vertex = np.zeros(nv, dtype=bool)
-    simulated_vertex[sim_vertices] = True
     for name in UPPER_LID_REGIONS:
         if name not in names:
             continue
         lid = region == names.index(name)
         hidden = lid & ~seen_skin
         rim = lid & seen_skin & (A @ hidden.astype(np.float64) > 0)
-        lip = np.concatenate([lip, lip_pairs(q, pid(0, np.flatnonzero(hidden & simulated_vertex)),
-                                             pid(0, np.flatnonzero(rim & simulated_vertex)), particle_jaw,
+        lip = np.concatenate([lip, lip_pairs(q, pid(0, np.flatnonzero(hidden & simulated)),
+                                             pid(0, np.flatnonzero(rim & simulated)), particle_jaw,
                                              float(p["lip_reach"]))])
     lip = lip[movable[lip["upper"]] | movable[lip["lower"]]]
 
