@@ -15,7 +15,9 @@ output of the last:
    over the displacement D (n, 3) of the skin X: q_i is vertex i projected onto the
    scan's tangent plane at its closest compatible scan point (normals within
    MAX_NORMAL_ANGLE, within a reach that shrinks stage by stage, not within EDGE_REACH of
-   the scan's edge, where the template's surface goes on and the scan's does not); L is
+   the scan's edge, where the template's surface goes on and the scan's does not; where
+   the closest point is not compatible, the scan along the vertex's own normal, so that
+   skin over a hollow follows its floor, not its steep side: scan_pairs); L is
    the graph Laplacian of the template mesh plus every pair of vertices closer than
    NEIGHBOUR_RADIUS (the mesh is irregular: slivers beside centimetre-long triangles), S a
    per-vertex stiffness (thin, creased parts bend as a piece); l_k are feature points
@@ -70,6 +72,7 @@ QUIET_RINGS = 1  # rings around a fold whose scan pull is let go
 ROUNDS = 3  # correspondence rounds per stiffness
 REACH = (0.04, 0.004)  # m: pairs farther than this are dropped, from the first stage to the last
 MAX_NORMAL_ANGLE = 60.0  # degrees between a vertex's and its scan point's normals
+RAY_SHARE = 4.0  # a scan point along a vertex's normal is taken when at most this many times as far as the closest
 LANDMARK_WEIGHT = 1.0  # of a feature point's row against a vertex's, at the stiffest stage
 LANDMARK_FADE = 1.0  # the weight falls as (stiffness / the first stiffness) ** this
 PROJECT_REACH = 0.004  # m: the last stage moves a vertex onto the scan when this close
@@ -148,21 +151,43 @@ def scan_pairs(X: np.ndarray, NX: np.ndarray, scan: Surface, reach: float, candi
                along_normal: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Vertices (k,) of X (n, 3) among `candidates` (n,) bool paired with their closest
     compatible scan points (k, 3): within `reach` metres, normals within
-    MAX_NORMAL_ANGLE, not on a face at the scan's boundary. along_normal: the target is
-    the vertex's projection onto the scan's tangent plane there instead (point-to-plane:
-    the data moves vertices across the surface, never along it, so they do not bunch up
-    into slivers that flip)."""
+    MAX_NORMAL_ANGLE, not on a face at the scan's boundary. A vertex whose closest point
+    is not compatible takes the scan along its own normal NX (n, 3) instead (the nearer
+    hit either way), when that is compatible and at most RAY_SHARE times as far: a
+    template's step over a scan's hollow (an inner eye corner sculpted deep) has its
+    closest points on the hollow's steep side, and the floor under it is what it should
+    follow. along_normal: the target is the vertex's projection onto the scan's tangent
+    plane there instead (point-to-plane: the data moves vertices across the surface,
+    never along it, so they do not bunch up into slivers that flip)."""
     idx = np.flatnonzero(candidates)
     pts, dist, face, bary = scan.query.closest_points(X[idx], reach)
-    ok = face >= 0
-    N = np.zeros_like(X[idx])
-    N[ok] = np.einsum("nk,nkd->nd", bary[ok], scan.N[scan.F[face[ok]]])
-    N /= np.maximum(np.linalg.norm(N, axis=1, keepdims=True), 1e-12)
-    ok &= np.sum(N * NX[idx], axis=1) >= np.cos(np.radians(MAX_NORMAL_ANGLE))
-    ok[ok] &= ~near_edge(scan)[face[ok]]
+    N = _scan_normals(scan, face, bary)
+    cos_max = np.cos(np.radians(MAX_NORMAL_ANGLE))
+    edge = near_edge(scan)
+    ok = (face >= 0) & (np.sum(N * NX[idx], axis=1) >= cos_max)
+    ok[ok] &= ~edge[face[ok]]
+    miss = np.flatnonzero(~ok)
+    if len(miss):
+        hit, hit_pts, hit_face, hit_bary = scan.query.bidirectional_hits(X[idx[miss]], NX[idx[miss]], reach)
+        hit_N = _scan_normals(scan, np.where(hit, hit_face, -1), hit_bary)
+        near = np.where(np.isfinite(dist[miss]), dist[miss], reach) * RAY_SHARE
+        good = hit & (np.sum(hit_N * NX[idx[miss]], axis=1) >= cos_max)
+        good[good] &= ~edge[hit_face[good]]
+        good[good] &= np.linalg.norm(hit_pts[good] - X[idx[miss[good]]], axis=1) <= near[good]
+        taken = miss[good]
+        pts[taken], N[taken], ok[taken] = hit_pts[good], hit_N[good], True
     if along_normal:
         pts = X[idx] + np.sum((pts - X[idx]) * N, axis=1, keepdims=True) * N
     return idx[ok], pts[ok]
+
+
+def _scan_normals(scan: Surface, face: np.ndarray, bary: np.ndarray) -> np.ndarray:
+    """(k, 3) unit normals of the scan at points given by face (k,) (-1: none, zero normal)
+    and bary (k, 3)."""
+    N = np.zeros((len(face), 3))
+    ok = face >= 0
+    N[ok] = np.einsum("nk,nkd->nd", bary[ok], scan.N[scan.F[face[ok]]])
+    return N / np.maximum(np.linalg.norm(N, axis=1, keepdims=True), 1e-12)
 
 
 def affine_to_scan(X: np.ndarray, scan: Surface, use: np.ndarray, iterations: int = 15, keep: float = 0.8,
