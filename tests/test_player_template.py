@@ -219,6 +219,36 @@ def test_an_ear_fap_carries_its_ear_whole_and_leaves_the_other(player):
     assert np.allclose(p, [0.0, up, 0.0], atol=1e-6)
 
 
+def test_an_ear_at_the_standards_limits_leaves_the_skin_whole_and_a_twitch_stays_local(player):
+    """The standard lets an ear move 900 ENS units (about 5 cm on this head): at both
+    limits of both ear FAPs the skin keeps every visible edge within 0.3-2x its rest length
+    and folds nowhere near the ear (a fixed 1.3 cm fade stretched the scalp 7.5x); a
+    twitch of 50 units moves nothing 3 cm from the ear."""
+    from fae.animate.skin_check import SkinCheck, in_head_frame
+
+    face = player.face
+    check = SkinCheck(face)
+    names, region = face.region_names, face.skin_region
+    ear_l = region == names.index("ear_l")
+    rest = face.skin_vertices
+    far = np.ones(len(rest), bool)
+    for p in rest[ear_l][::10]:
+        far &= np.linalg.norm(rest - p, axis=1) > 0.03
+    for k in (65, 67):
+        for limit in FAP_LIMITS[k - 1]:
+            v = np.zeros(68)
+            v[k - 1] = limit
+            skin = settle(player, v, frames=3)
+            r = check.frame(in_head_frame(skin, player.bone_transforms["head"]))
+            assert r.stretch <= 2.0 and r.compression >= 0.3, (k, limit, r.stretch, r.compression)
+            assert r.folded.sum() <= 10, (k, limit, int(r.folded.sum()))
+        v = np.zeros(68)
+        v[k - 1] = 50.0
+        moved = settle(player, v, frames=3) - rest
+        assert np.abs(moved[far]).max() < 1e-6 and np.linalg.norm(moved[ear_l], axis=1).min() > 0.002
+    player.reset()
+
+
 def test_open_jaw_does_not_open_the_mouth_and_the_lips_ride_on_the_jaw_as_streams_send_them(player):
     """open_jaw at its full range: the chin goes down 2 cm, the bottom of the neck (held by
     the body, not the jaw) stays, and the skin between jaw and neck stretches smoothly (no

@@ -8,8 +8,16 @@ skin solver spends nothing on the ears (fae.sim simulates only skin near muscles
 
 The ear is the skin region of the feature point's triangle when that region's name says
 "ear" (the generic head and every head adapted from it); around it the weight falls with
-geodesic distance as Wendland's (1 - r)^4 (4 r + 1) over `FADE_ES` x ES0. On a head
-without such a region the ear is the geodesic disc of `DISC_ES` x ES0 around the point.
+geodesic distance as the smoothstep 1 - 3 r^2 + 2 r^3 over a fade that widens with the
+value: `FADE_ES` x ES0 while the ear has moved at most GRADIENT x that / SMOOTHSTEP_SLOPE,
+then as far as keeps the skin's displacement gradient within GRADIENT (an edge along the
+motion at most 1 + GRADIENT, one against it at least 1 - GRADIENT its rest length). The
+standard lets an ear move 900 ENS units (3 cm on the generic head): over a fixed 1.3 cm
+fade the scalp at the ear's root stretched 7.5x. The table holds the fields at doubling
+values up to the limit and the standard's piecewise-linear rule blends between them, so a
+twitch moves the skin near the ear only and the limit moves the side of the head. On a
+head without an ear region the ear is the geodesic disc of `DISC_ES` x ES0 around the
+point, fading the same way beyond it.
 A head's own (authored) FaceDefTable for an ear FAP takes precedence (the standard's
 Predictable case); a table baked from the physics (fae.animate.bake) is this one's copy.
 """
@@ -23,8 +31,10 @@ from fae.animate.faptables import FAP_DIRECTION, FAP_FEATURE_POINT, FAP_LIMITS, 
 from fae.io.facemodel import FaceDefTable
 
 EAR_FAPS = (65, 66, 67, 68)
-FADE_ES = 0.2
-DISC_ES = 0.5
+FADE_ES = 0.2  # the narrowest fade, x ES0
+DISC_ES = 0.5  # the ear of a head without an ear region, x ES0
+GRADIENT = 0.6  # the largest displacement gradient the fade allows (metres per metre)
+SMOOTHSTEP_SLOPE = 1.5  # the largest slope of 1 - 3 r^2 + 2 r^3 over r in [0, 1]
 
 
 def ear_tables(face, fapu: dict[str, float], graph) -> list[FaceDefTable]:
@@ -44,18 +54,42 @@ def ear_tables(face, fapu: dict[str, float], graph) -> list[FaceDefTable]:
         tri = faces[point.triangle]
         regions = {int(r) for r in region[tri]} if len(region) else set()
         if len(regions) == 1 and "ear" in names[regions.pop()]:
-            ear = np.flatnonzero(region == region[tri[0]])
-            fade = FADE_ES * es0
-            d = dijkstra(graph, directed=False, indices=ear, limit=fade, min_only=True)
-            r = np.clip(d / fade, 0.0, 1.0)
+            ear, core = np.flatnonzero(region == region[tri[0]]), 0.0
         else:
-            disc = DISC_ES * es0
-            d = dijkstra(graph, directed=False, indices=tri, limit=disc, min_only=True)
-            r = np.clip(d / disc, 0.0, 1.0)
-        w = (1.0 - r) ** 4 * (4.0 * r + 1.0)
-        idx = np.flatnonzero(w > 1e-6)
+            ear, core = tri, DISC_ES * es0
         limit = float(np.abs(FAP_LIMITS[k - 1]).max())
-        per_unit = w[idx, None] * (unit[k - 1] * FAP_DIRECTION[k - 1])[None, :]
-        out.append(FaceDefTable(k, "skin", idx.astype(np.int32), np.array([-limit, 0.0, limit]),
-                                np.stack([per_unit, per_unit])))
+        values = fade_values(limit, unit[k - 1], FADE_ES * es0)
+        fades = np.array([fade_width(v * unit[k - 1], FADE_ES * es0) for v in values])
+        d = dijkstra(graph, directed=False, indices=ear, limit=core + fades[-1], min_only=True)
+        idx = np.flatnonzero(d < core + fades[-1])
+        # the skin's displacement at each value (+ and - alike), metres: the ear carried whole
+        step = unit[k - 1] * FAP_DIRECTION[k - 1]
+        at = [smoothstep_fade((d[idx] - core) / f)[:, None] * (v * step)[None, :] for v, f in zip(values, fades)]
+        borders = np.concatenate([-values[::-1], [0.0], values])
+        shape = np.concatenate([[-a for a in at[::-1]], [np.zeros((len(idx), 3))], at])  # the integral at each border
+        per_unit = np.diff(shape, axis=0) / np.diff(borders)[:, None, None]
+        out.append(FaceDefTable(k, "skin", idx.astype(np.int32), borders, per_unit))
     return out
+
+
+def fade_width(moved: float, narrowest: float) -> float:
+    """Metres: the fade around an ear moved `moved` metres, at least `narrowest`, wide
+    enough that the displacement's gradient stays within GRADIENT."""
+    return max(narrowest, SMOOTHSTEP_SLOPE * abs(moved) / GRADIENT)
+
+
+def fade_values(limit: float, unit: float, narrowest: float) -> np.ndarray:
+    """(m,) increasing positive FAP values ending at `limit` where an ear table holds its
+    fields: the largest value the narrowest fade serves, then doubling."""
+    first = GRADIENT * narrowest / (SMOOTHSTEP_SLOPE * unit)
+    values = [first]
+    while values[-1] * 2.0 < limit:
+        values.append(values[-1] * 2.0)
+    values = [v for v in values if v < limit] + [limit]
+    return np.array(values)
+
+
+def smoothstep_fade(r: np.ndarray) -> np.ndarray:
+    """1 - 3 r^2 + 2 r^3 over r clipped to [0, 1]: 1 at 0 (and below), 0 at 1 and beyond."""
+    r = np.clip(r, 0.0, 1.0)
+    return 1.0 - r * r * (3.0 - 2.0 * r)
