@@ -95,6 +95,50 @@ def test_the_skin_takes_the_photos_colours(astronaut_head):
     assert red > green > blue and red > 120  # a skin tone
 
 
+def crown_colour(model) -> np.ndarray:
+    """(3,) the skin texture's colour at the top of the skull (FDP 11.4), which a frontal
+    photo never shows."""
+    top = model.feature_point_positions()["11.4"]
+    vertex = int(np.argmin(np.linalg.norm(model.skin_vertices - top, axis=1)))
+    u, v = model.skin_uv[vertex]
+    height, width = model.skin_texture.shape[:2]
+    return model.skin_texture[min(int(v * height), height - 1), min(int(u * width), width - 1)].astype(float)
+
+
+@pytest.mark.slow
+def test_the_hair_the_photo_shows_covers_the_scalp(astronaut_head):
+    """The astronaut's brown hair: found above the forehead, it colours the whole scalp,
+    the crown the photo never saw included; the face keeps the skin's colour."""
+    model, report, _ = astronaut_head
+    hair = report["texture"]["hair"]
+    skin = np.array(report["texture"]["median_colour"])
+    assert hair["found"] and hair["contrast_to_skin"] > 60
+    crown = crown_colour(model)
+    assert np.linalg.norm(crown - np.array(hair["colour"])) < 30
+    assert np.linalg.norm(crown - skin) > 50
+
+
+def test_hair_is_told_from_a_bald_scalp_by_its_colour():
+    """Over the scalp the photo shows the astronaut's hair (above her forehead): hair, of
+    that colour, with the photo's own strands where it sees them; where it shows skin (her
+    cheek's pixels standing in for a bald crown) there is no hair; nor when it sees too
+    little of the scalp."""
+    from fae.adapt.texture import hair_colours
+
+    photo = data.astronaut().astype(float)
+    hair_pixels = photo[40:90, 200:300].reshape(-1, 3)
+    skin_pixels = photo[135:160, 190:215].reshape(-1, 3)  # her right cheek
+    skin = np.median(skin_pixels, axis=0)
+    k = len(hair_pixels)
+    colours, weight, report = hair_colours(np.ones(k), np.ones(k), hair_pixels, skin)
+    assert report["found"] and report["contrast_to_skin"] > 60
+    assert np.all(np.array(report["colour"]) < skin)  # darker than her skin in every channel
+    assert colours.shape == (k, 3) and np.allclose(weight, 1.0)
+    bald = np.resize(skin_pixels, (k, 3))
+    assert hair_colours(np.ones(k), np.ones(k), bald, skin)[0] is None
+    assert hair_colours(np.ones(k), np.zeros(k), hair_pixels, skin)[2]["found"] is False  # unseen
+
+
 @pytest.mark.slow
 def test_a_photo_stored_on_its_side_gives_the_same_head(astronaut_head, tmp_path):
     model, report, _ = astronaut_head

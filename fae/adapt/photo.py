@@ -234,11 +234,63 @@ def head_from_photo(template: FaceModel, image: np.ndarray, photo: PhotoPoints, 
     xy = photo.points[:, :2]
     texture, texture_report = photo_texture(model.skin_vertices[seen], N[seen], model.skin_uv[seen],
                                             model.scan_transform, image, xy[list(outline)],
-                                            holes=[xy[list(h)] for h in holes])
+                                            holes=[xy[list(h)] for h in holes], hair=hair_cap(model))
     model.skin_texture = texture
     report["texture"] = texture_report
     report["iris_colour"] = iris_from_photo(model, image, photo, eyes)
     return model, report
+
+
+HAIRLINE_SOFTNESS = 0.006  # metres: the hair's edge fades over this much height either side
+HAIRLINE_OVER_EAR = 0.008  # metres: the hairline's height over the top of an ear
+BEHIND_EAR_DEGREES = 20.0  # of azimuth behind an ear over which the hairline drops to the nape
+
+
+def hair_cap(face: FaceModel):
+    """Where a head's hair grows, a cap above a smooth hairline: a function of points
+    (k, 3) metres in the head frame giving (k,) weights in [0, 1], or None. Around the head's vertical axis (through the ears' mean depth) the hairline's
+    height follows the azimuth: at the front the middle hairline point (FDP 11.1), at the
+    temples the side ones (11.2, 11.3), over the ears HAIRLINE_OVER_EAR above their tops,
+    then down behind them to the earlobes' height (the nape) and round the back at that
+    height. Each vertex's weight rises from 0 to 1 over HAIRLINE_SOFTNESS either side of
+    that height (the ears lie below it). None for a head without those feature points or
+    ear regions. (A function of points, not weights per vertex: the texture evaluates it
+    at each texel, and a vertex's weight interpolated over a large triangle zigzags along
+    the hairline.)"""
+    from scipy.interpolate import PchipInterpolator
+
+    V = np.asarray(face.skin_vertices, dtype=np.float64)
+    names = list(face.region_names)
+    region = np.asarray(face.skin_region)
+    fdp = face.feature_point_positions()
+    ear_ids = [names.index(e) for e in ("ear_l", "ear_r") if e in names]
+    ears = np.isin(region, ear_ids)
+    if len(ear_ids) < 2 or not all(p in fdp for p in ("11.1", "11.2", "11.3")):
+        return None
+    centre_z = float(np.mean([V[region == e, 2].mean() for e in ear_ids]))
+
+    def azimuth(P):  # degrees from the front, either side
+        P = np.atleast_2d(P)
+        return np.degrees(np.arctan2(np.abs(P[:, 0]), P[:, 2] - centre_z))
+
+    E = V[ears]
+    ear_front, ear_back = float(azimuth(E).min()), float(azimuth(E).max())
+    over_ear = E[:, 1].max() + HAIRLINE_OVER_EAR
+    nape = E[:, 1].min()
+    temple = float(np.mean(azimuth(np.array([fdp["11.2"], fdp["11.3"]]))))
+    knots = [0.0, temple, ear_front, ear_back, ear_back + BEHIND_EAR_DEGREES, 180.0]
+    height = [fdp["11.1"][1], 0.5 * (fdp["11.2"][1] + fdp["11.3"][1]), over_ear, over_ear, nape, nape]
+    if not np.all(np.diff(knots) > 0.0):
+        return None
+
+    line = PchipInterpolator(knots, height)  # through the knots without overshooting them
+
+    def weight(P: np.ndarray) -> np.ndarray:
+        P = np.asarray(P, dtype=np.float64).reshape(-1, 3)
+        w = np.clip(0.5 + (P[:, 1] - line(azimuth(P))) / (2.0 * HAIRLINE_SOFTNESS), 0.0, 1.0)
+        return w * w * (3.0 - 2.0 * w)
+
+    return weight
 
 
 IRIS_SAMPLE_SHARE = 0.06  # of the eye distance: the disc about each eye's centre whose pixels give the iris colour

@@ -20,6 +20,12 @@ Where the weight is below 1, the photo's colours are blended into a fill: the fa
 colours spread outwards by normalized convolution (so the forehead's colour carries up
 into the scalp, the jaw's down the neck), turning into the face's median colour further
 away. Nothing is left unpainted, and no seam shows where the photo ends.
+
+Hair: over a cap above the head's hairline (fae.adapt.photo.hair_cap, evaluated at each
+texel), the photo's colour where it sees the cap decides (hair_colours): a median far
+from the skin's is hair, which then covers the whole cap, the crown and the back the photo
+never saw included, with the photo's own strands where it sees them; a median near the
+skin's is a bald head, left as the skin's fill.
 """
 
 from __future__ import annotations
@@ -37,13 +43,14 @@ BORDER_COLOUR_SPREAD = 45.0  # RGB levels: how far from the face's colour a bord
 HOLE_TEXELS = 6.0  # ... and of the close fill of the eyes' and mouth's holes
 
 
-def texel_surface(V: np.ndarray, N: np.ndarray, uv: np.ndarray, size: tuple[int, int]
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def texel_surface(V: np.ndarray, N: np.ndarray, uv: np.ndarray, size: tuple[int, int],
+                  extra: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Points and normals of the surface at texel centres.
 
     V (n, 3) metres, N (n, 3) unit normals, uv (n, 2) in [0, 1] (u wraps around); size
-    (width, height). Returns (inside (H, W) bool: texels within the laid-out surface,
-    P (H, W, 3), NN (H, W, 3); nan outside). Texel row r, column c is uv ((c + .5) / W,
+    (width, height); extra (n, k): more per-vertex values to interpolate (default none).
+    Returns (inside (H, W) bool: texels within the laid-out surface, P (H, W, 3),
+    NN (H, W, 3), E (H, W, k); nan outside). Texel row r, column c is uv ((c + .5) / W,
     (r + .5) / H).
     """
     from scipy.interpolate import LinearNDInterpolator
@@ -52,16 +59,18 @@ def texel_surface(V: np.ndarray, N: np.ndarray, uv: np.ndarray, size: tuple[int,
     near_seam_low = uv[:, 0] < 0.1
     near_seam_high = uv[:, 0] > 0.9
     UV = np.concatenate([uv, uv[near_seam_low] + [1.0, 0.0], uv[near_seam_high] - [1.0, 0.0]])
-    values = np.concatenate([np.hstack([V, N]), np.hstack([V, N])[near_seam_low], np.hstack([V, N])[near_seam_high]])
+    extra = np.zeros((len(V), 0)) if extra is None else np.asarray(extra, np.float64).reshape(len(V), -1)
+    per_vertex = np.hstack([V, N, extra])
+    values = np.concatenate([per_vertex, per_vertex[near_seam_low], per_vertex[near_seam_high]])
     interp = LinearNDInterpolator(UV, values)
     u = (np.arange(width) + 0.5) / width
     v = (np.arange(height) + 0.5) / height
     uu, vv = np.meshgrid(u, v)
-    out = interp(np.column_stack([uu.ravel(), vv.ravel()])).reshape(height, width, 6)
+    out = interp(np.column_stack([uu.ravel(), vv.ravel()])).reshape(height, width, per_vertex.shape[1])
     inside = np.all(np.isfinite(out), axis=2)
-    NN = out[:, :, 3:]
+    NN = out[:, :, 3:6]
     NN = NN / np.maximum(np.linalg.norm(NN, axis=2, keepdims=True), 1e-12)
-    return inside, out[:, :, :3], NN
+    return inside, out[:, :, :3], NN, out[:, :, 6:]
 
 
 def outline_weight(outline: np.ndarray, image_size: tuple[int, int], feather_px: float) -> np.ndarray:
@@ -112,7 +121,8 @@ def _spread(W: np.ndarray, C: np.ndarray, sigma: float) -> tuple[np.ndarray, np.
 
 
 def photo_texture(V: np.ndarray, N: np.ndarray, uv: np.ndarray, to_photo: np.ndarray, image: np.ndarray,
-                  face_outline: np.ndarray, holes=(), size: tuple[int, int] = TEXTURE_SIZE) -> tuple[np.ndarray, dict]:
+                  face_outline: np.ndarray, holes=(), size: tuple[int, int] = TEXTURE_SIZE,
+                  hair=None) -> tuple[np.ndarray, dict]:
     """The texture (H, W, 3) uint8 of a skin coloured from a photo, and a report.
 
     V (n, 3) metres, N (n, 3) unit normals, uv (n, 2): the visible skin (leave out what no
@@ -121,15 +131,17 @@ def photo_texture(V: np.ndarray, N: np.ndarray, uv: np.ndarray, to_photo: np.nda
     face_outline (k, 2) photo pixels around the face; holes: polygons (k, 2) of photo
     pixels whose colours are not the skin's (the eyes, the open mouth: their colours on
     the lids or lips would stay painted there whatever the face does); the skin there
-    takes its neighbours' colours.
+    takes its neighbours' colours; hair: where the head's hair grows, a function of points
+    (k, 3) in the face frame giving weights (k,) in [0, 1] (fae.adapt.photo.hair_cap),
+    coloured by hair_colours when the photo shows hair there.
     """
     from scipy.ndimage import binary_dilation
 
     width, height = size
     image = np.asarray(image)[:, :, :3]
     ih, iw = image.shape[:2]
-    inside, P, NN = texel_surface(np.asarray(V, np.float64), np.asarray(N, np.float64),
-                                  np.asarray(uv, np.float64), size)
+    inside, P, NN, _ = texel_surface(np.asarray(V, np.float64), np.asarray(N, np.float64),
+                                     np.asarray(uv, np.float64), size)
     at = np.flatnonzero(inside.ravel())
     X = P.reshape(-1, 3)[at]
     Nx = NN.reshape(-1, 3)[at]
@@ -140,6 +152,7 @@ def photo_texture(V: np.ndarray, N: np.ndarray, uv: np.ndarray, to_photo: np.nda
     facing = -(Nx @ to_photo[:3, :3].T)[:, 2] / scale
     w = np.clip((facing - FACING_NONE) / (FACING_FULL - FACING_NONE), 0.0, 1.0)
     w = w * w * (3.0 - 2.0 * w)
+    facing_weight = w.copy()
     # depth buffer of the texels themselves, one cell per photo pixel
     cell = 1.0
     gx = np.clip((q[:, 0] / cell).astype(np.int64), 0, int(iw / cell))
@@ -149,6 +162,7 @@ def photo_texture(V: np.ndarray, N: np.ndarray, uv: np.ndarray, to_photo: np.nda
     front = facing > 0.0
     np.minimum.at(nearest, key[front], q[front, 2])
     w *= q[:, 2] <= nearest[key] + DEPTH_TOLERANCE * scale
+    seen = facing_weight * (q[:, 2] <= nearest[key] + DEPTH_TOLERANCE * scale)
     # inside the face's outline on the photo, feathered
     centre = face_outline.mean(axis=0)
     outline = centre + OUTLINE_SHRINK * (face_outline - centre)
@@ -191,4 +205,50 @@ def photo_texture(V: np.ndarray, N: np.ndarray, uv: np.ndarray, to_photo: np.nda
     out = W[:, :, None] * C + (1.0 - W[:, :, None]) * fill
     report = {"texture_size": [int(width), int(height)], "texels_on_skin": int(len(at)),
               "texels_from_photo": int((W > 0.5).sum()), "median_colour": [float(c) for c in median]}
+    if hair is not None:
+        cap = hair(X)
+        on_photo = seen * on_image
+        colours, hair_weight, report["hair"] = hair_colours(cap, on_photo, colour, median)
+        if colours is not None:
+            H = np.zeros(height * width)
+            H[at] = hair_weight
+            hair_rgb = np.zeros((height * width, 3))
+            hair_rgb[at] = colours
+            H = H.reshape(height, width, 1)
+            out = H * hair_rgb.reshape(height, width, 3) + (1.0 - H) * out
     return np.clip(np.round(out), 0, 255).astype(np.uint8), report
+
+
+HAIR_CONTRAST = 60.0  # RGB levels between the skin's median and the scalp's: hair, not a bald head
+HAIR_SAMPLE = 0.9  # cap weight from which a seen texel's colour counts towards the hair's
+HAIR_MIN_TEXELS = 200  # seen texels of the cap at least, for its colour to be trusted
+HAIR_COLOUR_SPREAD = 45.0  # RGB levels: how far from the hair's median a seen pixel may be and still show
+
+
+def hair_colours(cap: np.ndarray, seen: np.ndarray, photo_colour: np.ndarray, skin_colour: np.ndarray
+                 ) -> tuple[np.ndarray | None, np.ndarray | None, dict]:
+    """The hair over the scalp, from what the photo shows of it.
+
+    cap (k,) in [0, 1]: where hair grows, per texel; seen (k,) in [0, 1]: how well the
+    photo sees the texel (facing, not hidden); photo_colour (k, 3): the photo there;
+    skin_colour (3,): the skin's median. The hair's colour is the median of the photo
+    over the cap where it is seen; when that is within HAIR_CONTRAST of the skin's (a bald
+    head, a bare forehead where the cap begins) or the photo sees too little of the cap,
+    there is no hair. Otherwise each texel takes the hair's colour, with the photo's own
+    where it sees the texel and shows a colour near the hair's (strands, highlights;
+    not the background beyond a head smaller than the template's).
+    Returns (colours (k, 3) or None, weights (k,) or None, report).
+    """
+    sample = (cap >= HAIR_SAMPLE) & (seen > 0.5)
+    report = {"texels_seen": int(sample.sum()), "found": False}
+    if sample.sum() < HAIR_MIN_TEXELS:
+        return None, None, report
+    hair = np.median(photo_colour[sample], axis=0)
+    contrast = float(np.linalg.norm(hair - skin_colour))
+    report.update({"colour": [float(c) for c in hair], "contrast_to_skin": contrast})
+    if contrast < HAIR_CONTRAST:
+        return None, None, report
+    likeness = np.exp(-(np.linalg.norm(photo_colour - hair, axis=1) / HAIR_COLOUR_SPREAD) ** 2)
+    own = (seen * likeness)[:, None]
+    report["found"] = True
+    return own * photo_colour + (1.0 - own) * hair, cap, report
