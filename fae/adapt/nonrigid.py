@@ -148,7 +148,7 @@ def near_edge(scan: Surface, reach: float = EDGE_REACH) -> np.ndarray:
 
 
 def scan_pairs(X: np.ndarray, NX: np.ndarray, scan: Surface, reach: float, candidates: np.ndarray,
-               along_normal: bool = False) -> tuple[np.ndarray, np.ndarray]:
+               along_normal: bool = False, rays: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Vertices (k,) of X (n, 3) among `candidates` (n,) bool paired with their closest
     compatible scan points (k, 3): within `reach` metres, normals within
     MAX_NORMAL_ANGLE, not on a face at the scan's boundary. A vertex whose closest point
@@ -156,8 +156,8 @@ def scan_pairs(X: np.ndarray, NX: np.ndarray, scan: Surface, reach: float, candi
     hit either way), when that is compatible and at most RAY_SHARE times as far: a
     template's step over a scan's hollow (an inner eye corner sculpted deep) has its
     closest points on the hollow's steep side, and the floor under it is what it should
-    follow. along_normal: the target is the vertex's projection onto the scan's tangent
-    plane there instead (point-to-plane: the data moves vertices across the surface,
+    follow (rays (n,) bool: the vertices that may; default all). along_normal: the target
+    is the vertex's projection onto the scan's tangent plane there instead (point-to-plane: the data moves vertices across the surface,
     never along it, so they do not bunch up into slivers that flip)."""
     idx = np.flatnonzero(candidates)
     pts, dist, face, bary = scan.query.closest_points(X[idx], reach)
@@ -166,7 +166,7 @@ def scan_pairs(X: np.ndarray, NX: np.ndarray, scan: Surface, reach: float, candi
     edge = near_edge(scan)
     ok = (face >= 0) & (np.sum(N * NX[idx], axis=1) >= cos_max)
     ok[ok] &= ~edge[face[ok]]
-    miss = np.flatnonzero(~ok)
+    miss = np.flatnonzero(~ok if rays is None else ~ok & rays[idx])
     if len(miss):
         hit, hit_pts, hit_face, hit_bary = scan.query.bidirectional_hits(X[idx[miss]], NX[idx[miss]], reach)
         hit_N = _scan_normals(scan, np.where(hit, hit_face, -1), hit_bary)
@@ -301,7 +301,7 @@ def whole(P: np.ndarray, X_safe: np.ndarray, X: np.ndarray, F: np.ndarray, ring:
 def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray,
                 landmarks: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
                 head: np.ndarray | None = None, stiffness: np.ndarray | None = None,
-                detail: np.ndarray | None = None) -> SurfaceFit:
+                detail: np.ndarray | None = None, rays: np.ndarray | None = None) -> SurfaceFit:
     """Fit the template skin P (n, 3) metres, F (m, 3) to `scan` (face frame, head part only).
 
     movable (n,) bool: skin a scanner can see (the rest follows its neighbours); landmarks:
@@ -311,7 +311,9 @@ def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray
     eyelids and ears bend less than a cheek; default 1); detail (n,) bool: skin that
     follows the scan's detail (stages softer than DETAIL_STIFFNESS and the projection);
     the rest (thin folds such as eyelids and ears, a neck the scan cuts short) keeps the
-    shape the stiff stages gave it (default: all movable skin).
+    shape the stiff stages gave it (default: all movable skin); rays (n,) bool: skin that
+    may take the scan along its normal where its closest point faces away (scan_pairs;
+    default all).
     """
     t0 = time.perf_counter()
     P_in = np.asarray(P, dtype=np.float64)
@@ -322,6 +324,8 @@ def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray
     F = label[F_in]
     F = F[(F[:, 0] != F[:, 1]) & (F[:, 1] != F[:, 2]) & (F[:, 2] != F[:, 0])]
     movable = np.bincount(label, weights=np.asarray(movable, dtype=float), minlength=n) > 0
+    if rays is not None:
+        rays = np.bincount(label, weights=np.asarray(rays, dtype=float), minlength=n) > 0
     head = None if head is None else np.bincount(label, weights=np.asarray(head, dtype=float), minlength=n) > 0
     detail = movable if detail is None else movable & (
         np.bincount(label, weights=np.asarray(detail, dtype=float), minlength=n) > 0)
@@ -362,7 +366,7 @@ def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray
         solve = None
         for _ in range(ROUNDS):
             NX = per_vertex_normals(X, F)
-            idx_all, Q_all = scan_pairs(X, NX, scan, reach, matched, along_normal=True)
+            idx_all, Q_all = scan_pairs(X, NX, scan, reach, matched, along_normal=True, rays=rays)
             if solve is None:  # once a stage: skin let go in a round stays put until the next stage
                 M = a * a * LtL + sp.diags((matched & ~quiet).astype(np.float64))
                 if B is not None:
@@ -410,7 +414,7 @@ def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray
         X = X_whole = X_ext
     # paper 001's local step: onto the scan where it is close, never folding a triangle
     NX = per_vertex_normals(X, F)
-    idx, Q = scan_pairs(X, NX, scan, PROJECT_REACH, detail)
+    idx, Q = scan_pairs(X, NX, scan, PROJECT_REACH, detail, rays=rays)
     Y = X.copy()
     Y[idx] = Q
     for _ in range(5):
