@@ -37,10 +37,12 @@ from fae.io.facemodel import FaceModel
 # skin under the chin crosses the mandible).
 REGION_STIFFNESS = {"eyelid_upper_l": 3.0, "eyelid_upper_r": 3.0, "eyelid_lower_l": 3.0, "eyelid_lower_r": 3.0,
                     "ear_l": 2.0, "ear_r": 2.0, "lip_upper": 1.5, "lip_lower": 1.5, "mouth_cavity": 2.0, "neck": 2.0}
-# skin that keeps to its closest compatible scan points: a lid, a thin fold over the eye,
-# would take the eye's surface along its normal (onto a mask's shut eyes the lids' opening
-# changed, and their FAPs moved 1.5-1.8x their value)
-NO_RAYS = ("eyelid_upper_l", "eyelid_upper_r", "eyelid_lower_l", "eyelid_lower_r", "lip_upper", "lip_lower")
+# skin that keeps to its closest compatible scan points (no search along its normal): the
+# lips, and the lids near the eyeball, thin folds over the mouth and the eye that would take
+# their surface along the normal (on a mask's shut eyes the lids' opening changed and their
+# FAPs moved 1.5-1.8x their value; its outer lip corners 0.6x)
+NO_RAYS = ("lip_upper", "lip_lower")
+NO_RAYS_NEAR_EYE = 0.004  # m
 EYE_RIM = 0.0025  # m: skin this close to an eyeball follows its neighbours, not the scan
 MAX_FACE_RMS_REL = 0.004  # face skin -> scan RMS / head diagonal beyond which the fit failed
 MIN_FACE_COVERAGE = 0.8  # share of the face skin within reach of the scan below which it failed
@@ -103,7 +105,8 @@ def adapt_to_scan(template: FaceModel, scan_V: np.ndarray, scan_F: np.ndarray, h
     stiffness = np.ones(len(P))
     for region, k in REGION_STIFFNESS.items():
         stiffness[in_regions(template, [region])] = k
-    fit = fit_to_scan(P, F, scan, seen, landmarks=lm, stiffness=stiffness, rays=~in_regions(template, NO_RAYS))
+    fit = fit_to_scan(P, F, scan, seen, landmarks=lm, stiffness=stiffness,
+                      rays=~in_regions(template, NO_RAYS) & ~near_eyeballs(template, NO_RAYS_NEAR_EYE))
     t_fit = time.perf_counter() - t0
     model, report = personalize(template, fit.vertices, T, head.unit, "surface")
     # the errors, in the scan's own frame through the head's scan_transform (no refit)
