@@ -12,12 +12,12 @@ geodesic distance as the smoothstep 1 - 3 r^2 + 2 r^3 over a fade that widens wi
 value: `FADE_ES` x ES0 while the ear has moved at most GRADIENT x that / SMOOTHSTEP_SLOPE,
 then as far as keeps the skin's displacement gradient within GRADIENT (an edge along the
 motion at most 1 + GRADIENT, one against it at least 1 - GRADIENT its rest length). The
-standard lets an ear move 900 ENS units (3 cm on the generic head): over a fixed 1.3 cm
+standard lets an ear move 900 ENS units (5 cm on the generic head): over a fixed 1.3 cm
 fade the scalp at the ear's root stretched 7.5x. The table holds the fields at doubling
 values up to the limit and the standard's piecewise-linear rule blends between them, so a
 twitch moves the skin near the ear only and the limit moves the side of the head. On a
-head without an ear region the ear is the geodesic disc of `DISC_ES` x ES0 around the
-point, fading the same way beyond it.
+head without an ear region the motion fades from the feature point's triangle, over at
+least `DISC_ES` x ES0.
 A head's own (authored) FaceDefTable for an ear FAP takes precedence (the standard's
 Predictable case); a table baked from the physics (fae.animate.bake) is this one's copy.
 """
@@ -32,7 +32,7 @@ from fae.io.facemodel import FaceDefTable
 
 EAR_FAPS = (65, 66, 67, 68)
 FADE_ES = 0.2  # the narrowest fade, x ES0
-DISC_ES = 0.5  # the ear of a head without an ear region, x ES0
+DISC_ES = 0.5  # the narrowest fade on a head without an ear region, x ES0
 GRADIENT = 0.6  # the largest displacement gradient the fade allows (metres per metre)
 SMOOTHSTEP_SLOPE = 1.5  # the largest slope of 1 - 3 r^2 + 2 r^3 over r in [0, 1]
 
@@ -54,17 +54,17 @@ def ear_tables(face, fapu: dict[str, float], graph) -> list[FaceDefTable]:
         tri = faces[point.triangle]
         regions = {int(r) for r in region[tri]} if len(region) else set()
         if len(regions) == 1 and "ear" in names[regions.pop()]:
-            ear, core = np.flatnonzero(region == region[tri[0]]), 0.0
+            ear, narrowest = np.flatnonzero(region == region[tri[0]]), FADE_ES * es0
         else:
-            ear, core = tri, DISC_ES * es0
+            ear, narrowest = tri, DISC_ES * es0
         limit = float(np.abs(FAP_LIMITS[k - 1]).max())
-        values = fade_values(limit, unit[k - 1], FADE_ES * es0)
-        fades = np.array([fade_width(v * unit[k - 1], FADE_ES * es0) for v in values])
-        d = dijkstra(graph, directed=False, indices=ear, limit=core + fades[-1], min_only=True)
-        idx = np.flatnonzero(d < core + fades[-1])
+        values = fade_values(limit, unit[k - 1], narrowest)
+        fades = np.array([fade_width(v * unit[k - 1], narrowest) for v in values])
+        d = dijkstra(graph, directed=False, indices=ear, limit=fades[-1], min_only=True)
+        idx = np.flatnonzero(d < fades[-1])
         # the skin's displacement at each value (+ and - alike), metres: the ear carried whole
         step = unit[k - 1] * FAP_DIRECTION[k - 1]
-        at = [smoothstep_fade((d[idx] - core) / f)[:, None] * (v * step)[None, :] for v, f in zip(values, fades)]
+        at = [smoothstep_fade(d[idx] / f)[:, None] * (v * step)[None, :] for v, f in zip(values, fades)]
         borders = np.concatenate([-values[::-1], [0.0], values])
         shape = np.concatenate([[-a for a in at[::-1]], [np.zeros((len(idx), 3))], at])  # the integral at each border
         per_unit = np.diff(shape, axis=0) / np.diff(borders)[:, None, None]
