@@ -43,14 +43,13 @@ BORDER_COLOUR_SPREAD = 45.0  # RGB levels: how far from the face's colour a bord
 HOLE_TEXELS = 6.0  # ... and of the close fill of the eyes' and mouth's holes
 
 
-def texel_surface(V: np.ndarray, N: np.ndarray, uv: np.ndarray, size: tuple[int, int],
-                  extra: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def texel_surface(V: np.ndarray, N: np.ndarray, uv: np.ndarray, size: tuple[int, int]
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Points and normals of the surface at texel centres.
 
     V (n, 3) metres, N (n, 3) unit normals, uv (n, 2) in [0, 1] (u wraps around); size
-    (width, height); extra (n, k): more per-vertex values to interpolate (default none).
-    Returns (inside (H, W) bool: texels within the laid-out surface, P (H, W, 3),
-    NN (H, W, 3), E (H, W, k); nan outside). Texel row r, column c is uv ((c + .5) / W,
+    (width, height). Returns (inside (H, W) bool: texels within the laid-out surface,
+    P (H, W, 3), NN (H, W, 3); nan outside). Texel row r, column c is uv ((c + .5) / W,
     (r + .5) / H).
     """
     from scipy.interpolate import LinearNDInterpolator
@@ -59,8 +58,7 @@ def texel_surface(V: np.ndarray, N: np.ndarray, uv: np.ndarray, size: tuple[int,
     near_seam_low = uv[:, 0] < 0.1
     near_seam_high = uv[:, 0] > 0.9
     UV = np.concatenate([uv, uv[near_seam_low] + [1.0, 0.0], uv[near_seam_high] - [1.0, 0.0]])
-    extra = np.zeros((len(V), 0)) if extra is None else np.asarray(extra, np.float64).reshape(len(V), -1)
-    per_vertex = np.hstack([V, N, extra])
+    per_vertex = np.hstack([V, N])
     values = np.concatenate([per_vertex, per_vertex[near_seam_low], per_vertex[near_seam_high]])
     interp = LinearNDInterpolator(UV, values)
     u = (np.arange(width) + 0.5) / width
@@ -68,9 +66,9 @@ def texel_surface(V: np.ndarray, N: np.ndarray, uv: np.ndarray, size: tuple[int,
     uu, vv = np.meshgrid(u, v)
     out = interp(np.column_stack([uu.ravel(), vv.ravel()])).reshape(height, width, per_vertex.shape[1])
     inside = np.all(np.isfinite(out), axis=2)
-    NN = out[:, :, 3:6]
+    NN = out[:, :, 3:]
     NN = NN / np.maximum(np.linalg.norm(NN, axis=2, keepdims=True), 1e-12)
-    return inside, out[:, :, :3], NN, out[:, :, 6:]
+    return inside, out[:, :, :3], NN
 
 
 def outline_weight(outline: np.ndarray, image_size: tuple[int, int], feather_px: float) -> np.ndarray:
@@ -140,8 +138,8 @@ def photo_texture(V: np.ndarray, N: np.ndarray, uv: np.ndarray, to_photo: np.nda
     width, height = size
     image = np.asarray(image)[:, :, :3]
     ih, iw = image.shape[:2]
-    inside, P, NN, _ = texel_surface(np.asarray(V, np.float64), np.asarray(N, np.float64),
-                                     np.asarray(uv, np.float64), size)
+    inside, P, NN = texel_surface(np.asarray(V, np.float64), np.asarray(N, np.float64),
+                                  np.asarray(uv, np.float64), size)
     at = np.flatnonzero(inside.ravel())
     X = P.reshape(-1, 3)[at]
     Nx = NN.reshape(-1, 3)[at]
@@ -152,7 +150,6 @@ def photo_texture(V: np.ndarray, N: np.ndarray, uv: np.ndarray, to_photo: np.nda
     facing = -(Nx @ to_photo[:3, :3].T)[:, 2] / scale
     w = np.clip((facing - FACING_NONE) / (FACING_FULL - FACING_NONE), 0.0, 1.0)
     w = w * w * (3.0 - 2.0 * w)
-    facing_weight = w.copy()
     # depth buffer of the texels themselves, one cell per photo pixel
     cell = 1.0
     gx = np.clip((q[:, 0] / cell).astype(np.int64), 0, int(iw / cell))
@@ -161,8 +158,8 @@ def photo_texture(V: np.ndarray, N: np.ndarray, uv: np.ndarray, to_photo: np.nda
     nearest = np.full(key.max() + 1, np.inf)
     front = facing > 0.0
     np.minimum.at(nearest, key[front], q[front, 2])
-    w *= q[:, 2] <= nearest[key] + DEPTH_TOLERANCE * scale
-    seen = facing_weight * (q[:, 2] <= nearest[key] + DEPTH_TOLERANCE * scale)
+    seen = w * (q[:, 2] <= nearest[key] + DEPTH_TOLERANCE * scale)  # facing the camera, not hidden
+    w = seen.copy()
     # inside the face's outline on the photo, feathered
     centre = face_outline.mean(axis=0)
     outline = centre + OUTLINE_SHRINK * (face_outline - centre)
