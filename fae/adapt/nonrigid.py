@@ -157,8 +157,9 @@ def scan_pairs(X: np.ndarray, NX: np.ndarray, scan: Surface, reach: float, candi
     template's step over a scan's hollow (an inner eye corner sculpted deep) has its
     closest points on the hollow's steep side, and the floor under it is what it should
     follow (rays (n,) bool: the vertices that may; default all). along_normal: the target
-    is the vertex's projection onto the scan's tangent plane there instead (point-to-plane: the data moves vertices across the surface,
-    never along it, so they do not bunch up into slivers that flip)."""
+    is the vertex's projection onto the scan's tangent plane there instead (point-to-plane:
+    the data moves vertices across the surface, never along it, so they do not bunch up
+    into slivers that flip)."""
     idx = np.flatnonzero(candidates)
     pts, dist, face, bary = scan.query.closest_points(X[idx], reach)
     N = _scan_normals(scan, face, bary)

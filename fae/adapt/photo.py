@@ -248,8 +248,9 @@ BEHIND_EAR_DEGREES = 20.0  # of azimuth behind an ear over which the hairline dr
 
 def hair_cap(face: FaceModel):
     """Where a head's hair grows, a cap above a smooth hairline: a function of points
-    (k, 3) metres in the head frame giving (k,) weights in [0, 1], or None. Around the head's vertical axis (through the ears' mean depth) the hairline's
-    height follows the azimuth: at the front the middle hairline point (FDP 11.1), at the
+    (k, 3) metres in the head frame giving (k,) weights in [0, 1], or None. Around the
+    head's vertical axis (through the ears' mean depth) the hairline's height follows the
+    azimuth: at the front the middle hairline point (FDP 11.1), at the
     temples the side ones (11.2, 11.3), over the ears HAIRLINE_OVER_EAR above their tops,
     then down behind them to the earlobes' height (the nape) and round the back at that
     height. Each vertex's weight rises from 0 to 1 over HAIRLINE_SOFTNESS either side of
