@@ -44,7 +44,8 @@ epidermis particles whose Laplacian offset strays more than `crease_tolerance` 0
 mean edge are moved back, epidermis edges where the skin is seen are kept between
 `strain_min` 0.4 and `strain_max` 1.8 x their rest length, and lip particles facing each
 other within `lip_reach` 3 mm stay in order (so does each upper lid's lining within as much
-of its front's margin: it sinks no further below the margin than at rest), in up to
+of its front's margin: it sinks no further below the margin than at rest, nor rises more
+than `LID_MARGIN_SLACK` over its rest height), in up to
 `fold_passes` 3 passes per substep.
 """
 
@@ -256,6 +257,17 @@ EYE_LINING_SLACK = 0.001
 # and held in such a band they were squeezed to a tenth of their length)
 EYE_BAND_REGIONS = ("eyelid_lower_l", "eyelid_lower_r", "cheek_l", "cheek_r")
 UPPER_LID_REGIONS = ("eyelid_upper_l", "eyelid_upper_r")
+# An upper lid is a thin fold, its front over its lining. As a blink opened, the front's
+# crease came back into the socket ahead of the lining and the margin rolled out: for a
+# frame the lining's dark back showed over the iris (1,200 of 45,000 rays from the front
+# met a back face). So the skin a viewer sees of an upper lid keeps at least
+# EYE_UPPER_FRONT_KEEP from the eyeball (or its rest distance less EYE_SLACK, where less),
+# and along the margin the lining rises no more than LID_MARGIN_SLACK above its rest height
+# over the front (fae.sim.folds.LipPair): 40 such rays (the front's keep alone left 66, the
+# margin's alone 600; the lining also held near the eyeball, as the lower lids' is, left
+# 26, but a lid opened wide stretched its margin 3.7x against it).
+EYE_UPPER_FRONT_KEEP = 0.002
+LID_MARGIN_SLACK = 0.0005
 
 
 def eyeball_sphere(face: FaceModel, name: str) -> tuple[np.ndarray, float] | None:
@@ -270,17 +282,21 @@ def eyeball_sphere(face: FaceModel, name: str) -> tuple[np.ndarray, float] | Non
 
 
 def eye_spheres(face: FaceModel, q: np.ndarray, candidates: np.ndarray, outer: np.ndarray | None = None,
-                lining: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                lining: np.ndarray | None = None, front: np.ndarray | None = None
+                ) -> tuple[np.ndarray, np.ndarray]:
     """(P, 4), (P,): for each particle at rest q (P, 3) among `candidates` (P,) bool within
     EYE_REACH of an eyeball (eyeball_sphere), that eyeball's centre and the radius it keeps
     outside of; then within EYE_BAND_REACH, the particles of `outer` (P,) bool keep at least
-    EYE_OUTER_KEEP of their rest distance from it, and those of `lining` go no farther than
-    their rest distance + EYE_LINING_SLACK (the second array; 0: no limit); zeros elsewhere."""
+    EYE_OUTER_KEEP of their rest distance from it, those of `front` at least
+    EYE_UPPER_FRONT_KEEP (their rest distance less EYE_SLACK where that is less), and those of
+    `lining` go no farther than their rest distance + EYE_LINING_SLACK (the second array; 0:
+    no limit); zeros elsewhere."""
     out = np.zeros((len(q), 4))
     far = np.zeros(len(q))
     best = np.full(len(q), np.inf)
     outer = np.zeros(len(q), dtype=bool) if outer is None else outer
     lining = np.zeros(len(q), dtype=bool) if lining is None else lining
+    front = np.zeros(len(q), dtype=bool) if front is None else front
     for name in EYE_PARTS:
         sphere = eyeball_sphere(face, name)
         if sphere is None:
@@ -294,6 +310,8 @@ def eye_spheres(face: FaceModel, q: np.ndarray, candidates: np.ndarray, outer: n
         out[use, 3] = radius + np.minimum(gap[use] - EYE_SLACK, EYE_CLEARANCE)
         keep = band & outer & (gap > EYE_SLACK)
         out[keep, 3] = np.maximum(out[keep, 3], radius + EYE_OUTER_KEEP * gap[keep])
+        keep = band & front & (gap > EYE_SLACK)
+        out[keep, 3] = np.maximum(out[keep, 3], radius + np.minimum(gap[keep] - EYE_SLACK, EYE_UPPER_FRONT_KEEP))
         far[band] = np.where(lining[band], radius + np.maximum(gap[band], 0.0) + EYE_LINING_SLACK, 0.0)
         best[band] = gap[band]
     return out, far
@@ -532,7 +550,8 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
     seen_skin = shared[4] if shared else visible_skin(face)
     # and each upper lid's lining, kept from sinking below its front's margin (the same
     # contact, the lining as the upper partner): a blink's closing pulled the lining 2-3.5 mm
-    # below the front, and the margin creased where the two met
+    # below the front, and the margin creased where the two met; nor rising much above it
+    # (the margin rolled out as a blink opened: see EYE_UPPER_FRONT_KEEP)
     for name in UPPER_LID_REGIONS:
         if name not in names:
             continue
@@ -541,7 +560,7 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
         rim = lid & seen_skin & (A @ hidden.astype(np.float64) > 0)
         lip = np.concatenate([lip, lip_pairs(q, pid(0, np.flatnonzero(hidden & simulated)),
                                              pid(0, np.flatnonzero(rim & simulated)), particle_jaw,
-                                             float(p["lip_reach"]))])
+                                             float(p["lip_reach"]), most_slack=LID_MARGIN_SLACK)])
     lip = lip[movable[lip["upper"]] | movable[lip["lower"]]]
 
     # Bone distance grids and which particles must stay outside them.
@@ -559,13 +578,14 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
     # a particle closer to its rest place (in a bone's frame) than this cannot be inside that
     # bone (a distance field changes by at most the distance moved; 1 mm spare for the grid)
     clearance = np.clip(phi_rest - 0.001, 0.0, 1.0).T
-    outer, lining = np.zeros(P, dtype=bool), np.zeros(P, dtype=bool)
+    outer, lining, front = np.zeros(P, dtype=bool), np.zeros(P, dtype=bool), np.zeros(P, dtype=bool)
     banded = np.isin(region, [names.index(r) for r in EYE_BAND_REGIONS if r in names])
     lids = np.isin(region, [names.index(r) for r in EYE_BAND_REGIONS if r in names and r.startswith("eyelid")])
+    upper_lids = np.isin(region, [names.index(r) for r in UPPER_LID_REGIONS if r in names])
     # (a few cheek vertices under the lid are hidden from outward rays too: not lining)
-    for mark, which in ((outer, banded & seen_skin), (lining, lids & ~seen_skin)):
+    for mark, which in ((outer, banded & seen_skin), (lining, lids & ~seen_skin), (front, upper_lids & seen_skin)):
         mark[pid(0, sim_vertices[which[sim_vertices]])] = True
-    sphere, sphere_max = eye_spheres(face, q, movable & (layer_of < LAYER_COUNT - 1), outer, lining)
+    sphere, sphere_max = eye_spheres(face, q, movable & (layer_of < LAYER_COUNT - 1), outer, lining, front)
 
     # Stable substep: the springs' largest eigenvalue of M^-1 K over all configurations and
     # the weakest (implicit) anchor (see fae.sim.solver); a part's rows are a principal

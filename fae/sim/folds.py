@@ -269,19 +269,24 @@ def smooth_creases(particle_q: wp.array(dtype=wp.vec3), vertices: wp.array(dtype
 @wp.struct
 class LipPair:
     """A particle of the upper lip and the nearest of the lower lip at rest (epidermis), the
-    jaw weight of their holds (mean) and the least height (metres) of the upper over the
+    jaw weight of their holds (mean), the least height (metres) of the upper over the
     lower along the head's up direction carried by that hold: 0, or less where the upper lies
-    lower at rest."""
+    lower at rest, and the most (+inf for the lips, which part freely; an upper lid's margin
+    keeps its lining within a little of its rest height over the front)."""
 
     upper: int
     lower: int
     jaw: float
     gap: float
+    most: float
 
 
-def lip_pairs(q: np.ndarray, upper: np.ndarray, lower: np.ndarray, jaw: np.ndarray, reach: float) -> np.ndarray:
+def lip_pairs(q: np.ndarray, upper: np.ndarray, lower: np.ndarray, jaw: np.ndarray, reach: float,
+              most_slack: float | None = None) -> np.ndarray:
     """Structured array of `LipPair`: each particle of `upper` (ids) within `reach` metres of
-    one of `lower` at rest q (P, 3), with its nearest, and each of `lower` likewise."""
+    one of `lower` at rest q (P, 3), with its nearest, and each of `lower` likewise; with
+    `most_slack` (metres), the upper rises at most that much above its rest height over the
+    lower (else without limit)."""
     from scipy.spatial import cKDTree
 
     out = []
@@ -296,6 +301,7 @@ def lip_pairs(q: np.ndarray, upper: np.ndarray, lower: np.ndarray, jaw: np.ndarr
     rec["upper"], rec["lower"] = pairs[:, 0], pairs[:, 1]
     rec["jaw"] = 0.5 * (jaw[pairs[:, 0]] + jaw[pairs[:, 1]])
     rec["gap"] = np.minimum(0.0, q[pairs[:, 0], 1] - q[pairs[:, 1], 1])
+    rec["most"] = np.inf if most_slack is None else np.maximum(0.0, q[pairs[:, 0], 1] - q[pairs[:, 1], 1]) + most_slack
     return rec
 
 
@@ -306,16 +312,18 @@ def separate_lips(particle_q: wp.array(dtype=wp.vec3), pairs: wp.array(dtype=Lip
                   guarded_count: wp.array(dtype=int)):
     """Lips meet and press but do not pass: an upper-lip particle that has sunk below its
     lower-lip partner (along the head's up direction carried by their holds) and the partner
-    are moved apart, half the overlap each. (An upper lid's lining over its front's margin
-    is such a pair too: fae.sim.build.)"""
+    are moved apart, half the overlap each; a pair with a most height (an upper lid's lining
+    over its front's margin: fae.sim.build) is drawn together, half the excess each, when the
+    upper rises beyond it."""
     k = wp.tid()
     if k >= pair_count:
         return
     pair = pairs[k]
     y = wp.vec3(0.0, 1.0, 0.0)
     up = wp.normalize(bone_rotation[0] * y * (1.0 - pair.jaw) + bone_rotation[1] * y * pair.jaw)
-    overlap = pair.gap - wp.dot(particle_q[pair.upper] - particle_q[pair.lower], up)
-    if overlap <= 0.0:
+    height = wp.dot(particle_q[pair.upper] - particle_q[pair.lower], up)
+    overlap = wp.max(pair.gap - height, 0.0) - wp.max(height - pair.most, 0.0)
+    if overlap == 0.0:
         return
     wp.atomic_add(particle_move, pair.upper, up * (0.5 * overlap))
     wp.atomic_add(particle_move, pair.lower, up * (-0.5 * overlap))

@@ -336,8 +336,9 @@ class ReferenceSolver:
         y = np.array([0.0, 1.0, 0.0])
         up = (bone_rotation[0] @ y)[None] * (1.0 - w) + (bone_rotation[1] @ y)[None] * w
         up /= np.linalg.norm(up, axis=1, keepdims=True)
-        overlap = lp["gap"] - np.sum((q[u] - q[low]) * up, axis=1)
-        hit = overlap > 0.0
+        height = np.sum((q[u] - q[low]) * up, axis=1)
+        overlap = np.maximum(lp["gap"] - height, 0.0) - np.maximum(height - lp["most"], 0.0)
+        hit = overlap != 0.0
         half = up[hit] * (0.5 * overlap[hit])[:, None]
         return np.concatenate([u[hit], low[hit]]), np.concatenate([half, -half])
 
