@@ -14,7 +14,14 @@ two lip regions): the lower lip has gone through the upper one, or the reverse. 
 margins, the backs of the ears, the nostrils: skin no outward ray leaves, the mouth and lips
 left to the lip check) passes through a visible triangle near it: the lining has come out
 through the skin (the cheek rising into the lower lid's lining at the outer eye corner),
-and its dark back shows as a streak although no triangle has turned over.
+and its dark back shows as a streak although no triangle has turned over. The skin's
+**back shows** where a viewer in front of the face (the head's own frame, looking along -z)
+first meets a skin triangle from behind: rays on a `BACK_RAY_SPACING` grid over the face
+(scalp, neck, ears and the mouth's lining left out of the grid's extent; a ray meeting the
+mouth's lining, as dark from either side, not counted); the area they cover is what a
+viewer sees inside out, whatever made it (a lid's
+margin rolled out, a lip turned inside out, a fold), and a frame shows it when that area
+exceeds `BACK_AREA_LIMIT`.
 
     check = SkinCheck(face)
     for name, frames in default_streams(): ...          # the FAP sweep and the six expressions
@@ -50,6 +57,13 @@ LIP_REGIONS = ("lip_upper", "lip_lower")
 # a hidden edge is tested against the visible triangles within this many metres of it at
 # rest (beyond each one's own size): the lining lies a few millimetres behind the skin
 LINING_REACH = 0.003
+# rays from the front 1 mm apart (27,500 over the generic head's face, 15 ms a frame); a
+# frame shows the skin's back when over 3 mm^2 of it faces the viewer (the real streams'
+# lids and lips leave specks of 1-2 mm^2 along their edges; a blink's rolled-out margin
+# showed 50 mm^2)
+BACK_RAY_SPACING = 0.001
+BACK_AREA_LIMIT = 3e-6
+BACK_GRID_LEFT_OUT = ("scalp", "neck", "ear_l", "ear_r", "mouth_cavity")
 
 
 @dataclass
@@ -59,7 +73,7 @@ class FrameCheck:
     (the rest sit on a crease); stretch and compression: the largest and smallest edge
     length over rest length of visible edges; lip_crossings: lip edges that pass through
     the other lip; lining_crossings: edges of skin hidden at rest that pass through a
-    visible triangle."""
+    visible triangle; back_area: m^2 of the face a viewer in front sees by the skin's back."""
 
     folded: np.ndarray
     turned: np.ndarray
@@ -67,6 +81,7 @@ class FrameCheck:
     compression: float
     lip_crossings: int
     lining_crossings: int = 0
+    back_area: float = 0.0
 
 
 def segments_through_triangles(a: np.ndarray, b: np.ndarray, T: np.ndarray) -> np.ndarray:
@@ -177,6 +192,8 @@ class SkinCheck:
             up, low = (np.flatnonzero(np.isin(r, [names.index(x)]).all(axis=1)) for x in LIP_REGIONS)
             self.lips = [(F[up], _triangle_edges(F[low])), (F[low], _triangle_edges(F[up]))]
         self.lining = lining_pairs(face, self.visible)
+        self.front_rays = front_ray_origins(face, self.visible)
+        self._query = None
 
     def frame(self, skin: np.ndarray) -> FrameCheck:
         """Check one frame's skin (V, 3) metres, in the head's own frame (rotation removed)."""
@@ -197,7 +214,46 @@ class SkinCheck:
         lining = len(np.unique(L[through, :2], axis=0))
         return FrameCheck(folded=folded, turned=turned, stretch=float(ratio.max(initial=1.0)),
                           compression=float(ratio.min(initial=1.0)), lip_crossings=crossings,
-                          lining_crossings=lining)
+                          lining_crossings=lining, back_area=self.back_area(skin, n))
+
+    def back_area(self, skin: np.ndarray, normals: np.ndarray | None = None) -> float:
+        """m^2 of the face that a viewer in front (along -z, head frame) sees by the skin's
+        back, for skin (V, 3) metres in the head's own frame (normals: its triangle normals,
+        when at hand)."""
+        if len(self.front_rays) == 0:
+            return 0.0
+        from fae.adapt.query import MeshQuery
+
+        if self._query is None:
+            self._query = MeshQuery(skin, self.faces)
+        else:
+            self._query.move(skin)
+        origins = self.front_rays.copy()
+        origins[:, 2] = float(skin[:, 2].max()) + 0.05
+        directions = np.broadcast_to(np.array([0.0, 0.0, -1.0]), origins.shape)
+        hit, _, tri, _ = self._query.ray_hits(origins, directions, 1.0)
+        n = triangle_normals(skin, self.faces) if normals is None else normals
+        tri = np.maximum(tri, 0)
+        back = hit & self.visible[tri] & (n[tri, 2] < 0.0)  # (the mouth's lining is dark either side)
+        return float(back.sum()) * BACK_RAY_SPACING ** 2
+
+
+def front_ray_origins(face, visible_triangles: np.ndarray, spacing: float = BACK_RAY_SPACING) -> np.ndarray:
+    """(R, 3) metres: a grid `spacing` apart over the x-y extent at rest of the visible
+    triangles `visible_triangles` (T,) bool of the face (those touching BACK_GRID_LEFT_OUT
+    regions left out), z to be set in front of the skin of each frame."""
+    V = np.asarray(face.skin_vertices, dtype=np.float64)
+    F = np.asarray(face.skin_faces, dtype=np.int64)
+    names = list(face.region_names)
+    region = np.asarray(face.skin_region)
+    away = np.isin(region, [names.index(r) for r in BACK_GRID_LEFT_OUT if r in names])
+    tris = visible_triangles & ~away[F].any(axis=1)
+    if not tris.any():
+        return np.zeros((0, 3))
+    P = V[F[tris]].reshape(-1, 3)
+    lo, hi = P.min(axis=0), P.max(axis=0)
+    X, Y = np.meshgrid(np.arange(lo[0], hi[0], spacing), np.arange(lo[1], hi[1], spacing))
+    return np.column_stack([X.ravel(), Y.ravel(), np.zeros(X.size)])
 
 
 def _triangle_edges(F: np.ndarray) -> np.ndarray:
@@ -219,14 +275,16 @@ def check_stream(player, frames: Iterable, name: str = "", fps: float | None = N
     those, the ones whose own normal ever turned over; the rest only sat on a crease), "folded_by_region"
     {region: triangles}, "worst_frame", "worst_frame_folded", "max_stretch", "min_compression",
     "frames_lips_crossed", "max_lip_crossings", "frames_lining_shown", "max_lining_crossings",
-    "ok"}; ok: nothing folded, strain within [MIN_COMPRESSION, MAX_STRETCH], the lips never
-    cross and no lining comes out through the skin."""
+    "frames_back_shown", "max_back_area_mm2", "worst_back_frame", "ok"}; ok: nothing folded,
+    strain within [MIN_COMPRESSION, MAX_STRETCH], the lips never cross, no lining comes out
+    through the skin and no frame shows the skin's back over more than BACK_AREA_LIMIT."""
     check = check or SkinCheck(player.face)
     player.reset()
     ever = np.zeros(len(check.faces), dtype=bool)
     turned = np.zeros(len(check.faces), dtype=bool)
-    count = folded_frames = lip_frames = max_crossings = lining_frames = max_lining = 0
+    count = folded_frames = lip_frames = max_crossings = lining_frames = max_lining = back_frames = 0
     worst, worst_count = -1, 0
+    worst_back, back_area = -1, 0.0
     stretch, compression = 1.0, 1.0
     for frame in player.play(frames, fps=fps):
         r = check.frame(in_head_frame(frame.skin_vertices, frame.bone_transforms["head"]))
@@ -243,6 +301,10 @@ def check_stream(player, frames: Iterable, name: str = "", fps: float | None = N
         if r.lining_crossings:
             lining_frames += 1
             max_lining = max(max_lining, r.lining_crossings)
+        if r.back_area > BACK_AREA_LIMIT:
+            back_frames += 1
+        if r.back_area > back_area:
+            worst_back, back_area = frame.index, r.back_area
         stretch, compression = max(stretch, r.stretch), min(compression, r.compression)
         count += 1
     player.reset()
@@ -250,13 +312,15 @@ def check_stream(player, frames: Iterable, name: str = "", fps: float | None = N
     for rid in np.unique(check.triangle_region[ever]):
         regions[check.region_names[rid]] = int(np.sum(check.triangle_region[ever] == rid))
     ok = (not ever.any()) and stretch <= MAX_STRETCH and compression >= MIN_COMPRESSION and lip_frames == 0 \
-        and lining_frames == 0
+        and lining_frames == 0 and back_frames == 0
     return {"stream": name, "frames": count, "frames_folded": folded_frames, "triangles_folded": int(ever.sum()),
             "triangles_turned": int(turned.sum()),
             "folded_by_region": regions, "worst_frame": worst, "worst_frame_folded": worst_count,
             "max_stretch": round(stretch, 3), "min_compression": round(compression, 3),
             "frames_lips_crossed": lip_frames, "max_lip_crossings": max_crossings,
-            "frames_lining_shown": lining_frames, "max_lining_crossings": max_lining, "ok": bool(ok)}
+            "frames_lining_shown": lining_frames, "max_lining_crossings": max_lining,
+            "frames_back_shown": back_frames, "max_back_area_mm2": round(back_area * 1e6, 1),
+            "worst_back_frame": worst_back, "ok": bool(ok)}
 
 
 def fap_sweep() -> list[np.ndarray]:

@@ -7,9 +7,12 @@ smoothly at rest now more than 90 degrees apart; the mouth's lining, seen only t
 lips, left out), the worst edge stretch and compression (edge length over rest length,
 limits 2 and 0.3), the lips passing through each other (an edge of one lip through a
 triangle of the other), and skin hidden at rest (the eyelids' lining, the backs of the
-ears, the nostrils) coming out through the visible skin ("lining": its dark back shows). Without streams it plays every low-level FAP alone to the limits of
-its range and the standard's six expressions at full intensity. Exit status 0 when every
-stream keeps the skin whole, 1 when any does not, 2 when the head or a stream cannot be read.
+ears, the nostrils) coming out through the visible skin ("lining": its dark back shows),
+and how much of the face a viewer in front sees by the skin's back ("backs": frames over
+3 mm^2, and the most, in mm^2), whatever turned it. Without streams it plays every
+low-level FAP alone to the limits of its range and the standard's six expressions at full
+intensity. Exit status 0 when every stream keeps the skin whole, 1 when any does not, 2
+when the head or a stream cannot be read.
 """
 
 from __future__ import annotations
@@ -72,14 +75,16 @@ def run(args) -> int:
         print(f"{path}: folded = visible skin triangles ever turned over or on a crease (turned: their own normal "
               f"turned over); stretch / compression = "
               f"extreme edge length over rest length; lips = frames where the lips pass through each other; "
-              f"lining = frames where skin hidden at rest comes out through the visible skin")
+              f"lining = frames where skin hidden at rest comes out through the visible skin; backs = frames "
+              f"where a viewer in front sees over 3 mm^2 of the skin's back (mm^2: the most)")
         print(f"{'stream':<44} {'frames':>6} {'folded':>7} {'turned':>6} {'(frames)':>8} {'stretch':>7} {'compr.':>6} "
-              f"{'lips':>5} {'lining':>6}  worst regions")
+              f"{'lips':>5} {'lining':>6} {'backs':>5} {'mm^2':>6}  worst regions")
         for r in reports:
             regions = ", ".join(f"{k} {v}" for k, v in sorted(r["folded_by_region"].items(), key=lambda kv: -kv[1])[:4])
             print(f"{str(r['stream'])[:44]:<44} {r['frames']:>6} {r['triangles_folded']:>7} {r['triangles_turned']:>6} "
                   f"{r['frames_folded']:>8} "
                   f"{r['max_stretch']:>7.2f} {r['min_compression']:>6.2f} {r['frames_lips_crossed']:>5} "
-                  f"{r['frames_lining_shown']:>6}  {regions}")
-        print("the skin stays whole" if whole else "the skin folds, tears, the lips cross or a lining shows: see above")
+                  f"{r['frames_lining_shown']:>6} {r['frames_back_shown']:>5} {r['max_back_area_mm2']:>6.0f}  {regions}")
+        print("the skin stays whole" if whole else
+              "the skin folds, tears, the lips cross, a lining or the skin's back shows: see above")
     return 0 if whole else 1
