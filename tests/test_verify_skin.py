@@ -240,12 +240,14 @@ def test_a_blink_reopening_never_shows_the_lids_lining(face, check):
     came back into the socket ahead of the lining as the lid reopened, the margin rolled out
     and 52 mm^2 of the lining's dark back showed over the iris for a frame; 0-1 now."""
     from fae.animate.player import Player, playable_head
+    from fae.animate.skin_check import in_head_frame
 
     player = Player(playable_head(face))
     seen = []
     for lid in (0.0, 512.0, 1024.0, 1024.0, 512.0, 0.0, 0.0, 0.0, 0.0):
         values = np.zeros(68)
         values[[18, 19]] = lid
-        seen.append(check.frame(player.step(values, dt=0.04)).back_area)
+        skin = player.step(values, dt=0.04)
+        seen.append(check.frame(in_head_frame(skin, player.bone_transforms["head"])).back_area)
     assert max(seen) <= 3e-6, seen
     assert seen[-1] == 0.0, seen

@@ -58,7 +58,8 @@ def texel_surface(V: np.ndarray, N: np.ndarray, uv: np.ndarray, size: tuple[int,
     near_seam_low = uv[:, 0] < 0.1
     near_seam_high = uv[:, 0] > 0.9
     UV = np.concatenate([uv, uv[near_seam_low] + [1.0, 0.0], uv[near_seam_high] - [1.0, 0.0]])
-    values = np.concatenate([np.hstack([V, N]), np.hstack([V, N])[near_seam_low], np.hstack([V, N])[near_seam_high]])
+    per_vertex = np.hstack([V, N])
+    values = np.concatenate([per_vertex, per_vertex[near_seam_low], per_vertex[near_seam_high]])
     interp = LinearNDInterpolator(UV, values)
     u = (np.arange(width) + 0.5) / width
     v = (np.arange(height) + 0.5) / height
