@@ -251,3 +251,35 @@ def test_a_blink_reopening_never_shows_the_lids_lining(face, check):
         seen.append(check.frame(in_head_frame(skin, player.bone_transforms["head"])).back_area)
     assert max(seen) <= 3e-6, seen
     assert seen[-1] == 0.0, seen
+
+
+def test_a_lid_standing_off_its_eyeball_blinks_without_showing_its_lining(face):
+    """An adapted bust's upper lids are fitted to its sculpted eyes, 5-10 mm in front of the
+    eyeballs placed in their sockets: with nothing under it, a blinking lid's lining rolled
+    out through its front as it reopened (87 mm^2 seen by its back on the generic head with
+    its eyes set 6 mm deeper; 102-139 mm^2 on the three busts). Such lining keeps within its
+    rest distance from the eye and the front keeps over it (fae.sim.build.LINING_STANDOFF);
+    the lid still closes."""
+    import copy
+
+    from fae.animate.player import Player, playable_head
+    from fae.animate.skin_check import in_head_frame
+
+    deep = copy.deepcopy(face)
+    for name in ("eye_l", "eye_r"):
+        deep.parts[name].vertices = deep.parts[name].vertices - [0.0, 0.0, 0.006]
+        deep.eye_centers[name] = np.asarray(deep.eye_centers[name]) - [0.0, 0.0, 0.006]
+    check = SkinCheck(deep)
+    player = Player(playable_head(deep))
+    points = [deep.feature_points[p] for p in ("3.1", "3.3")]
+    seen, opening = [], []
+    for lid in (0.0, 512.0, 1024.0, 1024.0, 512.0, 0.0, 0.0, 0.0, 0.0):
+        values = np.zeros(68)
+        values[[18, 19]] = lid
+        skin = player.step(values, dt=0.04)
+        seen.append(check.frame(in_head_frame(skin, player.bone_transforms["head"])).back_area)
+        top, bottom = (deep.surface_point_position(p, skin) for p in points)
+        opening.append(top[1] - bottom[1])
+    assert max(seen) <= 3e-6, seen
+    assert min(opening) < 0.3 * opening[0], opening  # closed
+    assert opening[-1] > 0.8 * opening[0], opening  # and open again

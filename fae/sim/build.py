@@ -268,6 +268,15 @@ UPPER_LID_REGIONS = ("eyelid_upper_l", "eyelid_upper_r")
 # 26, but a lid opened wide stretched its margin 3.7x against it).
 EYE_UPPER_FRONT_KEEP = 0.002
 LID_MARGIN_SLACK = 0.0005
+# An adapted head's upper lid can stand off its eyeball: fitted to a bust's sculpted eye, the
+# lid's margin and lining lay 5-10 mm in front of the eyeball placed in its socket. Such
+# lining (beyond LINING_STANDOFF; the generic head's lies within 3.5 mm) has no eyeball to
+# slide on, and as a blink reopened it rolled out through the front (on Demosthenes 139 mm^2
+# of it seen by its back). It goes no farther from the eye's centre than at rest, and the
+# front over it keeps at least LID_FRONT_OVER_LINING beyond that lining's rest distance (its
+# own rest distance less EYE_SLACK, where less).
+LINING_STANDOFF = 0.004
+LID_FRONT_OVER_LINING = 0.0012
 
 
 def eyeball_sphere(face: FaceModel, name: str) -> tuple[np.ndarray, float] | None:
@@ -282,21 +291,26 @@ def eyeball_sphere(face: FaceModel, name: str) -> tuple[np.ndarray, float] | Non
 
 
 def eye_spheres(face: FaceModel, q: np.ndarray, candidates: np.ndarray, outer: np.ndarray | None = None,
-                lining: np.ndarray | None = None, front: np.ndarray | None = None
-                ) -> tuple[np.ndarray, np.ndarray]:
+                lining: np.ndarray | None = None, front: np.ndarray | None = None,
+                upper_lining: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(P, 4), (P,): for each particle at rest q (P, 3) among `candidates` (P,) bool within
     EYE_REACH of an eyeball (eyeball_sphere), that eyeball's centre and the radius it keeps
     outside of; then within EYE_BAND_REACH, the particles of `outer` (P,) bool keep at least
-    EYE_OUTER_KEEP of their rest distance from it, those of `front` at least
+    EYE_OUTER_KEEP of their rest distance from it, those of `front` (an upper lid's) at least
     EYE_UPPER_FRONT_KEEP (their rest distance less EYE_SLACK where that is less), and those of
     `lining` go no farther than their rest distance + EYE_LINING_SLACK (the second array; 0:
-    no limit); zeros elsewhere."""
+    no limit). Those of `upper_lining` (P,) bool beyond LINING_STANDOFF go no farther than
+    their rest distance, and a front particle whose nearest such particle lies beyond
+    LINING_STANDOFF keeps LID_FRONT_OVER_LINING beyond it. Zeros elsewhere."""
+    from scipy.spatial import cKDTree
+
     out = np.zeros((len(q), 4))
     far = np.zeros(len(q))
     best = np.full(len(q), np.inf)
     outer = np.zeros(len(q), dtype=bool) if outer is None else outer
     lining = np.zeros(len(q), dtype=bool) if lining is None else lining
     front = np.zeros(len(q), dtype=bool) if front is None else front
+    upper_lining = np.zeros(len(q), dtype=bool) if upper_lining is None else upper_lining
     for name in EYE_PARTS:
         sphere = eyeball_sphere(face, name)
         if sphere is None:
@@ -311,8 +325,15 @@ def eye_spheres(face: FaceModel, q: np.ndarray, candidates: np.ndarray, outer: n
         keep = band & outer & (gap > EYE_SLACK)
         out[keep, 3] = np.maximum(out[keep, 3], radius + EYE_OUTER_KEEP * gap[keep])
         keep = band & front & (gap > EYE_SLACK)
-        out[keep, 3] = np.maximum(out[keep, 3], radius + np.minimum(gap[keep] - EYE_SLACK, EYE_UPPER_FRONT_KEEP))
+        over = np.full(len(q), EYE_UPPER_FRONT_KEEP)
+        behind = np.flatnonzero(band & upper_lining)
+        if len(behind) and keep.any():  # the lining nearest each front particle, where off the eyeball
+            g = gap[behind[cKDTree(q[behind]).query(q[keep])[1]]]
+            over[keep] = np.where(g >= LINING_STANDOFF, g + LID_FRONT_OVER_LINING, EYE_UPPER_FRONT_KEEP)
+        out[keep, 3] = np.maximum(out[keep, 3], radius + np.minimum(gap[keep] - EYE_SLACK, over[keep]))
         far[band] = np.where(lining[band], radius + np.maximum(gap[band], 0.0) + EYE_LINING_SLACK, 0.0)
+        off = band & upper_lining & (gap >= LINING_STANDOFF)
+        far[off] = radius + gap[off]
         best[band] = gap[band]
     return out, far
 
@@ -583,9 +604,12 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
     lids = np.isin(region, [names.index(r) for r in EYE_BAND_REGIONS if r in names and r.startswith("eyelid")])
     upper_lids = np.isin(region, [names.index(r) for r in UPPER_LID_REGIONS if r in names])
     # (a few cheek vertices under the lid are hidden from outward rays too: not lining)
-    for mark, which in ((outer, banded & seen_skin), (lining, lids & ~seen_skin), (front, upper_lids & seen_skin)):
+    upper_lining = np.zeros(P, dtype=bool)
+    for mark, which in ((outer, banded & seen_skin), (lining, lids & ~seen_skin), (front, upper_lids & seen_skin),
+                        (upper_lining, upper_lids & ~seen_skin)):
         mark[pid(0, sim_vertices[which[sim_vertices]])] = True
-    sphere, sphere_max = eye_spheres(face, q, movable & (layer_of < LAYER_COUNT - 1), outer, lining, front)
+    sphere, sphere_max = eye_spheres(face, q, movable & (layer_of < LAYER_COUNT - 1), outer, lining, front,
+                                     upper_lining)
 
     # Stable substep: the springs' largest eigenvalue of M^-1 K over all configurations and
     # the weakest (implicit) anchor (see fae.sim.solver); a part's rows are a principal
