@@ -63,6 +63,36 @@ def test_the_lower_lids_lining_come_out_through_the_skin_is_caught(face, check):
     assert r.back_area > 100e-6  # the lining's back, seen from in front: 232 mm^2 measured
 
 
+def test_a_hidden_pit_pressed_flat_against_the_skin_is_not_called_lining(face, check):
+    """An adapted head's fit can press a hidden pit (a nostril's, a corner's under the lid)
+    flat against the visible skin: on the busts an edge 0.03 mm long lay on a triangle 0.06
+    mm across, and the slightest motion swapped their sides, so 90-107 frames of streams
+    that show nothing were called "lining". A hidden edge touching a visible triangle at
+    rest is not tested against it; one that comes out through the skin still is."""
+    import copy
+
+    a, _, t = check.lining[len(check.lining) // 2]
+    pressed = copy.deepcopy(face)
+    V = np.asarray(pressed.skin_vertices, dtype=np.float64).copy()
+    T = V[face.skin_faces[t]]
+    V[a] = T.mean(axis=0)  # the hidden vertex lies on the visible triangle at rest
+    pressed.skin_vertices = V
+    pressed_check = SkinCheck(pressed)
+    n = np.cross(T[1] - T[0], T[2] - T[0])
+    n /= np.linalg.norm(n)
+    for side in (-1.0, 1.0):  # a few microns either way
+        moved = V.copy()
+        moved[a] += side * 5e-6 * n
+        assert pressed_check.frame(moved).lining_crossings == 0
+    out = V.copy()
+    names = list(face.region_names)
+    lid = np.isin(np.asarray(face.skin_region), [names.index("eyelid_lower_l"), names.index("eyelid_lower_r")])
+    from fae.adapt.transfer import visible_skin
+
+    out[lid & ~visible_skin(face), 2] += 0.006
+    assert pressed_check.frame(out).lining_crossings > 10
+
+
 @pytest.mark.slow
 def test_raised_cheeks_keep_the_lower_lids_lining_behind_the_skin(face, check):
     """Both cheeks lifted (41, 42) to 300 of their range and held: the lower lid's skin

@@ -14,7 +14,10 @@ two lip regions): the lower lip has gone through the upper one, or the reverse. 
 margins, the backs of the ears, the nostrils: skin no outward ray leaves, the mouth and lips
 left to the lip check) passes through a visible triangle near it: the lining has come out
 through the skin (the cheek rising into the lower lid's lining at the outer eye corner),
-and its dark back shows as a streak although no triangle has turned over. The skin's
+and its dark back shows as a streak although no triangle has turned over (an edge that
+touches the triangle at rest, within `SLIVER_HEIGHT` of the median edge, or is shorter than
+`STRAIN_MIN_EDGE` of it, is not tested against it: a pit an adapted head's fit pressed flat
+swaps sides at the slightest motion, unseen). The skin's
 **back shows** where a viewer in front of the face (the head's own frame, looking along -z)
 first meets a skin triangle from behind: rays on a `BACK_RAY_SPACING` grid over the face
 (scalp, neck, ears and the mouth's lining left out of the grid's extent; a ray meeting the
@@ -93,6 +96,26 @@ def segments_through_triangles(a: np.ndarray, b: np.ndarray, T: np.ndarray) -> n
     return segment_triangle_pairs_crossing(a[:, None], b[:, None], T[None]).any(axis=1)
 
 
+def point_triangle_distances(p: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """(k,) distances of points p (k, 3) to triangles T (k, 3, 3), pair by pair: to the
+    plane where the point projects inside the triangle, else to its nearest side."""
+    e1, e2 = T[:, 1] - T[:, 0], T[:, 2] - T[:, 0]
+    n = np.cross(e1, e2)
+    nn = np.maximum(np.sum(n * n, axis=1), 1e-300)
+    w = p - T[:, 0]
+    # barycentric coordinates of the projection (u on e1, v on e2)
+    u = np.sum(np.cross(w, e2) * n, axis=1) / nn
+    v = np.sum(np.cross(e1, w) * n, axis=1) / nn
+    inside = (u >= 0.0) & (v >= 0.0) & (u + v <= 1.0)
+    out = np.abs(np.sum(w * n, axis=1)) / np.sqrt(nn)
+    side = np.full(len(p), np.inf)
+    for i, j in ((0, 1), (1, 2), (2, 0)):
+        d = T[:, j] - T[:, i]
+        s = np.clip(np.sum((p - T[:, i]) * d, axis=1) / np.maximum(np.sum(d * d, axis=1), 1e-300), 0.0, 1.0)
+        side = np.minimum(side, np.linalg.norm(p - T[:, i] - s[:, None] * d, axis=1))
+    return np.where(inside, out, side)
+
+
 def segment_triangle_pairs_crossing(a: np.ndarray, b: np.ndarray, T: np.ndarray) -> np.ndarray:
     """(...) bool: whether segment a-b (..., 3) passes through triangle T (..., 3, 3), the
     shapes broadcast against each other: Moller-Trumbore, strictly inside both (a segment
@@ -144,7 +167,21 @@ def lining_pairs(face, visible_triangles: np.ndarray, reach: float = LINING_REAC
     keep = np.linalg.norm(mid[e] - centre[t], axis=1) <= reach + size[t] + half[e]
     e, t = e[keep], tris[t[keep]]
     shared = (F[t] == E[e, :1]).any(axis=1) | (F[t] == E[e, 1:]).any(axis=1)
-    return np.column_stack([E[e[~shared]], t[~shared]])
+    e, t = e[~shared], t[~shared]
+    # an edge that touches the triangle at rest, or has no length (a hidden pit an adapted
+    # head's fit pressed flat against the skin: a 0.03 mm edge on a 0.06 mm triangle) swaps
+    # sides at the slightest motion, unseen; it is a needle's case (SLIVER_HEIGHT)
+    all_edges = _triangle_edges(F)
+    median_edge = float(np.median(np.linalg.norm(V[all_edges[:, 0]] - V[all_edges[:, 1]], axis=1)))
+    a, b, T = V[E[e, 0]], V[E[e, 1]], V[F[t]]
+    h = SLIVER_HEIGHT * median_edge
+    # within h of the triangle: through it once moved h along its normal, or near its sides
+    n = np.cross(T[:, 1] - T[:, 0], T[:, 2] - T[:, 0])
+    n *= (h / np.maximum(np.linalg.norm(n, axis=1), 1e-300))[:, None]
+    touching = segment_triangle_pairs_crossing(a + n, b + n, T) | segment_triangle_pairs_crossing(a - n, b - n, T)
+    touching |= np.min([point_triangle_distances(a + s * (b - a), T) for s in np.linspace(0.0, 1.0, 9)], axis=0) < h
+    touching |= 2.0 * half[e] < STRAIN_MIN_EDGE * median_edge
+    return np.column_stack([E[e[~touching]], t[~touching]])
 
 
 class SkinCheck:
