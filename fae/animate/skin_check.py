@@ -135,6 +135,12 @@ def segment_triangle_pairs_crossing(a: np.ndarray, b: np.ndarray, T: np.ndarray)
     return ok & (u > eps) & (v > eps) & (u + v < 1 - eps) & (t > eps) & (t < 1 - eps)
 
 
+def median_edge_length(V: np.ndarray, F: np.ndarray) -> float:
+    """Metres: the median length of the first edge of each triangle F (m, 3) over V (n, 3)
+    (0 without triangles), the scale of the needle and short-edge rules."""
+    return float(np.median(np.linalg.norm(V[F[:, 0]] - V[F[:, 1]], axis=1))) if len(F) else 0.0
+
+
 def lining_pairs(face, visible_triangles: np.ndarray, reach: float = LINING_REACH) -> np.ndarray:
     """(k, 3) int: (edge's two skin vertices, triangle index) pairs to test per frame: each
     edge with an end that no outward ray leaves at rest (fae.adapt.transfer.visible_skin:
@@ -171,8 +177,7 @@ def lining_pairs(face, visible_triangles: np.ndarray, reach: float = LINING_REAC
     # an edge that touches the triangle at rest, or has no length (a hidden pit an adapted
     # head's fit pressed flat against the skin: a 0.03 mm edge on a 0.06 mm triangle) swaps
     # sides at the slightest motion, unseen; it is a needle's case (SLIVER_HEIGHT)
-    all_edges = _triangle_edges(F)
-    median_edge = float(np.median(np.linalg.norm(V[all_edges[:, 0]] - V[all_edges[:, 1]], axis=1)))
+    median_edge = median_edge_length(V, F)
     a, b, T = V[E[e, 0]], V[E[e, 1]], V[F[t]]
     h = SLIVER_HEIGHT * median_edge
     # within h of the triangle: through it once moved h along its normal, or near its sides
@@ -199,7 +204,7 @@ class SkinCheck:
         area2 = np.linalg.norm(n, axis=1)
         # degenerate rest triangles and needles have no direction to turn from
         longest = np.linalg.norm(V[F] - V[F][:, [1, 2, 0]], axis=2).max(axis=1)
-        median_edge = float(np.median(np.linalg.norm(V[F[:, 0]] - V[F[:, 1]], axis=1))) if len(F) else 0.0
+        median_edge = median_edge_length(V, F)
         self.visible = (~hidden[F].any(axis=1) & (area2 > 1e-14)
                         & (area2 >= SLIVER_HEIGHT * median_edge * longest))
         self.rest_normals = n / np.maximum(area2, 1e-30)[:, None]

@@ -325,12 +325,12 @@ def eye_spheres(face: FaceModel, q: np.ndarray, candidates: np.ndarray, outer: n
         keep = band & outer & (gap > EYE_SLACK)
         out[keep, 3] = np.maximum(out[keep, 3], radius + EYE_OUTER_KEEP * gap[keep])
         keep = band & front & (gap > EYE_SLACK)
-        over = np.full(len(q), EYE_UPPER_FRONT_KEEP)
+        over = EYE_UPPER_FRONT_KEEP
         behind = np.flatnonzero(band & upper_lining)
         if len(behind) and keep.any():  # the lining nearest each front particle, where off the eyeball
             g = gap[behind[cKDTree(q[behind]).query(q[keep])[1]]]
-            over[keep] = np.where(g >= LINING_STANDOFF, g + LID_FRONT_OVER_LINING, EYE_UPPER_FRONT_KEEP)
-        out[keep, 3] = np.maximum(out[keep, 3], radius + np.minimum(gap[keep] - EYE_SLACK, over[keep]))
+            over = np.where(g >= LINING_STANDOFF, g + LID_FRONT_OVER_LINING, EYE_UPPER_FRONT_KEEP)
+        out[keep, 3] = np.maximum(out[keep, 3], radius + np.minimum(gap[keep] - EYE_SLACK, over))
         far[band] = np.where(lining[band], radius + np.maximum(gap[band], 0.0) + EYE_LINING_SLACK, 0.0)
         off = band & upper_lining & (gap >= LINING_STANDOFF)
         far[off] = radius + gap[off]
