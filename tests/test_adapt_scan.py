@@ -21,7 +21,7 @@ from fae.adapt.errors import scan_fit_errors
 from fae.adapt.geometry import per_face_normals
 from fae.adapt.head_pose import find_head, kept_part
 from fae.adapt.errors import surface
-from fae.adapt.nonrigid import blend_away_folds, folded_triangles, scan_pairs
+from fae.adapt.nonrigid import PROJECT_TURN, blend_away_folds, folded_triangles, projected_part_way, scan_pairs
 from fae.adapt.synthetic import bust_scan
 from fae.anatomy.checks import facemodel_problems
 from fae.animate.verify import passed_fraction, verify_faps
@@ -173,6 +173,26 @@ def test_folds_are_counted_on_real_triangles_only(template):
     assert moved < 300 and np.allclose(Y[far], X[far])  # the blend stays around the fold
 
 
+def test_a_vertex_whose_way_onto_the_scan_would_turn_a_triangle_goes_part_of_it():
+    # a hexagonal fan 1 cm across: its centre raised 2 cm onto a scan point would tilt every
+    # triangle 67 degrees; half the way tilts them 49. The step used to be all or nothing
+    # (the centre stayed put, 2 cm off the scan); the ring lies on the scan already
+    angles = np.arange(6) * np.pi / 3
+    X = np.vstack([[0.0, 0.0, 0.0], np.stack([np.cos(angles), np.sin(angles), np.zeros(6)], axis=1) * 0.01])
+    F = np.array([[0, 1 + i, 1 + (i + 1) % 6] for i in range(6)])
+    idx = np.arange(7)
+    Q = X.copy()
+    Q[0, 2] = 0.02
+    Y = projected_part_way(X, F, idx, Q, X)
+    assert np.allclose(Y[0], [0.0, 0.0, 0.01]) and np.allclose(Y[1:], X[1:])
+    assert not folded_triangles(X, Y, F, PROJECT_TURN).any()
+    held = np.zeros(7, dtype=bool)
+    held[0] = True  # a lip's vertex goes all the way or not at all
+    assert np.allclose(projected_part_way(X, F, idx, Q, X, all_or_nothing=held), X)
+    Q[0, 2] = 0.005  # 30 degrees: all the way
+    assert np.allclose(projected_part_way(X, F, idx, Q, X), Q)
+
+
 def test_skin_over_a_hollow_pairs_with_its_floor_not_its_steep_side():
     # a scan with a trough 8 mm deep and 6 mm wide (a sculpted inner eye corner): skin
     # bridging it has its closest scan points on the trough's steep side, whose normals
@@ -232,7 +252,7 @@ def test_a_scanned_bust_becomes_a_head(shared_data, name, tmp_path):
     report = json.loads(rep.read_text())
     assert report["folded_triangles"]["all"] == 0
     e = report["errors"]
-    assert e["face_to_scan_rms_rel"] < 0.0013 and e["face_coverage"] > 0.95  # 0.06-0.12 %
+    assert e["face_to_scan_rms_rel"] < 0.001 and e["face_coverage"] > 0.95  # 0.053-0.090 %
     assert e["scan_to_skin_rms_rel"] < 0.006
     part = report["head_part"]
     assert part["head_vertices"] < 0.9 * part["scan_vertices"]  # the plinth and shoulders are left out

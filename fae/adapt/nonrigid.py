@@ -38,7 +38,8 @@ output of the last:
    around it (harmonic_displacement over the same graph): smooth, where the stages left
    the blends' patchwork.
 5. Projection (paper 001's local step): each matched vertex moves onto its closest
-   compatible scan point within PROJECT_REACH, kept whole as in 3.
+   compatible scan point within PROJECT_REACH, or part of the way where the whole way
+   would turn one of its triangles (halved while it does), kept whole as in 3.
 
 Skin no scanner sees (mouth, nostrils, behind the eyelids) has no data term anywhere and
 follows its neighbours; `detail` limits which skin follows the scan in the soft stages.
@@ -76,6 +77,9 @@ RAY_SHARE = 4.0  # a scan point along a vertex's normal is taken when at most th
 LANDMARK_WEIGHT = 1.0  # of a feature point's row against a vertex's, at the stiffest stage
 LANDMARK_FADE = 1.0  # the weight falls as (stiffness / the first stiffness) ** this
 PROJECT_REACH = 0.004  # m: the last stage moves a vertex onto the scan when this close
+PROJECT_TURN = 60.0  # degrees a triangle may turn in that move
+PROJECT_HALVINGS = 6  # a move that turns a triangle further is halved at most this often,
+PROJECT_REVERTS = 5  # then taken back (as often: taking one back can turn its neighbours')
 FOLD_ANGLE = 90.0  # degrees: a triangle turned further than this from the template is folded
 DEGENERATE_SHARE = 1e-4  # of the median triangle area: smaller triangles have no normal to fold
 
@@ -265,6 +269,36 @@ def blend_away_folds(P: np.ndarray, X_safe: np.ndarray, X: np.ndarray, F: np.nda
     return Y, int(np.sum(weight < 1.0))
 
 
+def projected_part_way(X: np.ndarray, F: np.ndarray, idx: np.ndarray, Q: np.ndarray, P: np.ndarray,
+                       reference: tuple[np.ndarray, np.ndarray] | None = None,
+                       all_or_nothing: np.ndarray | None = None) -> np.ndarray:
+    """(n, 3): surface X (n, 3) metres, F (m, 3), with vertices idx (k,) moved onto their
+    scan points Q (k, 3), each as far as it goes without turning a triangle further than
+    PROJECT_TURN from X or folding it against the template P (n, 3): a vertex whose move
+    turns one of its triangles goes half as far, again while it does (PROJECT_HALVINGS),
+    then stays. A sliver beside a vertex so costs it part of its way, not all of it.
+    all_or_nothing (n,) bool: vertices that go all the way or stay, and whose triangles'
+    folds against the template are left to the caller (thin folds over the mouth and the
+    eyes, which the caller blends back whole with the rings around them: moved part way,
+    the lips' rims crease as they play). reference: fold_reference(P, F), if the caller has it."""
+    reference = fold_reference(P, F) if reference is None else reference
+    whole_way = np.zeros(len(X), dtype=bool) if all_or_nothing is None else np.asarray(all_or_nothing, dtype=bool)
+    others = ~whole_way[F].any(axis=1)  # triangles this step keeps from folding against the template
+    step = np.ones(len(idx))  # the share of the way to Q
+    Y = np.array(X, dtype=np.float64)
+    for halving in range(PROJECT_HALVINGS + PROJECT_REVERTS):
+        Y[idx] = X[idx] + step[:, None] * (Q - X[idx])
+        bad = folded_triangles(X, Y, F, PROJECT_TURN) | (folded_triangles(P, Y, F, reference=reference) & others)
+        if not bad.any():
+            return Y
+        turning = np.zeros(len(X), dtype=bool)
+        turning[F[bad].ravel()] = True
+        step[turning[idx]] *= 0.5 if halving < PROJECT_HALVINGS else 0.0
+        step[turning[idx] & whole_way[idx]] = 0.0
+    Y[idx] = X[idx] + step[:, None] * (Q - X[idx])
+    return Y
+
+
 def harmonic_displacement(L: sp.csr_matrix, D: np.ndarray, known: np.ndarray) -> np.ndarray:
     """(n, 3): D (n, 3) where `known` (n,) bool, and elsewhere the harmonic extension of it
     over the graph Laplacian L (n, n): L D = 0 on the unknown rows (each unknown point the
@@ -314,7 +348,8 @@ def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray
     the rest (thin folds such as eyelids and ears, a neck the scan cuts short) keeps the
     shape the stiff stages gave it (default: all movable skin); rays (n,) bool: skin that
     may take the scan along its normal where its closest point faces away (scan_pairs;
-    default all).
+    default all); the rest, thin folds over the mouth and the eyes, goes onto the scan
+    all the way or not at all in the projection (projected_part_way).
     """
     t0 = time.perf_counter()
     P_in = np.asarray(P, dtype=np.float64)
@@ -416,14 +451,7 @@ def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray
     # paper 001's local step: onto the scan where it is close, never folding a triangle
     NX = per_vertex_normals(X, F)
     idx, Q = scan_pairs(X, NX, scan, PROJECT_REACH, detail, rays=rays)
-    Y = X.copy()
-    Y[idx] = Q
-    for _ in range(5):
-        bad = folded_triangles(X, Y, F, 60.0)
-        if not bad.any():
-            break
-        back = np.unique(F[bad])
-        Y[back] = X[back]
+    Y = projected_part_way(X, F, idx, Q, P, reference=fold_ref, all_or_nothing=None if rays is None else ~rays)
     # the projection neither folds nor cuts through itself: blended back to the last stage
     # (which does neither) where it would; each blend can undo the other's work, so in turn
     Y, blended, untangled = whole(P, X_whole, Y, F, ring, edges, query, reference=fold_ref)
