@@ -312,6 +312,31 @@ def test_a_lip_corner_raised_by_its_inner_and_outer_faps_alike_moves_as_far_as_e
     assert min(inner, outer) * 0.85 < both < max(inner, outer) * 1.15
 
 
+def test_a_lips_points_raised_alike_raise_the_edge_between_them_alike(player):
+    """xface_anger raises the upper lip's three inner points alike (lower_t_midlip and
+    lower_t_lip_lm/rm at -90, 2.6 mm). Each point's field was a round bump of its own, and
+    the lip's edge rose 2.6-3.4 mm at the points but 1.3 mm between them: a row of teeth.
+    The fields of a lip's points now span its margin between their neighbours and add up to
+    1 along it, so the visible edge between 2.7 and 2.6 rises at least 0.7x as far as at
+    the points (0.38x before)."""
+    from fae.adapt.transfer import visible_skin
+
+    face = player.face
+    fp = face.feature_point_positions()
+    v = np.zeros(68)
+    v[[3, 7, 8]] = -90.0
+    skin = settle(player, v, frames=30)
+    V0 = np.asarray(face.skin_vertices)
+    upper = np.flatnonzero((np.asarray(face.skin_region) == face.region_names.index("lip_upper")) & visible_skin(face))
+    upper = upper[np.abs(V0[upper, 0]) <= fp["2.6"][0] + 0.001]
+    bins = np.round(V0[upper, 0] / 0.002).astype(int)
+    edge = np.array([upper[bins == b][np.argmin(V0[upper[bins == b], 1])] for b in np.unique(bins)])
+    rise = skin[edge, 1] - V0[edge, 1]
+    at_points = [np.interp(fp[n][0], V0[edge, 0], rise) for n in ("2.7", "2.2", "2.6")]
+    assert min(at_points) > 0.0015
+    assert rise.min() > 0.7 * np.mean(at_points)
+
+
 def test_eyelids_closed_to_1024_cover_the_whole_eye_and_stay_outside_the_eyeball(player):
     """close_t_l_eyelid and close_t_r_eyelid at 1024 (the lid's top meets the lower lid):
     looked at from the front, the skin covers the eye across its opening (a round pull

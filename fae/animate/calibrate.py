@@ -8,7 +8,8 @@ Choice per FAP group (every low-level FAP 3-68 drives something):
 - lips, chin, cheeks, brows, nose (4-13, 16-18, 31-42, 51-64): a least-squares combination of
   the head's muscles (contractions >= 0) plus one directional pull field of the FAP's own
   (centred on its feature point, along the standard direction, Wendland fall-off over the
-  skin's geodesic distance, radius a fraction of ES0), the field's use penalized so that
+  skin's geodesic distance, radius a fraction of ES0; a lip's points between two others
+  span its margin between them instead: lip_margin_weight), the field's use penalized so that
   muscles do what they can; the field supplies what no muscle can (lip protrusion 16/17,
   lip lowering, nostrils, the off-axis remainder).
 - eyelids (19-22): the pull field only (no muscle in the model moves them).
@@ -75,6 +76,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.optimize import lsq_linear
 from scipy.sparse.csgraph import dijkstra
+from scipy.spatial import cKDTree
 
 from fae.animate.controls import FapControls
 from fae.animate.mapping import (FORMAT_VERSION, JAW_CONTROLS, JAW_OPEN, LIP_FAPS, LIP_PAIRS,
@@ -134,6 +136,13 @@ SETTLE_TOLERANCE = 0.002
 # FAPs probed alone: the mouth corners' raise, which a batch mate whose footprint does not
 # meet its own on the linear response still moves through the lips' contact
 ALONE_FAPS = (12, 13, 59, 60)
+# each lip's margins through their feature points, from the right corner to the left
+# (inner: 2.x, outer: 8.x), and the FAPs that move a point between two others up or down:
+# their fields span the margin between the neighbours (lip_margin_weight)
+LIP_MARGINS = (("2.5", "2.7", "2.2", "2.6", "2.4"), ("2.5", "2.9", "2.3", "2.8", "2.4"),
+               ("8.4", "8.6", "8.1", "8.5", "8.3"), ("8.4", "8.8", "8.2", "8.7", "8.3"))
+LIP_MARGIN_FAPS = (4, 5, 8, 9, 10, 11, 51, 52, 55, 56, 57, 58)
+MARGIN_SAMPLES = 9  # points along each piece of a margin whose nearest skin seeds its distance
 # how many times farther a raise's pull reaches above its point than below: the corners'
 # (see pull_fields) and the brows' (brow_raise_weights)
 RAISE_REACH = {**{k: 2.0 for k in ALONE_FAPS}, **{k: 5.0 for k in LOWERING_FIELD_FAPS}}
@@ -181,16 +190,17 @@ def pull_fields(face, fapu: dict[str, float], graph: sp.csr_matrix | None = None
             out.append(PullField(name, FAP_DIRECTION[k - 1], brows[f]))
             continue
         radius = _FIELD_RADIUS_ES.get(k, 0.2) * es0
-        reach = RAISE_REACH.get(f, 1.0)  # a lowering field (f < 0): the round bump
-        d = geodesic_distance(face, point, radius * reach, graph)
-        r = np.minimum(d / radius, 1.0)
-        w = _wendland(r)
-        if reach != 1.0:
-            # a corner raised alone squashed the skin above it into folds that the guard
-            # rocked against: the skin above the point comes along, fading `reach` times
-            # farther than below it
-            above = np.asarray(face.skin_vertices)[:, 1] > face.surface_point_position(point)[1]
-            w = np.where(above, _wendland(np.minimum(d / (radius * reach), 1.0)), w)
+        w = lip_margin_weight(face, k, radius, graph)
+        if w is None:
+            reach = RAISE_REACH.get(f, 1.0)  # a lowering field (f < 0): the round bump
+            d = geodesic_distance(face, point, radius * reach, graph)
+            w = _wendland(np.minimum(d / radius, 1.0))
+            if reach != 1.0:
+                # a corner raised alone squashed the skin above it into folds that the guard
+                # rocked against: the skin above the point comes along, fading `reach` times
+                # farther than below it
+                above = np.asarray(face.skin_vertices)[:, 1] > face.surface_point_position(point)[1]
+                w = np.where(above, _wendland(np.minimum(d / (radius * reach), 1.0)), w)
         # upper-lip points never pull the lower lip and vice versa
         own = {names[i] for i in region[faces[point.triangle]]}
         for word, other in (("upper", "lower"), ("lower", "upper")):
@@ -198,6 +208,44 @@ def pull_fields(face, fapu: dict[str, float], graph: sp.csr_matrix | None = None
                 w[np.isin(region, [i for i, n in enumerate(names) if other in n])] = 0.0
         out.append(PullField(name, FAP_DIRECTION[k - 1], w))
     return out
+
+
+def lip_margin_weight(face, k: int, radius: float, graph: sp.csr_matrix | None = None) -> np.ndarray | None:
+    """(V,) pull-field weights of lip FAP k, or None for a FAP that moves no point between
+    two others of a lip's margin up or down (LIP_MARGIN_FAPS), or a head lacking the points
+    (graph: `edge_length_graph(face)`, when at hand).
+
+    A round bump about each point moved the points alone: a lip's three points lowered
+    alike (xface_anger's upper lip at -90, 2.6 mm) moved its edge 2.6-3.4 mm at the points
+    and 1.3 mm between them, and the edge came out as a row of teeth. Along the lip the
+    weight is a hat in x instead, 1 at the FAP's point and 0 at the neighbouring points of
+    its margin (LIP_MARGINS), so the fields of a margin's points add up to 1 along it; across
+    the lip it falls as a Wendland function of the skin's distance (along its edges) from
+    the margin between those neighbours, to 0 at `radius` metres."""
+    own = FAP_FEATURE_POINT[k - 1]
+    margin = next((m for m in LIP_MARGINS if own in m), None) if k in LIP_MARGIN_FAPS else None
+    fp = face.feature_point_positions()
+    if margin is None or not all(n in fp for n in margin):
+        return None
+    P = np.array([fp[n] for n in margin])
+    i = margin.index(own)
+    left, right = P[i - 1], P[i + 1]
+    if not left[0] < P[i, 0] < right[0]:
+        return None
+    V = np.asarray(face.skin_vertices, dtype=np.float64)
+    x = V[:, 0]
+    hat = np.where(x < P[i, 0], (x - left[0]) / (P[i, 0] - left[0]), (right[0] - x) / (right[0] - P[i, 0]))
+    # the margin: the skin of the point's own regions nearest to points along the two
+    # straight pieces to the neighbours
+    t = np.linspace(0.0, 1.0, MARGIN_SAMPLES)[:, None]
+    samples = np.vstack([left + t * (P[i] - left), P[i] + t * (right - P[i])])
+    region = np.asarray(face.skin_region)
+    own_regions = np.unique(region[np.asarray(face.skin_faces)[face.feature_points[own].triangle]])
+    candidates = np.flatnonzero(np.isin(region, own_regions))
+    seeds = candidates[np.unique(cKDTree(V[candidates]).query(samples)[1])]
+    G = edge_length_graph(face) if graph is None else graph
+    d = dijkstra(G, directed=False, indices=seeds, min_only=True, limit=radius)
+    return np.clip(hat, 0.0, 1.0) * _wendland(np.minimum(d / radius, 1.0))
 
 
 def _wendland(r: np.ndarray) -> np.ndarray:
