@@ -252,7 +252,7 @@ def test_a_scanned_bust_becomes_a_head(shared_data, name, tmp_path):
     report = json.loads(rep.read_text())
     assert report["folded_triangles"]["all"] == 0
     e = report["errors"]
-    assert e["face_to_scan_rms_rel"] < 0.001 and e["face_coverage"] > 0.95  # 0.053-0.090 %
+    assert e["face_to_scan_rms_rel"] < 0.001 and e["face_coverage"] > 0.95  # 0.058-0.096 %
     assert e["scan_to_skin_rms_rel"] < 0.006
     part = report["head_part"]
     assert part["head_vertices"] < 0.9 * part["scan_vertices"]  # the plinth and shoulders are left out
