@@ -173,3 +173,31 @@ def test_the_scale_search_closes_in_on_a_skin_that_snaps():
     assert _next_scale([(2.0, 0.8), (1.5, 1.3)]) is None
     assert _next_scale([(1.0, 0.8)]) == pytest.approx(1.25)
     assert _miss(0.8) == pytest.approx(0.25) and _miss(1.25) == pytest.approx(0.25) and _miss(-1.0) > 100
+
+
+@pytest.mark.parametrize("mirrored", [False, True])
+def test_a_lips_middle_fields_add_up_to_one_along_its_margin(mirrored):
+    """lower_t_midlip (4) and lower_t_lip_lm (8) pull the upper lip's margin between 2.2 and
+    2.6 with hats that add up to 1 there, and lower_t_lip_rm (9) not at all, whichever way
+    the head's x runs; a corner's raise (12) keeps its round bump."""
+    import copy
+
+    from fae.animate.calibrate import MARGIN_SAMPLES, lip_margin_weight
+    from fae.animate.faptables import fapu_of
+    from fae.data import shipped_head_path
+    from fae.io.facemodel_gltf import read_facemodel
+
+    face = read_facemodel(shipped_head_path())
+    radius = 0.16 * fapu_of(face)["ES"] * 1024.0
+    if mirrored:  # x the face's right (not fae's face frame, whose FAPU it breaks)
+        face = copy.deepcopy(face)
+        face.skin_vertices = np.asarray(face.skin_vertices) * np.array([-1.0, 1.0, 1.0])
+    w = {k: lip_margin_weight(face, k, radius) for k in (4, 8, 9, 12)}
+    assert w[12] is None and all(w[k] is not None for k in (4, 8, 9))
+    fp = face.feature_point_positions()
+    V = np.asarray(face.skin_vertices)
+    lip = np.flatnonzero(np.asarray(face.skin_region) == face.region_names.index("lip_upper"))
+    along = fp["2.2"] + np.linspace(0.0, 1.0, MARGIN_SAMPLES)[1:-1, None] * (fp["2.6"] - fp["2.2"])
+    margin = lip[np.argmin(np.linalg.norm(V[lip][None] - along[:, None], axis=2), axis=1)]
+    total = w[4][margin] + w[8][margin]
+    assert np.allclose(total, 1.0, atol=0.02) and np.all(w[9][margin] == 0.0)

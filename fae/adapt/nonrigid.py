@@ -276,14 +276,18 @@ def projected_part_way(X: np.ndarray, F: np.ndarray, idx: np.ndarray, Q: np.ndar
     scan points Q (k, 3), each as far as it goes without turning a triangle further than
     PROJECT_TURN from X or folding it against the template P (n, 3): a vertex whose move
     turns one of its triangles goes half as far, again while it does (PROJECT_HALVINGS),
-    then stays. A sliver beside a vertex so costs it part of its way, not all of it.
+    then stays (taking it back is not checked again: the caller's blend sees to what that
+    turns). A sliver beside a vertex so costs it part of its way, not all of it. Triangles
+    folded against P before the step are nobody's fault and are left as they are.
     all_or_nothing (n,) bool: vertices that go all the way or stay, and whose triangles'
     folds against the template are left to the caller (thin folds over the mouth and the
     eyes, which the caller blends back whole with the rings around them: moved part way,
     the lips' rims crease as they play). reference: fold_reference(P, F), if the caller has it."""
     reference = fold_reference(P, F) if reference is None else reference
     whole_way = np.zeros(len(X), dtype=bool) if all_or_nothing is None else np.asarray(all_or_nothing, dtype=bool)
-    others = ~whole_way[F].any(axis=1)  # triangles this step keeps from folding against the template
+    # triangles this step keeps from folding against the template: not the thin folds', nor
+    # any folded before it (the stages' blends may leave one: no move of its corners is to blame)
+    others = ~whole_way[F].any(axis=1) & ~folded_triangles(P, X, F, reference=reference)
     step = np.ones(len(idx))  # the share of the way to Q
     Y = np.array(X, dtype=np.float64)
     for halving in range(PROJECT_HALVINGS + PROJECT_REVERTS):

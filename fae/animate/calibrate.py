@@ -136,13 +136,14 @@ SETTLE_TOLERANCE = 0.002
 # FAPs probed alone: the mouth corners' raise, which a batch mate whose footprint does not
 # meet its own on the linear response still moves through the lips' contact
 ALONE_FAPS = (12, 13, 59, 60)
-# each lip's margins through their feature points, from the right corner to the left
+# each lip's margins through their feature points, from one corner to the other
 # (inner: 2.x, outer: 8.x), and the FAPs that move a point between two others up or down:
 # their fields span the margin between the neighbours (lip_margin_weight)
 LIP_MARGINS = (("2.5", "2.7", "2.2", "2.6", "2.4"), ("2.5", "2.9", "2.3", "2.8", "2.4"),
                ("8.4", "8.6", "8.1", "8.5", "8.3"), ("8.4", "8.8", "8.2", "8.7", "8.3"))
 LIP_MARGIN_FAPS = (4, 5, 8, 9, 10, 11, 51, 52, 55, 56, 57, 58)
 MARGIN_SAMPLES = 9  # points along each piece of a margin whose nearest skin seeds its distance
+MARGIN_MIN_GAP = 0.001  # m: a margin's point this close across the face to a neighbour has no hat
 # how many times farther a raise's pull reaches above its point than below: the corners'
 # (see pull_fields) and the brows' (brow_raise_weights)
 RAISE_REACH = {**{k: 2.0 for k in ALONE_FAPS}, **{k: 5.0 for k in LOWERING_FIELD_FAPS}}
@@ -212,33 +213,35 @@ def pull_fields(face, fapu: dict[str, float], graph: sp.csr_matrix | None = None
 
 def lip_margin_weight(face, k: int, radius: float, graph: sp.csr_matrix | None = None) -> np.ndarray | None:
     """(V,) pull-field weights of lip FAP k, or None for a FAP that moves no point between
-    two others of a lip's margin up or down (LIP_MARGIN_FAPS), or a head lacking the points
+    two others of a lip's margin up or down (LIP_MARGIN_FAPS), a head lacking the points, or
+    one whose point is not between its neighbours across the face (within MARGIN_MIN_GAP)
     (graph: `edge_length_graph(face)`, when at hand).
 
-    A round bump about each point moved the points alone: a lip's three points lowered
+    A round bump about each point moved the points alone: a lip's three points raised
     alike (xface_anger's upper lip at -90, 2.6 mm) moved its edge 2.6-3.4 mm at the points
     and 1.3 mm between them, and the edge came out as a row of teeth. Along the lip the
     weight is a hat in x instead, 1 at the FAP's point and 0 at the neighbouring points of
-    its margin (LIP_MARGINS), so the fields of a margin's points add up to 1 along it; across
-    the lip it falls as a Wendland function of the skin's distance (along its edges) from
-    the margin between those neighbours, to 0 at `radius` metres."""
+    its margin (LIP_MARGINS), so the fields of a margin's middle three points add up to 1
+    between the outer two of them (towards the corners the corners' own fields take over);
+    across the lip it falls as a Wendland function of the skin's distance (along its edges)
+    from the margin between those neighbours, to 0 at `radius` metres."""
     own = FAP_FEATURE_POINT[k - 1]
     margin = next((m for m in LIP_MARGINS if own in m), None) if k in LIP_MARGIN_FAPS else None
     fp = face.feature_point_positions()
     if margin is None or not all(n in fp for n in margin):
         return None
-    P = np.array([fp[n] for n in margin])
     i = margin.index(own)
-    left, right = P[i - 1], P[i + 1]
-    if not left[0] < P[i, 0] < right[0]:
+    point = fp[own]
+    lo, hi = sorted((fp[margin[i - 1]], fp[margin[i + 1]]), key=lambda p: p[0])  # whichever way x runs
+    if not (lo[0] + MARGIN_MIN_GAP < point[0] < hi[0] - MARGIN_MIN_GAP):
         return None
     V = np.asarray(face.skin_vertices, dtype=np.float64)
     x = V[:, 0]
-    hat = np.where(x < P[i, 0], (x - left[0]) / (P[i, 0] - left[0]), (right[0] - x) / (right[0] - P[i, 0]))
+    hat = np.where(x < point[0], (x - lo[0]) / (point[0] - lo[0]), (hi[0] - x) / (hi[0] - point[0]))
     # the margin: the skin of the point's own regions nearest to points along the two
     # straight pieces to the neighbours
     t = np.linspace(0.0, 1.0, MARGIN_SAMPLES)[:, None]
-    samples = np.vstack([left + t * (P[i] - left), P[i] + t * (right - P[i])])
+    samples = np.vstack([lo + t * (point - lo), point + t * (hi - point)])
     region = np.asarray(face.skin_region)
     own_regions = np.unique(region[np.asarray(face.skin_faces)[face.feature_points[own].triangle]])
     candidates = np.flatnonzero(np.isin(region, own_regions))
