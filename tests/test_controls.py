@@ -201,3 +201,19 @@ def test_a_lips_middle_fields_add_up_to_one_along_its_margin(mirrored):
     margin = lip[np.argmin(np.linalg.norm(V[lip][None] - along[:, None], axis=2), axis=1)]
     total = w[4][margin] + w[8][margin]
     assert np.allclose(total, 1.0, atol=0.02) and np.all(w[9][margin] == 0.0)
+
+
+def test_calibrating_again_drops_tables_baked_under_the_old_mapping():
+    """A head's baked FaceDefTables are its simulation under its mapping: a head whose
+    mapping is of an older format is calibrated again when loaded, and its baked tables,
+    which the "fdt" engine would play as they were, go (authored ones stay)."""
+    from fae.io.facemodel import FaceDefTable
+
+    def table(source):
+        return FaceDefTable(fap=4, part="skin", vertices=np.array([0], np.int32), borders=np.array([-1.0, 0.0, 1.0]),
+                            displacements=np.zeros((2, 1, 3)), source=source)
+
+    face = synthetic_head(personalized=False, subdivisions=3, complete=False)
+    face.face_def_tables = [table("authored"), table("physics")]
+    again = calibrate(face, passes=0)
+    assert [t.source for t in again.face_def_tables] == ["authored"]

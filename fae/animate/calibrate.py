@@ -731,6 +731,9 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
     mapping["pair_overlap"] = pair_overlap_of(overlap)
     out = copy.copy(face)
     out.fap_mapping = mapping
+    # tables baked from the head's simulation under another mapping move it otherwise (a
+    # head loaded with a mapping of an older format is calibrated again): baked again on demand
+    out.face_def_tables = [t for t in face.face_def_tables if t.source != "physics"]
     return out
 
 
