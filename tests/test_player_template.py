@@ -317,8 +317,8 @@ def test_a_lips_points_raised_alike_raise_the_edge_between_them_alike(player):
     lower_t_lip_lm/rm at -90, 2.6 mm). Each point's field was a round bump of its own, and
     the lip's edge rose 2.6-3.4 mm at the points but 1.3 mm between them: a row of teeth.
     The fields of a lip's points now span its margin between their neighbours and add up to
-    1 along it, so the visible edge between 2.7 and 2.6 rises at least 0.7x as far as at
-    the points (0.38x before)."""
+    1 between 2.7 and 2.6, so the visible edge there rises at least 0.7x as far as at the
+    points on average (0.41x before)."""
     from fae.adapt.transfer import visible_skin
 
     face = player.face
