@@ -140,6 +140,11 @@ def test_fae_play_rejects_bad_arguments_before_doing_work(tmp_path, head_glb, ca
     assert "missing.fap" in capsys.readouterr().err
     assert run_command("play", [str(stream), "--head", str(tmp_path / "nohead.glb"), "-o", str(out)]) == 2
     assert "nohead.glb" in capsys.readouterr().err
+    from fae.warp_setup import wp
+
+    if not wp.is_cuda_available():
+        assert run_command("play", [str(stream), "--head", str(head_glb), "-o", str(out), "--device", "cuda"]) == 2
+        assert "--device cuda: no CUDA device found" in capsys.readouterr().err
     assert list(tmp_path.iterdir()) == []
 
 

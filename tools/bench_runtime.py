@@ -1,6 +1,6 @@
 """Frames/s of the per-frame runtime on the shipped head: FAP frame -> skin positions.
 
-    .venv/bin/python tools/bench_runtime.py [--frames 100] [--numpy-frames 8] [--head FILE]
+    .venv/bin/python tools/bench_runtime.py [--frames 100] [--numpy-frames 8] [--head FILE] [--device cuda]
 
 For each real stream (fap_streams/expressions.fap; ../shared/data/fap/xface_joy.fap when
 present) the Player plays `--frames` frames at the stream's rate on one CPU core (Warp
@@ -15,7 +15,8 @@ smoothing or lip contact, fae.sim.folds), for what the guard costs; and on the P
 "fdt" engine (FaceDefTables baked from the physics, fae.animate.bake: a multiply-add per
 frame, no solver), whose error against the physics tools/bench_fdt.py measures. A head
 without baked tables (the shipped one) is baked first (about a minute; `fae bake` stores
-them, `--head BAKED.glb` uses them).
+them, `--head BAKED.glb` uses them). `--device cuda` also times a Player whose skin runs on
+the GPU, against the CPU Player, and reports how far apart their skins get.
 """
 
 from __future__ import annotations
@@ -50,6 +51,8 @@ def main(argv=None) -> int:
     ap.add_argument("--numpy-frames", type=int, default=8)
     ap.add_argument("--passes", type=int, default=5, help="timed passes over the frames (the median is reported)")
     ap.add_argument("--head", default=None, help="FaceModel .glb (default: the generic head)")
+    ap.add_argument("--device", default=None, help="also time the Player with its skin on this Warp device "
+                    "(cuda: an NVIDIA GPU), against the CPU Player, and the largest gap between their skins")
     args = ap.parse_args(argv)
 
     from fae.data import shipped_head_path
@@ -117,6 +120,14 @@ def main(argv=None) -> int:
         bare_walls, bare_cpus = timed(unguarded, frames, fps)
         print(f"  without the fold guard: {np.median(bare_walls):.1f} frames/s (CPU time {np.median(bare_cpus):.0f}); "
               f"the guard costs {100 * (1 - warp_cpu / np.median(bare_cpus)):.0f} % of the CPU frame rate")
+        if args.device:
+            other = Player(playable_head(face, device=args.device))
+            dev_walls, _ = timed(other, frames, fps)
+            player.reset()
+            other.reset()
+            gap = max(float(np.abs(player.step(f, dt=1.0 / fps) - other.step(f, dt=1.0 / fps)).max()) for f in frames)
+            print(f"  skin on {args.device}: {np.median(dev_walls):.0f} frames/s ({min(dev_walls):.0f}-{max(dev_walls):.0f}), "
+                  f"{np.median(dev_walls) / warp_fps:.1f}x the CPU Player; skins at most {gap * 1e3:.2f} mm apart")
         fdt_walls, fdt_cpus = timed(fdt, frames, fps)
         print(f"  fdt engine (baked FaceDefTables, no solver): {np.median(fdt_walls):.0f} frames/s "
               f"({min(fdt_walls):.0f}-{max(fdt_walls):.0f}; CPU time {np.median(fdt_cpus):.0f}), "

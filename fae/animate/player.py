@@ -135,11 +135,12 @@ def playable_head(model, device: str = "cpu", engine: str = "physics") -> Playab
     """The PlayableHead of `model`, after the set-up it lacks: a head without a calibrated
     FAP mapping that fits is calibrated (fae.animate.calibrate, tens of seconds; store the
     result in its .glb to skip this), and for engine "fdt" a head without baked tables is
-    baked (fae.animate.bake, minutes)."""
+    baked (fae.animate.bake, minutes). The calibration runs on the CPU whatever `device`
+    (its probes settle in threads, one solver each); the Player's per-frame steps on `device`."""
     if engine not in ENGINES:
         raise ValueError(f"engine: expected one of {', '.join(ENGINES)}, got {engine!r}")
     if needs_calibration(model):
-        model = calibrate(model, device=device)
+        model = calibrate(model, device="cpu")
     if engine == "fdt" and not has_baked_tables(model):
         model = baked_model(model, bake_tables(Player(PlayableHead(model, device=device))))
     return PlayableHead(model, device=device, engine=engine)

@@ -7,6 +7,8 @@
     timing_problem(fps, max_hold) -> str | None  why --fps or --max-hold cannot be used
     load_head(path | None) -> (FaceModel, Path)  --head, or the shipped generic head
     add_view_arguments(parser, "640x480")        --size, --view, --supersample, --show-bones
+    add_device_argument(parser)                  --device cpu | cuda | auto (the skin's Warp device)
+    warp_device("auto") -> "cuda" | "cpu"         --device resolved; ValueError when CUDA is asked and absent
 """
 
 from __future__ import annotations
@@ -114,6 +116,33 @@ def add_view_arguments(parser: argparse.ArgumentParser, default_size: str) -> No
                         help="render at K x size and average (anti-aliasing; costs about K^2)")
     parser.add_argument("--show-bones", action="store_true",
                         help="also draw the cranium and mandible (hidden under the skin; for checking how it sits)")
+
+
+DEVICES = ("cpu", "cuda", "auto")
+
+
+def add_device_argument(parser: argparse.ArgumentParser) -> None:
+    """--device: where the skin's Warp kernels run per frame."""
+    parser.add_argument("--device", choices=DEVICES, default="cpu",
+                        help="where the skin is simulated: cpu (default), cuda (an NVIDIA GPU), or auto "
+                        "(cuda when one is present, else cpu)")
+
+
+def warp_device(name: str) -> str:
+    """The Warp device of --device `name`: "cpu", or "cuda" when asked for (or for "auto")
+    and a CUDA device is present. ValueError when "cuda" is asked for and there is none."""
+    if name not in DEVICES:
+        raise ValueError(f"--device {name}: expected one of {', '.join(DEVICES)}")
+    if name == "cpu":
+        return "cpu"
+    from fae.warp_setup import wp
+
+    if wp.is_cuda_available():
+        return "cuda"
+    if name == "cuda":
+        raise ValueError("--device cuda: no CUDA device found (Warp sees no NVIDIA GPU and driver); "
+                         "use --device cpu or auto")
+    return "cpu"
 
 
 def drawn_skin_colors(model):

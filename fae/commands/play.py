@@ -18,8 +18,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from fae.commands.common import (add_view_arguments, fail, load_head, output_problem, timing_problem,
-                                 video_size_problem)
+from fae.commands.common import (add_device_argument, add_view_arguments, fail, load_head, output_problem,
+                                 timing_problem, video_size_problem, warp_device)
 from fae.io.frames import MAX_HOLD_SECONDS
 
 
@@ -43,6 +43,7 @@ def register(subparsers) -> None:
     parser.add_argument("--engine", choices=("physics", "fdt"), default="physics",
                         help="physics: simulate the skin (default); fdt: move it by the head's FaceDefTables baked "
                         "from the physics (`fae bake`; a head without them is baked first, minutes)")
+    add_device_argument(parser)
     parser.add_argument("--frames-dir", metavar="DIR", help="also write each frame as DIR/frame_00000.png, ...")
     parser.add_argument("--force", action="store_true", help="with --landmarks: play the mesh even when the "
                         "template's fit to it is not to be trusted (folds, a face far from the mesh)")
@@ -63,6 +64,10 @@ def run(args: argparse.Namespace) -> int:
     problem = output_problem(args.output, ".mp4")
     if problem:
         return fail("play", problem)
+    try:
+        device = warp_device(args.device)
+    except ValueError as exc:
+        return fail("play", str(exc))
     frames_dir = None
     if args.frames_dir:
         frames_dir = Path(args.frames_dir)
@@ -126,9 +131,9 @@ def run(args: argparse.Namespace) -> int:
                 from fae.animate.retarget import RetargetPlayer
 
                 player = RetargetPlayer(retargeted,
-                                        Player(playable_head(template, device="cpu", engine=args.engine)))
+                                        Player(playable_head(template, device=device, engine=args.engine)))
             else:
-                player = Player(playable_head(model, device="cpu", engine=args.engine))
+                player = Player(playable_head(model, device=device, engine=args.engine))
             frames = dense_frames(stream, fps=args.fps, max_hold=args.max_hold)
             timings = render_video(player.play(frames, fps=fps), renderer, args.output, fps,
                                    frames_dir=frames_dir,

@@ -14,8 +14,8 @@ import signal
 import sys
 from pathlib import Path
 
-from fae.commands.common import (add_view_arguments, drawn_skin_colors, fail, load_head, output_problem,
-                                 video_size_problem)
+from fae.commands.common import (add_device_argument, add_view_arguments, drawn_skin_colors, fail, load_head,
+                                 output_problem, video_size_problem, warp_device)
 from fae.net.server import DEFAULT_HOST, DEFAULT_PORT, FapServer, ServerLimits
 
 
@@ -39,7 +39,7 @@ def register(subparsers) -> None:
                         "every face as it moves (WebGL, three.js from npm), frames over a WebSocket")
     parser.add_argument("--http-port", type=int, default=8080, metavar="PORT",
                         help="port of the live view's page (default 8080; 0: any)")
-    parser.add_argument("--device", default="cpu", help="Warp device for the faces (default cpu)")
+    add_device_argument(parser)
     defaults = ServerLimits()
     parser.add_argument("--idle-timeout", type=float, default=defaults.idle_timeout, metavar="SECONDS",
                         help="close a client silent this long with nothing in progress "
@@ -128,6 +128,10 @@ def run(args) -> int:
     from fae.io.facemodel_gltf import FaceModelError
 
     try:
+        device = warp_device(args.device)
+    except ValueError as exc:
+        return fail("serve", str(exc))
+    try:
         model, head = load_head(args.head)
     except FaceModelError as exc:
         return fail("serve", f"--head {exc}")
@@ -138,7 +142,7 @@ def run(args) -> int:
         print(f"fae serve: {args.head} carries no FAP mapping that fits; calibrating it once (tens of seconds)",
               file=sys.stderr, flush=True)
     try:
-        playable = playable_head(model, device=args.device)  # shared by every client's face
+        playable = playable_head(model, device=device)  # shared by every client's face
     except (RuntimeError, ValueError) as exc:
         print(f"fae serve: --head {args.head}: cannot animate it: {exc}", file=sys.stderr)
         return 2

@@ -21,6 +21,8 @@ import contextlib
 import json
 import sys
 
+from fae.commands.common import add_device_argument
+
 
 def register(subparsers) -> None:
     parser = subparsers.add_parser("verify-skin", help="check that streams never fold or tear a head's skin",
@@ -30,17 +32,22 @@ def register(subparsers) -> None:
     parser.add_argument("streams", nargs="*", metavar="STREAM.fap",
                         help="FAP streams to play (default: the FAP sweep and the six expressions)")
     parser.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    add_device_argument(parser)
     parser.set_defaults(func=run)
 
 
 def run(args) -> int:
-    from fae.commands.common import fail, load_head
+    from fae.commands.common import fail, load_head, warp_device
     from fae.io.facemodel_gltf import FaceModelError
     from fae.io.fap import FapFormatError, read_fap
 
     head, streams = args.head, list(args.streams)
     if head is not None and head.lower().endswith(".fap"):  # streams only: the shipped head
         head, streams = None, [head] + streams
+    try:
+        device = warp_device(args.device)
+    except ValueError as exc:
+        return fail("verify-skin", str(exc))
     try:
         face, path = load_head(head)
     except (OSError, FaceModelError) as exc:
@@ -58,7 +65,7 @@ def run(args) -> int:
         from fae.animate.player import Player, playable_head
         from fae.animate.skin_check import SkinCheck, check_stream, default_streams
 
-        player = Player(playable_head(face))
+        player = Player(playable_head(face, device=device))
         check = SkinCheck(player.face)
         if not loaded:
             loaded = default_streams()
