@@ -203,6 +203,28 @@ def test_a_lips_middle_fields_add_up_to_one_along_its_margin(mirrored):
     assert np.allclose(total, 1.0, atol=0.02) and np.all(w[9][margin] == 0.0)
 
 
+def test_a_cheek_raise_pulls_the_lower_lid_half_as_hard_as_the_cheek():
+    """lift_l_cheek (41) pulls with a round bump around its point, except on the lower
+    eyelids, which it pulls half as hard: the cheek rising beneath pushes them the rest of
+    the way, and pulled as hard their margin rolled off the eyeball."""
+    from fae.animate.calibrate import (CHEEK_LID_SHARE, _FIELD_RADIUS_ES, _wendland, field_faps,
+                                       geodesic_distance, pull_fields)
+    from fae.animate.faptables import FAP_FEATURE_POINT, fapu_of
+    from fae.data import shipped_head_path
+    from fae.io.facemodel_gltf import read_facemodel
+
+    face = read_facemodel(shipped_head_path())
+    fapu = fapu_of(face)
+    field = pull_fields(face, fapu)[field_faps(face).index(41)]
+    radius = _FIELD_RADIUS_ES[41] * fapu["ES"] * 1024.0
+    bump = _wendland(np.minimum(geodesic_distance(face, face.feature_points[FAP_FEATURE_POINT[40]], radius) / radius, 1.0))
+    region = np.asarray(face.skin_region)
+    lid = region == face.region_names.index("eyelid_lower_l")
+    assert CHEEK_LID_SHARE == 0.5 and (bump[lid] > 0.05).sum() > 20  # the bump reaches the lid
+    assert np.allclose(field.skin_weight[lid], CHEEK_LID_SHARE * bump[lid])
+    assert np.allclose(field.skin_weight[~lid], bump[~lid])
+
+
 def test_calibrating_again_drops_tables_baked_under_the_old_mapping():
     """A head's baked FaceDefTables are its simulation under its mapping: a head whose
     mapping is of an older format is calibrated again when loaded, and its baked tables,

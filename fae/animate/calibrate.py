@@ -92,6 +92,8 @@ from fae.sim.build import (EYE_CLEARANCE, PullField, dilate, eyeball_sphere, mes
 from fae.sim.reference import ReferenceSolver
 
 FIELD_ONLY_FAPS = (19, 20, 21, 22)
+CHEEK_LIFT_FAPS = (41, 42)
+CHEEK_LID_SHARE = 0.5  # of a cheek raise's pull on the lower eyelids (see pull_fields)
 # pull-field radius per FAP, in units of ES0
 _FIELD_RADIUS_ES = {**{k: 0.16 for k in (4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 16, 17)},
                     **{k: 0.18 for k in range(51, 61)}, 18: 0.3,
@@ -202,6 +204,13 @@ def pull_fields(face, fapu: dict[str, float], graph: sp.csr_matrix | None = None
                 # farther than below it
                 above = np.asarray(face.skin_vertices)[:, 1] > face.surface_point_position(point)[1]
                 w = np.where(above, _wendland(np.minimum(d / (radius * reach), 1.0)), w)
+        if k in CHEEK_LIFT_FAPS:
+            # the cheek pushes the lower lid up from below more than it pulls it: pulled as
+            # hard as the cheek, the lid's margin rolled off the eyeball and showed its
+            # lining (marble_bust, xface_joy's smile: 10 mm^2 of its back seen, 0 at half);
+            # not pulled at all, the outer eye corner tore open between the risen cheek and
+            # the lid left behind (the generic head at the FAP's limit: 109 mm^2, 17 at half)
+            w[np.isin(region, [i for i, n in enumerate(names) if n.startswith("eyelid_lower")])] *= CHEEK_LID_SHARE
         # upper-lip points never pull the lower lip and vice versa
         own = {names[i] for i in region[faces[point.triangle]]}
         for word, other in (("upper", "lower"), ("lower", "upper")):

@@ -47,6 +47,7 @@ from __future__ import annotations
 from fae.animate.ears import EAR_FAPS
 from fae.animate.faptables import FAP_FEATURE_POINT, JAW_FAPS, SKIN_TRANSLATION_FAPS
 
+# 9: a cheek raise (41, 42) pulls the lower eyelids half as hard;
 # 8: a lip's points between two others pull with fields spanning its margin between them;
 # 7: an upper lid closes by unfolding its crease and the brow's underside, the skin's
 # edges are kept within strain limits, and crease moves are inelastic;
@@ -54,7 +55,7 @@ from fae.animate.faptables import FAP_FEATURE_POINT, JAW_FAPS, SKIN_TRANSLATION_
 # 5: inner and outer lip FAPs merged where their points overlap (pair_overlap); 4: lip FAPs are displacements the jaw does not change (jaw_follow), 2.1 at the gnathion; 3: the skin solver with the fold guard, crease smoothing and lip contact (fae.sim.folds)
 # and pull fields preferred to muscles; 2: implicit anchors, blended holds and derived ear
 # tables
-FORMAT_VERSION = 8
+FORMAT_VERSION = 9
 JAW_CONTROLS = 3
 JAW_OPEN = 3
 # the inner (4-13) and outer (51-60) lip FAPs
