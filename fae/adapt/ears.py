@@ -8,14 +8,8 @@ every profile). An ear is what stands out of the side of the head: per side, the
 near the template's ear (within EAR_SEARCH metres of its centre, in the face frame, both
 the template's skin and the scan) is fitted by a smooth height field (|x| as a quadratic
 in y and z, refitted to the points within SIDE_KEEP of it), and the points standing out
-more than EAR_HEIGHT are the ear. A scan's ear can sit 3-4 cm from where the template's
-proportions put it (marble_bust's: lower, half of it beyond EAR_SEARCH), so the scan's is
-first looked for within EAR_WIDE_SEARCH, as the largest connected patch standing out there,
-and then around that patch's centre. The template's ear points are carried onto the
-scan's by trimmed similarity ICP, template to scan: the scan's points may hold more than
-the ear (the jaw's corner below it; matched the other way round, the template's ear came
-out 1.1-1.4x too large), and the trimming lets hair hide a fifth of the ear; a result with
-an implausible scale, turn or residual is dropped.
+more than EAR_HEIGHT are the ear. The template's ear points are carried onto the scan's by
+trimmed similarity ICP; a result with an implausible scale, turn or residual is dropped.
 Template ear vertices mapped that way, put onto the scan, become corresponding points
 for the fit (fae.adapt.nonrigid), which weighs them like feature points: they place the
 ear in the stiff stages and let the scan give its detail after.
@@ -24,16 +18,13 @@ ear in the stiff stages and let the scan give its detail after.
 from __future__ import annotations
 
 import numpy as np
-import scipy.sparse as sp
-from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from fae.adapt.calibration import similarity_icp
 from fae.adapt.errors import Surface
 from fae.io.facemodel import FaceModel
 
-EAR_SEARCH = 0.045  # m around the template ear's centre (the scan's: around its ear's)
-EAR_WIDE_SEARCH = 0.07  # m around the template ear's centre: where the scan's ear is looked for
+EAR_SEARCH = 0.045  # m around the template ear's centre
 SIDE_KEEP = 0.003  # m: points this close to the side's height field define it
 EAR_HEIGHT = 0.004  # m: points standing out of the side more than this are ear
 MIN_EAR_POINTS = 30
@@ -60,31 +51,6 @@ def standing_out(X: np.ndarray, side: float) -> np.ndarray:
     return residual
 
 
-def largest_patch(F: np.ndarray, vertices: np.ndarray) -> np.ndarray:
-    """The largest set of `vertices` (k,) int connected by the edges of faces F (m, 3)
-    between them."""
-    index = np.full(int(F.max()) + 1, -1)
-    index[vertices] = np.arange(len(vertices))
-    E = index[np.vstack([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])]
-    E = E[(E >= 0).all(axis=1)]
-    graph = sp.coo_matrix((np.ones(len(E)), (E[:, 0], E[:, 1])), shape=(len(vertices), len(vertices)))
-    _, label = connected_components(graph, directed=False)
-    return vertices[label == np.bincount(label).argmax()]
-
-
-def scan_ear(scan: Surface, centre: np.ndarray, side: float) -> np.ndarray:
-    """(k,) int: the scan's vertices standing out of the head's side on `side` (+1 left,
-    -1 right) near the template ear's `centre` (3,) metres: the largest connected patch
-    standing out by EAR_HEIGHT within EAR_WIDE_SEARCH, then all standing out within
-    EAR_SEARCH of that patch's centre (the side's shape fitted there)."""
-    near = np.flatnonzero(np.linalg.norm(scan.V - centre, axis=1) < EAR_WIDE_SEARCH)
-    out = near[standing_out(scan.V[near], side) > EAR_HEIGHT]
-    if len(out) >= MIN_EAR_POINTS:
-        centre = scan.V[largest_patch(scan.F, out)].mean(axis=0)
-    near = np.flatnonzero(np.linalg.norm(scan.V - centre, axis=1) < EAR_SEARCH)
-    return near[standing_out(scan.V[near], side) > EAR_HEIGHT]
-
-
 def ear_pairs(template: FaceModel, scan: Surface) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray] | None, dict]:
     """Corresponding points on the template's ears and the scan's (scan in the face frame
     at the template's size, head part only). Returns (faces (k,), bary (k, 3), points
@@ -107,17 +73,21 @@ def ear_pairs(template: FaceModel, scan: Surface) -> tuple[tuple[np.ndarray, np.
             continue
         centre = P[ear].mean(axis=0)
         near_t = np.flatnonzero(np.linalg.norm(P - centre, axis=1) < EAR_SEARCH)
-        if np.count_nonzero(np.linalg.norm(scan.V - centre, axis=1) < EAR_WIDE_SEARCH) < MIN_EAR_POINTS:
+        near_s = np.flatnonzero(np.linalg.norm(scan.V - centre, axis=1) < EAR_SEARCH)
+        if len(near_s) < MIN_EAR_POINTS:
             report[name] = {"found": False, "why": "no scan near the template's ear"}
             continue
         t_ear = near_t[(standing_out(P[near_t], side) > EAR_HEIGHT) & ear[near_t]]
-        s_ear = scan_ear(scan, centre, side)
+        s_ear = near_s[standing_out(scan.V[near_s], side) > EAR_HEIGHT]
         if len(s_ear) < MIN_EAR_POINTS or len(t_ear) < MIN_EAR_POINTS:
             report[name] = {"found": False, "why": f"{len(s_ear)} scan points stand out where the ear should be"}
             continue
         A, B = P[t_ear], scan.V[s_ear]
-        s, R, t, rms = similarity_icp(A, cKDTree(B), B, 1.0, np.eye(3), B.mean(axis=0) - A.mean(axis=0),
-                                      iterations=30, keep=0.8)
+        # scan -> template: hair may hide part of the scan's ear, never part of the template's
+        t0 = A.mean(axis=0) - B.mean(axis=0)
+        s_inv, R_inv, t_inv, rms = similarity_icp(B, cKDTree(A), A, 1.0, np.eye(3), t0, iterations=30, keep=0.8)
+        s, R = 1.0 / s_inv, R_inv.T
+        t = -s * R @ t_inv
         turn = float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
         entry = {"scan_points": int(len(s_ear)), "scale": float(s), "turn_degrees": turn, "residual_m": rms,
                  "moved_m": float(np.linalg.norm(s * R @ A.mean(axis=0) + t - A.mean(axis=0)))}
