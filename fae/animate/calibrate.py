@@ -207,7 +207,8 @@ def pull_fields(face, fapu: dict[str, float], graph: sp.csr_matrix | None = None
         if k in CHEEK_LIFT_FAPS:
             # the cheek pushes the lower lid up from below more than it pulls it: pulled as
             # hard as the cheek, the lid's margin rolled off the eyeball and showed its
-            # lining (marble_bust, xface_joy's smile: 10 mm^2 of its back seen, 0 at half);
+            # lining (a fit of marble_bust smiling as xface_joy does: 10 mm^2 of its back
+            # seen, 0 at half);
             # not pulled at all, the outer eye corner tore open between the risen cheek and
             # the lid left behind (the generic head at the FAP's limit: 109 mm^2, 17 at half)
             w[np.isin(region, [i for i, n in enumerate(names) if n.startswith("eyelid_lower")])] *= CHEEK_LID_SHARE
