@@ -51,8 +51,8 @@ def main(argv=None) -> int:
     ap.add_argument("--numpy-frames", type=int, default=8)
     ap.add_argument("--passes", type=int, default=5, help="timed passes over the frames (the median is reported)")
     ap.add_argument("--head", default=None, help="FaceModel .glb (default: the generic head)")
-    ap.add_argument("--device", default=None, help="also time the Player with its skin on this Warp device "
-                    "(cuda: an NVIDIA GPU), against the CPU Player, and the largest gap between their skins")
+    ap.add_argument("--device", choices=("cuda",), default=None, help="also time the Player with its skin on "
+                    "the GPU, against the CPU Player, and the largest gap between their skins")
     args = ap.parse_args(argv)
 
     from fae.data import shipped_head_path
@@ -92,6 +92,7 @@ def main(argv=None) -> int:
             cpus.append(len(frames) / max(time.process_time() - c0, 1e-9))
         return walls, cpus
 
+    on_gpu = Player(playable_head(face, device=args.device)) if args.device else None
     for path in streams():
         stream = read_fap(path)
         fps = float(stream.header.fps)
@@ -120,12 +121,11 @@ def main(argv=None) -> int:
         bare_walls, bare_cpus = timed(unguarded, frames, fps)
         print(f"  without the fold guard: {np.median(bare_walls):.1f} frames/s (CPU time {np.median(bare_cpus):.0f}); "
               f"the guard costs {100 * (1 - warp_cpu / np.median(bare_cpus)):.0f} % of the CPU frame rate")
-        if args.device:
-            other = Player(playable_head(face, device=args.device))
-            dev_walls, _ = timed(other, frames, fps)
+        if on_gpu is not None:
+            dev_walls, _ = timed(on_gpu, frames, fps)
             player.reset()
-            other.reset()
-            gap = max(float(np.abs(player.step(f, dt=1.0 / fps) - other.step(f, dt=1.0 / fps)).max()) for f in frames)
+            on_gpu.reset()
+            gap = max(float(np.abs(player.step(f, dt=1.0 / fps) - on_gpu.step(f, dt=1.0 / fps)).max()) for f in frames)
             print(f"  skin on {args.device}: {np.median(dev_walls):.0f} frames/s ({min(dev_walls):.0f}-{max(dev_walls):.0f}), "
                   f"{np.median(dev_walls) / warp_fps:.1f}x the CPU Player; skins at most {gap * 1e3:.2f} mm apart")
         fdt_walls, fdt_cpus = timed(fdt, frames, fps)

@@ -136,7 +136,8 @@ def playable_head(model, device: str = "cpu", engine: str = "physics") -> Playab
     FAP mapping that fits is calibrated (fae.animate.calibrate, tens of seconds; store the
     result in its .glb to skip this), and for engine "fdt" a head without baked tables is
     baked (fae.animate.bake, minutes). The calibration runs on the CPU whatever `device`
-    (its probes settle in threads, one solver each); the Player's per-frame steps on `device`."""
+    (its probes settle in threads, one solver each); the bake and the per-frame steps run
+    on `device`."""
     if engine not in ENGINES:
         raise ValueError(f"engine: expected one of {', '.join(ENGINES)}, got {engine!r}")
     if needs_calibration(model):
