@@ -208,9 +208,9 @@ def pull_fields(face, fapu: dict[str, float], graph: sp.csr_matrix | None = None
             # the cheek pushes the lower lid up from below more than it pulls it: pulled as
             # hard as the cheek, the lid's margin rolled off the eyeball and showed its
             # lining (a fit of marble_bust smiling as xface_joy does: 10 mm^2 of its back
-            # seen, 0 at half);
-            # not pulled at all, the outer eye corner tore open between the risen cheek and
-            # the lid left behind (the generic head at the FAP's limit: 109 mm^2, 17 at half)
+            # seen, 0 at half); not pulled at all, the outer eye corner tore open between
+            # the risen cheek and the lid left behind (the generic head at the FAP's limit:
+            # 109 mm^2, 17 at half)
             w[np.isin(region, [i for i, n in enumerate(names) if n.startswith("eyelid_lower")])] *= CHEEK_LID_SHARE
         # upper-lip points never pull the lower lip and vice versa
         own = {names[i] for i in region[faces[point.triangle]]}
