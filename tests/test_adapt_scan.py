@@ -365,16 +365,18 @@ def test_the_head_is_found_in_a_bust_lying_upside_down(template, bust):
     assert angle < 5.0
 
 
-def test_an_ear_is_found_where_the_scan_has_it(template):
+@pytest.mark.parametrize("shift", [(0.0, -0.015, -0.010), (0.0, -0.045, 0.0)], ids=["near", "4.5 cm down"])
+def test_an_ear_is_found_where_the_scan_has_it(template, shift):
     """Ears are found by their shape: the template's left ear moved 15 mm down and 10 mm
-    back on the 'scan' gives pairs that carry the template's ear there."""
+    back, or 4.5 cm down (where a marble bust has its ears), on the 'scan' gives pairs that
+    carry the template's ear there."""
     from fae.adapt.ears import ear_pairs
     from fae.adapt.errors import surface
 
     V = np.asarray(template.skin_vertices, float).copy()
     F = np.asarray(template.skin_faces, np.int64)
     ear = np.asarray(template.skin_region) == template.region_names.index("ear_l")
-    shift = np.array([0.0, -0.015, -0.010])
+    shift = np.array(shift)
     V[ear] += shift
     pairs, report = ear_pairs(template, surface(V, F))
     assert report["ear_l"]["found"], report
@@ -386,6 +388,48 @@ def test_an_ear_is_found_where_the_scan_has_it(template):
     assert left.sum() >= 10
     error = np.linalg.norm(points[left] - on_template[left] - shift, axis=1)
     assert np.median(error) < 0.002 and np.quantile(error, 0.9) < 0.004, np.sort(error)
+
+
+def test_a_head_with_no_ears_stands_out_has_none_found(template):
+    """A head whose sides are smooth (the template's ears cut away and the holes left) has
+    no ear to find: no pairs, and the report says why for each side."""
+    from fae.adapt.ears import ear_pairs
+    from fae.adapt.errors import surface
+
+    F = np.asarray(template.skin_faces, np.int64)
+    region = np.asarray(template.skin_region)
+    ears = np.isin(region, [template.region_names.index("ear_l"), template.region_names.index("ear_r")])
+    pairs, report = ear_pairs(template, surface(template.skin_vertices, F[~ears[F].any(axis=1)]))
+    assert pairs is None
+    assert not report["ear_l"]["found"] and not report["ear_r"]["found"]
+
+
+@needs_mediapipe
+@pytest.mark.slow
+def test_a_bust_whose_ears_sit_low_gets_its_ears_where_the_scan_has_them(template, tmp_path):
+    """The suite's bust with its left ear 4.5 cm lower than the template's (a marble bust's
+    ears sit so): the adapted head's left ear lies on the scan's, not on the scalp above."""
+    V = np.asarray(template.skin_vertices, float).copy()
+    F = np.asarray(template.skin_faces, np.int64)
+    ear = np.asarray(template.skin_region) == template.region_names.index("ear_l")
+    V[ear] += [0.0, -0.045, 0.0]
+    fdp = {n: p for n, p in template.feature_point_positions().items() if template.feature_points[n].part == "skin"}
+    scan = bust_scan(V, F, fdp, seed=3, drop_faces=mouth_lining(template))
+    path, out, rep = tmp_path / "bust.obj", tmp_path / "head.glb", tmp_path / "report.json"
+    trimesh.Trimesh(scan.vertices, scan.faces, process=False).export(path)
+    assert main(["adapt", str(path), "-o", str(out), "--report", str(rep), "--no-calibrate"]) == 0
+    report = json.loads(rep.read_text())
+    assert report["ears"]["ear_l"]["found"], report["ears"]
+    # the ear's free part (its root is stretched over the 4.5 cm on the scan)
+    from scipy.spatial import cKDTree
+
+    P = np.asarray(template.skin_vertices)
+    free = np.flatnonzero(ear)[cKDTree(P[~ear]).query(P[ear])[0] > 0.008]
+    head = read_facemodel(out)
+    fitted = apply_transform(head.scan_transform, head.skin_vertices[free])  # the scan's frame
+    truth = apply_transform(scan.to_scan, scan.warp(V[free]))
+    error = np.linalg.norm(fitted - truth, axis=1) * 1e-3  # the scan is in mm
+    assert len(free) > 50 and np.median(error) < 0.004, (len(free), np.median(error))
 
 
 def test_the_workflow_refuses_what_it_cannot_trust_without_the_command_line(template):

@@ -36,15 +36,19 @@ def similarity_transform(A: np.ndarray, B: np.ndarray, with_scale: bool = True) 
 
 
 def similarity_icp(A: np.ndarray, tree, B: np.ndarray, s: float, R: np.ndarray, t: np.ndarray,
-                   iterations: int = 20, keep: float = 0.8) -> tuple[float, np.ndarray, np.ndarray, float]:
+                   iterations: int = 20, keep: float = 0.8, with_scale: bool = True
+                   ) -> tuple[float, np.ndarray, np.ndarray, float]:
     """Refine x -> s R x + t mapping points A (n, 3) onto the cloud B (m, 3), `tree` a
-    scipy cKDTree over B, by trimmed ICP (the closest `keep` share of pairs). Returns s, R,
-    t and the trimmed RMS (in B's unit)."""
+    scipy cKDTree over B, by trimmed ICP (the closest `keep` share of pairs; s stays as
+    given unless with_scale). Returns s, R, t and the trimmed RMS (in B's unit)."""
     rms = np.inf
     for _ in range(iterations):
         d, j = tree.query(s * A @ R.T + t)
         good = d <= np.quantile(d, keep)
-        s, R, t = similarity_transform(A[good], B[j[good]])
+        if with_scale:
+            s, R, t = similarity_transform(A[good], B[j[good]])
+        else:
+            _, R, t = similarity_transform(s * A[good], B[j[good]], with_scale=False)
         rms = float(np.sqrt(np.mean(d[good] ** 2)))
     return s, R, t, rms
 

@@ -1,60 +1,170 @@
 """The ears of a scan, found by their shape, so the fit can place the template's there.
 
+    found_ears(template, scan) -> ([Ear], report)
     ear_pairs(template, scan) -> ((faces (k,), bary (k, 3), points (k, 3)) or None, report)
 
-No face-landmark model sees ears; a template ear two centimetres off the scan's is pulled
-by its lower half onto the scan and left standing by its upper half (an elongated ear in
-every profile). An ear is what stands out of the side of the head: per side, the surface
-near the template's ear (within EAR_SEARCH metres of its centre, in the face frame, both
-the template's skin and the scan) is fitted by a smooth height field (|x| as a quadratic
-in y and z, refitted to the points within SIDE_KEEP of it), and the points standing out
-more than EAR_HEIGHT are the ear. The template's ear points are carried onto the scan's by
-trimmed similarity ICP; a result with an implausible scale, turn or residual is dropped.
-Template ear vertices mapped that way, put onto the scan, become corresponding points
-for the fit (fae.adapt.nonrigid), which weighs them like feature points: they place the
-ear in the stiff stages and let the scan give its detail after.
+No face-landmark model sees ears, and a scan's ears may sit centimetres from where the
+template's fall after the face is placed (a marble bust's 4.5 cm lower): the fit then
+draws the template's ear as a flat leaf on the scalp above the scan's. An ear is what
+stands out of the side of the head. Per side, the head is seen from that side: a height
+map (how far out the surface reaches, |x|, over a grid in y and z, SIDE_WINDOW around the
+template ear's centre, by ray casts), opened by a disc of OPEN_RADIUS (a grey-scale
+opening keeps the skull's round side and drops whatever is narrower than the disc: ears,
+curls, the leaves of a wreath). Where the map stands more than EAR_HEIGHT above its
+opening is a candidate; the ear is the candidate of plausible area, within EAR_REACH,
+that the template ear's footprint (the cells its triangles show in the same map of the
+template) overlaps best when shifted onto it (the shift, by FFT correlation, starts the
+ICP). The two ears' vertices seen from the side are then aligned by rigid trimmed ICP
+both ways (the closer kept: hair may hide part of the scan's ear, and more of an ear may
+stand out of a flatter side than of the template's); a turn beyond MAX_TURN or a residual
+beyond MAX_RESIDUAL drops the ear. Template ear vertices so moved, put onto the scan,
+become corresponding points for the fit (fae.adapt.nonrigid, through fae.adapt.from_scan).
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
+from scipy import ndimage, signal
 from scipy.spatial import cKDTree
 
 from fae.adapt.calibration import similarity_icp
 from fae.adapt.errors import Surface
+from fae.adapt.query import MeshQuery
 from fae.io.facemodel import FaceModel
 
-EAR_SEARCH = 0.045  # m around the template ear's centre
-SIDE_KEEP = 0.003  # m: points this close to the side's height field define it
+SIDE_WINDOW = 0.08  # m: the side map reaches this far from the template ear's centre in y and z
+CELL = 0.0015  # m: the side map's grid step
+OPEN_RADIUS = 0.02  # m: what is narrower than this disc stands out of the side
 EAR_HEIGHT = 0.004  # m: points standing out of the side more than this are ear
+EAR_AREA = (0.3, 1.45)  # a candidate's area (side view) in shares of the template ear's footprint (a clean ear: 0.5-1.4; merged with curls: 1.5)
+EAR_REACH = 0.07  # m: the footprint's shift onto a candidate (y, z) is at most this
 MIN_EAR_POINTS = 30
-SCALE_RANGE = (0.6, 1.5)  # of the template's ear
-MAX_TURN = 35.0  # degrees
-MAX_RESIDUAL = 0.0025  # m, trimmed RMS of the ICP
+MAX_TURN = 25.0  # degrees (a sculpted helix alone, slid round a whole ear, turns 33)
+MAX_RESIDUAL = 0.003  # m, trimmed RMS of the ICP (sculpted ears: 2.0-2.9)
 PAIRS_PER_EAR = 40
 PROJECT_REACH = 0.005  # m: a mapped ear point is put onto the scan when this close
 
 
-def standing_out(X: np.ndarray, side: float) -> np.ndarray:
-    """(n,) metres each point X (n, 3) stands out of a smooth side of the head (|x| as a
-    quadratic in y and z, robustly fitted): side +1 for the left (+x), -1 for the right."""
-    A = np.c_[np.ones(len(X)), X[:, 1], X[:, 2], X[:, 1] ** 2, X[:, 1] * X[:, 2], X[:, 2] ** 2]
-    lateral = side * X[:, 0]
-    keep = np.ones(len(X), dtype=bool)
-    residual = np.zeros(len(X))
-    for _ in range(6):
-        if keep.sum() < 6:
-            break
-        coef, *_ = np.linalg.lstsq(A[keep], lateral[keep], rcond=None)
-        residual = lateral - A @ coef
-        keep = residual < SIDE_KEEP
-    return residual
+@dataclass
+class SideMap:
+    """The head seen from one side: lateral reach `height` (ny, nz) metres (NaN: no
+    surface), its opening `opened` (ny, nz), the triangle seen `face` (ny, nz) (-1: none),
+    over cells from (y0, z0) in steps of CELL."""
+
+    side: float
+    y0: float
+    z0: float
+    height: np.ndarray
+    opened: np.ndarray
+    face: np.ndarray
+
+    def cells(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Grid cell (i, j) of points X (n, 3), and whether it lies on the map."""
+        i = np.floor((X[:, 1] - self.y0) / CELL).astype(np.int64)
+        j = np.floor((X[:, 2] - self.z0) / CELL).astype(np.int64)
+        on = (i >= 0) & (i < self.height.shape[0]) & (j >= 0) & (j < self.height.shape[1])
+        return np.clip(i, 0, self.height.shape[0] - 1), np.clip(j, 0, self.height.shape[1] - 1), on
+
+    def seen(self, X: np.ndarray, cells: np.ndarray) -> np.ndarray:
+        """(n,) bool: points X (n, 3) over `cells` (ny, nz) bool that are seen from the side
+        (within EAR_HEIGHT of the surface the map shows there)."""
+        i, j, on = self.cells(X)
+        return on & cells[i, j] & (self.side * X[:, 0] > np.nan_to_num(self.height[i, j], nan=np.inf) - EAR_HEIGHT)
 
 
-def ear_pairs(template: FaceModel, scan: Surface) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray] | None, dict]:
-    """Corresponding points on the template's ears and the scan's (scan in the face frame
-    at the template's size, head part only). Returns (faces (k,), bary (k, 3), points
-    (k, 3) metres) or None when no ear was found, and a report per ear."""
+def side_map(query: MeshQuery, side: float, centre: np.ndarray) -> SideMap:
+    """The surface in `query` seen from side +1 (left, +x) or -1 (right) around `centre` (3,)."""
+    y0, z0 = centre[1] - SIDE_WINDOW, centre[2] - SIDE_WINDOW
+    n = int(round(2 * SIDE_WINDOW / CELL))
+    Y, Z = np.meshgrid(y0 + CELL * (np.arange(n) + 0.5), z0 + CELL * (np.arange(n) + 0.5), indexing="ij")
+    far = float(np.abs(query.V[:, 0]).max()) + 0.1
+    origins = np.c_[np.full(Y.size, side * far), Y.ravel(), Z.ravel()]
+    hit, t, face, _ = query.ray_hits(origins, np.tile([-side, 0.0, 0.0], (Y.size, 1)), 2.0 * far)
+    height = np.where(hit, far - t, np.nan).reshape(Y.shape)
+    r = int(round(OPEN_RADIUS / CELL))
+    yy, zz = np.mgrid[-r:r + 1, -r:r + 1]
+    floor = np.nanmin(height) - 0.1 if np.isfinite(height).any() else 0.0
+    opened = ndimage.grey_opening(np.where(np.isnan(height), floor, height), footprint=yy ** 2 + zz ** 2 <= r * r)
+    return SideMap(side, y0, z0, height, np.where(np.isnan(height), np.nan, opened), face.reshape(Y.shape))
+
+
+def ear_offset(t_cells: np.ndarray, s_cells: np.ndarray) -> tuple[np.ndarray, float]:
+    """The shift (di, dj) (2,) int, in cells, that lays the template ear's footprint t_cells
+    (ny, nz) bool best onto the candidate s_cells (same grid), and their overlap over union
+    there."""
+    score = signal.fftconvolve(s_cells.astype(float), t_cells[::-1, ::-1].astype(float), mode="full")
+    k = np.argmax(score)
+    shift = np.array(np.unravel_index(k, score.shape)) - (np.array(t_cells.shape) - 1)
+    overlap = float(score.flat[k])
+    return shift, overlap / max(t_cells.sum() + s_cells.sum() - overlap, 1.0)
+
+
+def ear_cells(m: SideMap, t_cells: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """The scan's ear on a side map: of the candidates (cells standing out more than
+    EAR_HEIGHT) of plausible area (EAR_AREA x the template ear's footprint t_cells (ny, nz)
+    bool, on the same grid), the one that matches the footprint best (overlap over union)
+    within EAR_REACH of where the template has it. Returns its cells (ny, nz) bool and the
+    footprint's shift onto it (2,) int, in cells; None when there is none."""
+    out = np.nan_to_num(m.height - m.opened, nan=0.0) > EAR_HEIGHT
+    label, count = ndimage.label(out)
+    area = t_cells.sum()
+    best, best_score = None, 0.0
+    for k in range(1, count + 1):
+        cells = label == k
+        if not (EAR_AREA[0] * area <= cells.sum() <= EAR_AREA[1] * area):
+            continue
+        shift, score = ear_offset(t_cells, cells)
+        if np.linalg.norm(shift) * CELL <= EAR_REACH and score > best_score:
+            best, best_score = (cells, shift), score
+    return best
+
+
+def ear_shift(t_map: SideMap, t_cells: np.ndarray, s_map: SideMap, shift: np.ndarray) -> np.ndarray:
+    """(3,) metres from the template's ear (footprint t_cells on t_map) to the scan's (on
+    s_map, the same grid) for a shift (2,) in cells: laterally, the median difference of
+    the two maps' heights over the footprint so shifted."""
+    i, j = np.nonzero(t_cells)
+    i2, j2 = i + shift[0], j + shift[1]
+    on = (i2 >= 0) & (i2 < s_map.height.shape[0]) & (j2 >= 0) & (j2 < s_map.height.shape[1])
+    lateral = s_map.height[i2[on], j2[on]] - t_map.height[i[on], j[on]]
+    dx = float(np.nanmedian(lateral)) if np.isfinite(lateral).any() else 0.0
+    return np.array([t_map.side * dx, shift[0] * CELL, shift[1] * CELL])
+
+
+def ear_rigid(A: np.ndarray, B: np.ndarray, t0: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """x -> R x + t carrying the template's ear points A (n, 3) onto the scan's B (m, 3),
+    and its trimmed RMS (metres), by rigid ICP from the shift t0 (3,) both ways, the closer
+    kept: hair may hide part of the scan's ear (scan onto template then fits), and more of
+    an ear may stand out of a flatter side than of the template's (template onto scan then
+    fits). Rigid: a scaled ICP between ears that overlap in part shrinks or swells the ear."""
+    _, R, t, rms = similarity_icp(A, cKDTree(B), B, 1.0, np.eye(3), t0, iterations=30, keep=0.8, with_scale=False)
+    _, R_back, t_back, rms_back = similarity_icp(B, cKDTree(A), A, 1.0, np.eye(3), -t0, iterations=30, keep=0.8,
+                                                 with_scale=False)
+    if rms_back < rms:
+        return R_back.T, -R_back.T @ t_back, rms_back
+    return R, t, rms
+
+
+@dataclass
+class Ear:
+    """An ear found on the scan: the template's `vertices` (k,) of that ear carried there
+    by x -> R x + t (R (3, 3), t (3,) metres, face frame), and corresponding points for the
+    fit: template skin `faces` (p,), `bary` (p, 3), scan `points` (p, 3) metres."""
+
+    name: str
+    vertices: np.ndarray
+    R: np.ndarray
+    t: np.ndarray
+    faces: np.ndarray
+    bary: np.ndarray
+    points: np.ndarray
+
+
+def found_ears(template: FaceModel, scan: Surface) -> tuple[list[Ear], dict]:
+    """The template's ears found on a scan (in the face frame at the template's size, head
+    part only), and a report per ear (found or why not)."""
     P = np.asarray(template.skin_vertices, dtype=np.float64)
     F = np.asarray(template.skin_faces, dtype=np.int64)
     region = np.asarray(template.skin_region)
@@ -64,7 +174,8 @@ def ear_pairs(template: FaceModel, scan: Surface) -> tuple[tuple[np.ndarray, np.
     for k in range(3):
         corner_face[F[:, k]] = np.arange(len(F))
         corner[F[:, k]] = k
-    faces, bary, points, report = [], [], [], {}
+    template_query = MeshQuery(P, F)
+    ears, report = [], {}
     for name, side in (("ear_l", 1.0), ("ear_r", -1.0)):
         if name not in template.region_names:
             continue
@@ -72,41 +183,69 @@ def ear_pairs(template: FaceModel, scan: Surface) -> tuple[tuple[np.ndarray, np.
         if not ear.any():
             continue
         centre = P[ear].mean(axis=0)
-        near_t = np.flatnonzero(np.linalg.norm(P - centre, axis=1) < EAR_SEARCH)
-        near_s = np.flatnonzero(np.linalg.norm(scan.V - centre, axis=1) < EAR_SEARCH)
-        if len(near_s) < MIN_EAR_POINTS:
-            report[name] = {"found": False, "why": "no scan near the template's ear"}
+        t_map = side_map(template_query, side, centre)
+        # the template's ear as seen from the side: every cell showing one of its triangles
+        t_cells = (t_map.face >= 0) & ear[F[np.maximum(t_map.face, 0)]].any(axis=-1)
+        if t_cells.sum() * CELL * CELL < 1e-4:
+            report[name] = {"found": False, "why": "the template's ear is not seen from the side"}
             continue
-        t_ear = near_t[(standing_out(P[near_t], side) > EAR_HEIGHT) & ear[near_t]]
-        s_ear = near_s[standing_out(scan.V[near_s], side) > EAR_HEIGHT]
+        s_map = side_map(scan.query, side, centre)
+        found = ear_cells(s_map, t_cells)
+        if found is None:
+            report[name] = {"found": False, "why": "nothing of an ear's size stands out of the scan's side"}
+            continue
+        s_cells, shift = found
+        # each ear's vertices on the side seen (not the back of the ear, nor the head behind it)
+        s_ear = np.flatnonzero(s_map.seen(scan.V, ndimage.binary_dilation(s_cells, iterations=2)))
+        t_ear = np.flatnonzero(ear & t_map.seen(P, t_cells))
         if len(s_ear) < MIN_EAR_POINTS or len(t_ear) < MIN_EAR_POINTS:
-            report[name] = {"found": False, "why": f"{len(s_ear)} scan points stand out where the ear should be"}
+            report[name] = {"found": False, "why": f"{len(s_ear)} scan points stand out where the ear is"}
             continue
-        A, B = P[t_ear], scan.V[s_ear]
-        # scan -> template: hair may hide part of the scan's ear, never part of the template's
-        t0 = A.mean(axis=0) - B.mean(axis=0)
-        s_inv, R_inv, t_inv, rms = similarity_icp(B, cKDTree(A), A, 1.0, np.eye(3), t0, iterations=30, keep=0.8)
-        s, R = 1.0 / s_inv, R_inv.T
-        t = -s * R @ t_inv
+        A = P[t_ear]
+        R, t, rms = ear_rigid(A, scan.V[s_ear], ear_shift(t_map, t_cells, s_map, shift))
         turn = float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
-        entry = {"scan_points": int(len(s_ear)), "scale": float(s), "turn_degrees": turn, "residual_m": rms,
-                 "moved_m": float(np.linalg.norm(s * R @ A.mean(axis=0) + t - A.mean(axis=0)))}
-        if not (SCALE_RANGE[0] <= s <= SCALE_RANGE[1] and turn <= MAX_TURN and rms <= MAX_RESIDUAL):
+        entry = {"scan_points": int(len(s_ear)), "turn_degrees": turn, "residual_m": rms,
+                 "moved_m": float(np.linalg.norm(R @ A.mean(axis=0) + t - A.mean(axis=0)))}
+        if not (turn <= MAX_TURN and rms <= MAX_RESIDUAL):
             report[name] = {"found": False, "why": "the ear found does not match the template's", **entry}
             continue
         pick = t_ear[np.linspace(0, len(t_ear) - 1, min(PAIRS_PER_EAR, len(t_ear))).astype(int)]
-        mapped = s * P[pick] @ R.T + t
-        on_scan, _, tri, _ = scan.query.closest_points(mapped, PROJECT_REACH)
+        on_scan, _, tri, _ = scan.query.closest_points(P[pick] @ R.T + t, PROJECT_REACH)
         ok = (tri >= 0) & (corner_face[pick] >= 0)
         if ok.sum() < MIN_EAR_POINTS // 3:
             report[name] = {"found": False, "why": "the mapped ear lies off the scan", **entry}
             continue
-        b = np.zeros((int(ok.sum()), 3))
-        b[np.arange(len(b)), corner[pick[ok]]] = 1.0
-        faces.append(corner_face[pick[ok]])
-        bary.append(b)
-        points.append(on_scan[ok])
+        bary = np.zeros((int(ok.sum()), 3))
+        bary[np.arange(len(bary)), corner[pick[ok]]] = 1.0
+        ears.append(Ear(name, np.flatnonzero(ear), R, t, corner_face[pick[ok]], bary, on_scan[ok]))
         report[name] = {"found": True, "pairs": int(ok.sum()), **entry}
-    if not faces:
+    return ears, report
+
+
+def ear_pairs(template: FaceModel, scan: Surface) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray] | None, dict]:
+    """Corresponding points on the template's ears and the scan's (see found_ears): (faces
+    (k,), bary (k, 3), points (k, 3) metres) or None when no ear was found, and the report."""
+    ears, report = found_ears(template, scan)
+    if not ears:
         return None, report
-    return (np.concatenate(faces), np.vstack(bary), np.vstack(points)), report
+    return (np.concatenate([e.faces for e in ears]), np.vstack([e.bary for e in ears]),
+            np.vstack([e.points for e in ears])), report
+
+
+EAR_FADE = 0.06  # m: the skin this far around an ear follows it when it is carried
+
+
+def ears_carried(P: np.ndarray, X: np.ndarray, ears: list[Ear]) -> np.ndarray:
+    """(n, 3) metres: the skin X (n, 3) (the template P (n, 3) placed on the scan) with each
+    ear carried to where `ears` found it (P's ear vertices moved rigidly by the ear's R, t)
+    and the skin around along with it, by a weight falling smoothly (smoothstep of the
+    distance to the ear, in P) to 0 at EAR_FADE. An ear moved 4.5 cm folds some skin
+    between it and the jaw; the fit blends that back (fae.adapt.nonrigid.fit_to_scan).
+    Wider (8-10 cm) folds none, but reaches the jaw's angle, and the mandible carried
+    with the skin came out through it on a marble bust."""
+    Y = np.asarray(X, dtype=np.float64).copy()
+    for e in ears:
+        s = np.clip(1.0 - cKDTree(P[e.vertices]).query(P)[0] / EAR_FADE, 0.0, 1.0)
+        w = s * s * (3.0 - 2.0 * s)
+        Y += w[:, None] * (P @ e.R.T + e.t - Y)
+    return Y

@@ -7,7 +7,8 @@ head part without folds, the anatomy carried over, and the result measured hones
 is head; `pairs` are corresponding points found by looking at both faces
 (fae.render.landmarks.landmark_pairs, in the face frame); `landmarks` are MPEG-4 feature
 points the user gave (scan frame); the ears, which no face-landmark model sees, are found
-by their shape (fae.adapt.ears) and join them. The skin is fitted by fae.adapt.nonrigid.fit_to_scan,
+by their shape (fae.adapt.ears), join them, and are carried to the scan's before the
+stiff stages (a marble bust's sit 4.5 cm below where the template's fall). The skin is fitted by fae.adapt.nonrigid.fit_to_scan,
 the anatomy carried by fae.adapt.transfer.personalize, and the errors measured in the
 scan's own frame through the head's scan_transform (fae.adapt.errors.scan_fit_errors),
 over the face regions' skin that a scanner sees, less the eyelids' rims within EYE_RIM of
@@ -25,7 +26,7 @@ import time
 import numpy as np
 
 from fae.adapt.calibration import apply_transform
-from fae.adapt.ears import ear_pairs
+from fae.adapt.ears import ears_carried, found_ears
 from fae.adapt.errors import FACE_REGIONS, scan_fit_errors, surface
 from fae.adapt.head_pose import HeadInScan, kept_part
 from fae.adapt.nonrigid import fit_to_scan, folded_triangles
@@ -96,17 +97,30 @@ def adapt_to_scan(template: FaceModel, scan_V: np.ndarray, scan_F: np.ndarray, h
         bary.append(np.asarray(fp.bary, np.float64)[None])
         points.append(apply_transform(T, np.asarray(q, np.float64)[None]))
         used_landmarks.append(name)
-    ears, ear_report = ear_pairs(template, scan)  # no face-landmark model sees ears
-    if ears is not None:
-        faces.append(ears[0])
-        bary.append(ears[1])
-        points.append(ears[2])
+    ears, ear_report = found_ears(template, scan)  # no face-landmark model sees ears
+    face_rows = sum(len(f) for f in faces)
+    for ear in ears:
+        faces.append(ear.faces)
+        bary.append(ear.bary)
+        points.append(ear.points)
     lm = (np.concatenate(faces), np.vstack(bary), np.vstack(points)) if faces else None
+    # both ears found help place the fit's start (they fix its pitch and scale from behind
+    # the face); one alone would turn it, and the face would pay. The skin of an ear found
+    # is placed by its pairs, not pulled to the scan nearest it (scalp, when the ear sits
+    # centimetres away), until the detail stages.
+    start, placed = None, np.zeros(len(P), dtype=bool)
+    if lm is not None:
+        start = np.ones(len(lm[0]))
+        start[face_rows:] = 1.0 if len(ears) == 2 else 0.0
+        for ear in ears:
+            placed[ear.vertices] = True
     stiffness = np.ones(len(P))
     for region, k in REGION_STIFFNESS.items():
         stiffness[in_regions(template, [region])] = k
     fit = fit_to_scan(P, F, scan, seen, landmarks=lm, stiffness=stiffness,
-                      rays=~in_regions(template, NO_RAYS) & ~near_eyeballs(template, NO_RAYS_NEAR_EYE))
+                      rays=~in_regions(template, NO_RAYS) & ~near_eyeballs(template, NO_RAYS_NEAR_EYE), start=start,
+                      placed=placed,
+                      carry=(lambda X: ears_carried(P, X, ears)) if ears else None)
     t_fit = time.perf_counter() - t0
     model, report = personalize(template, fit.vertices, T, head.unit, "surface")
     # the errors, in the scan's own frame through the head's scan_transform (no refit)

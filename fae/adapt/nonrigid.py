@@ -9,6 +9,9 @@ output of the last:
 1. Start (affine_to_scan): trimmed ICP of the template's visible skin onto the scan, one
    scale, rotation and translation (a full affine map would also stretch the neck that
    the scan cuts short); feature points, where given, start it and count in every step.
+   Parts found on the scan apart from the face (the ears) are then carried there with the
+   skin around them (`carry`), and placed by their feature points alone in the stiff
+   stages (`placed`): the nearest scan to an ear that sits centimetres off is scalp.
 2. Regularized non-rigid ICP (Amberg et al. 2007's idea, with a Laplacian instead of
    their per-vertex affine stiffness): per stiffness `a` of STIFFNESS, ROUNDS rounds of
        min_D  sum_i w_i |x_i + d_i - q_i|^2 + a^2 |S L D|^2 + f(a) w_L sum_k |b_k . (X + D) - l_k|^2
@@ -49,6 +52,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 import scipy.sparse as sp
@@ -196,11 +200,13 @@ def _scan_normals(scan: Surface, face: np.ndarray, bary: np.ndarray) -> np.ndarr
 
 
 def affine_to_scan(X: np.ndarray, scan: Surface, use: np.ndarray, iterations: int = 15, keep: float = 0.8,
-                   points: tuple[np.ndarray, np.ndarray] | None = None, similarity: bool = False) -> np.ndarray:
+                   points: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+                   similarity: bool = False) -> np.ndarray:
     """(4, 4) affine map taking the vertices X[use] onto the scan by trimmed ICP (closest
     scan vertices; the closest `keep` share of pairs). points: fixed pairs (template
-    points (k, 3), scan points (k, 3)) that start it and count in every step, all k of them
-    together as much as all the surface pairs. similarity: rotation, translation and
+    points (k, 3), scan points (k, 3), weights (k,)) that start it and count in every step,
+    all k of them together as much as all the surface pairs, each in proportion to its
+    weight. similarity: rotation, translation and
     one scale only (the neck below a scan's cut then keeps the template's proportions)."""
     A = np.eye(4)
     P = X[use]
@@ -222,8 +228,10 @@ def affine_to_scan(X: np.ndarray, scan: Surface, use: np.ndarray, iterations: in
         out[:3, 3] = M[3]
         return out
 
+    if points is not None:
+        share = np.asarray(points[2], dtype=np.float64) / np.sum(points[2])
     if points is not None and len(points[0]) >= 4:
-        A = solve(points[0], points[1], np.ones(len(points[0])))
+        A = solve(points[0], points[1], np.sqrt(share))
     for _ in range(iterations):
         Y = apply_transform(A, P)
         d, j = scan.tree.query(Y)
@@ -231,7 +239,7 @@ def affine_to_scan(X: np.ndarray, scan: Surface, use: np.ndarray, iterations: in
         src, dst, wt = P[good], scan.V[j[good]], np.ones(int(good.sum()))
         if points is not None and len(points[0]):
             src, dst = np.vstack([src, points[0]]), np.vstack([dst, points[1]])
-            wt = np.r_[wt, np.full(len(points[0]), np.sqrt(good.sum() / len(points[0])))]
+            wt = np.r_[wt, np.sqrt(good.sum() * share)]
         A = solve(src, dst, wt)
     return A
 
@@ -340,7 +348,9 @@ def whole(P: np.ndarray, X_safe: np.ndarray, X: np.ndarray, F: np.ndarray, ring:
 def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray,
                 landmarks: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
                 head: np.ndarray | None = None, stiffness: np.ndarray | None = None,
-                detail: np.ndarray | None = None, rays: np.ndarray | None = None) -> SurfaceFit:
+                detail: np.ndarray | None = None, rays: np.ndarray | None = None,
+                start: np.ndarray | None = None, placed: np.ndarray | None = None,
+                carry: Callable[[np.ndarray], np.ndarray] | None = None) -> SurfaceFit:
     """Fit the template skin P (n, 3) metres, F (m, 3) to `scan` (face frame, head part only).
 
     movable (n,) bool: skin a scanner can see (the rest follows its neighbours); landmarks:
@@ -353,7 +363,14 @@ def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray
     shape the stiff stages gave it (default: all movable skin); rays (n,) bool: skin that
     may take the scan along its normal where its closest point faces away (scan_pairs;
     default all); the rest, thin folds over the mouth and the eyes, goes onto the scan
-    all the way or not at all in the projection (projected_part_way).
+    all the way or not at all in the projection (projected_part_way); start (k,): the
+    weight of each feature point in the affine start (default 1 each; 0 leaves it out);
+    placed (n,) bool: skin that its feature points place in the stiff stages, with no
+    pull of the scan until the detail stages (an ear found centimetres from the
+    template's: the scan closest to it is scalp, not ear); carry(X) -> X (n, 3) metres,
+    template vertex order: the skin after the start with parts found on the scan carried
+    there (the ears: fae.adapt.ears.ears_carried), since the stiff stages do not move a part
+    centimetres apart from the rest; blended back wherever that folds the skin.
     """
     t0 = time.perf_counter()
     P_in = np.asarray(P, dtype=np.float64)
@@ -369,13 +386,22 @@ def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray
     head = None if head is None else np.bincount(label, weights=np.asarray(head, dtype=float), minlength=n) > 0
     detail = movable if detail is None else movable & (
         np.bincount(label, weights=np.asarray(detail, dtype=float), minlength=n) > 0)
+    if placed is not None:
+        placed = np.bincount(label, weights=np.asarray(placed, dtype=float), minlength=n) > 0
     if landmarks is not None:
         lm_corners = label[F_in[landmarks[0]]]  # (k, 3) welded corners of each feature point's triangle
     fixed = None
     if landmarks is not None and len(landmarks[0]):
-        fixed = (np.einsum("kj,kjd->kd", landmarks[1], P[lm_corners]), landmarks[2])
+        share = np.ones(len(landmarks[0])) if start is None else np.asarray(start, dtype=np.float64)
+        use = share > 0
+        fixed = (np.einsum("kj,kjd->kd", landmarks[1][use], P[lm_corners[use]]), landmarks[2][use], share[use])
     A = affine_to_scan(P, scan, movable if head is None else head, points=fixed, similarity=SIMILARITY_START)
     X = apply_transform(A, P)
+    ring = adjacency_matrix(F, n)
+    fold_ref = fold_reference(P, F)  # every round tests its step against the template
+    if carry is not None:
+        X = blend_away_folds(P, X, group_means(np.asarray(carry(X[label]), dtype=np.float64), label, n), F, ring,
+                             reference=fold_ref)[0]
     X_whole = X
     edges = mesh_edges(F)
     query = MeshQuery(X, F)
@@ -394,14 +420,14 @@ def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray
         B = None
     stages = []
     reaches = np.geomspace(REACH[0], REACH[1], len(STIFFNESS))
-    ring = adjacency_matrix(F, n)
-    fold_ref = fold_reference(P, F)  # every round tests its step against the template
     # every movable vertex has a data row (weight 1) in every round, so a stage factors its
     # matrix once; a vertex without a compatible scan point this round is asked to stay
     blended_total = 0
     quiet = np.zeros(n, dtype=bool)  # skin whose scan pull folded it: it follows its neighbours
     for a, reach in zip(STIFFNESS, reaches):
         matched = movable if a >= DETAIL_STIFFNESS else detail
+        if placed is not None and a >= DETAIL_STIFFNESS:
+            matched = matched & ~placed
         fade = (a / STIFFNESS[0]) ** LANDMARK_FADE  # feature points place the parts; the scan gives the detail
         solve = None
         for _ in range(ROUNDS):
