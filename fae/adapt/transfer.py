@@ -56,7 +56,7 @@ from fae.adapt.geometry import per_vertex_normals, within
 from fae.adapt.multilevel import fit_template
 from fae.adapt.query import MeshQuery
 from fae.adapt.rbf import RBF, rbf_interpolant, rbf_weights
-from fae.adapt.untangle import untangle
+from fae.adapt.untangle import mesh_edges, untangle
 from fae.anatomy.surface_points import markup_positions
 from fae.io.facemodel import FaceModel
 
@@ -249,6 +249,75 @@ def hidden_skin_off_bones(template: FaceModel, model: FaceModel, margin: float =
             moved |= np.linalg.norm(D, axis=1) > 1e-7
     model.skin_vertices = X
     return int(moved.sum())
+
+
+LINING_CLEARANCE = 0.001  # m: skin hidden at rest keeps this much (or its template's) behind the visible skin
+LINING_REACH = 0.004  # m: hidden skin farther than this from the visible skin is left alone
+LINING_PUSH_RADIUS = 0.002  # m over which a push spreads among the hidden skin
+LINING_ROUNDS = 3
+
+
+def hidden_skin_behind_visible(template: FaceModel, X: np.ndarray) -> tuple[np.ndarray, int]:
+    """The fitted skin X (n, 3) metres with its hidden skin (not visible_skin of the template,
+    the mouth's lining left out: the lids' lining, the nostrils, the backs of the ears)
+    moved back where the fit brought it nearer the visible skin than min(its template
+    clearance, LINING_CLEARANCE), all but its rim beside the visible skin: along the direction from its closest visible point, spread
+    over LINING_PUSH_RADIUS among the hidden skin only, and held wherever it would fold a
+    triangle or pass an edge through other skin. The fit pulls the visible skin onto the scan and lets the hidden skin
+    follow its neighbours, so a sculpted lid pressed in or a thin nostril wing can leave
+    the lining touching the skin at rest, and the slightest motion then brings it out
+    through the skin. Returns the skin and how many vertices moved."""
+    from fae.adapt.nonrigid import folded_triangles
+
+    P = np.asarray(template.skin_vertices, dtype=np.float64)
+    X = np.asarray(X, dtype=np.float64)
+    F = np.asarray(template.skin_faces, dtype=np.int64)
+    names = list(template.region_names)
+    seen = visible_skin(template)
+    hidden = ~seen
+    if "mouth_cavity" in names:
+        hidden &= np.asarray(template.skin_region) != names.index("mouth_cavity")
+    # the rim (hidden skin beside visible skin: a lid's margin) stays: feature points bind
+    # to its triangles, and it is where the two meet anyway
+    rim = np.zeros(len(P), dtype=bool)
+    mixed = F[seen[F].any(axis=1) & ~seen[F].all(axis=1)]
+    rim[mixed.ravel()] = True
+    hidden &= ~rim
+    shown = F[seen[F].all(axis=1)]  # triangles with every corner visible
+    edges = mesh_edges(F)
+    at = np.flatnonzero(hidden)
+    if len(at) == 0 or len(shown) == 0:
+        return X, 0
+    _, clearance, tri, _ = MeshQuery(P, shown).closest_points(P[at], LINING_REACH)
+    want = np.where(tri >= 0, np.minimum(clearance, LINING_CLEARANCE), 0.0)
+    moved = np.zeros(len(X), dtype=bool)
+    for _ in range(LINING_ROUNDS):
+        near, gap, tri, _ = MeshQuery(X, shown).closest_points(X[at], LINING_REACH)
+        need = np.where(tri >= 0, want - gap, 0.0)
+        push = need > 1e-5
+        if not push.any():
+            break
+        away = (X[at[push]] - near[push]) / np.maximum(gap[push], 1e-9)[:, None]
+        D = smooth_push(X, away * need[push, None], at[push], LINING_PUSH_RADIUS)
+        D[~hidden] = 0.0
+        # held wherever it would fold a triangle or pass an edge through other skin (what the
+        # fit left so is not this push's doing)
+        folded = folded_triangles(P, X, F)
+        query = MeshQuery(X, F)
+        crossing = query.edge_crossings(edges) >= 0
+        for _ in range(8):
+            query.move(X + D)
+            through = query.edge_crossings(edges)
+            new_edges = (through >= 0) & ~crossing
+            new = folded_triangles(P, X + D, F) & ~folded
+            if not new.any() and not new_edges.any():
+                break
+            D[F[new].ravel()] = 0.0
+            D[edges[new_edges].ravel()] = 0.0
+            D[F[through[new_edges]].ravel()] = 0.0
+        moved |= np.linalg.norm(D, axis=1) > 1e-7
+        X = X + D
+    return X, int(moved.sum())
 
 
 def depth_under(skin_q: MeshQuery, skin_n: np.ndarray, skin_F: np.ndarray, X: np.ndarray, reach: float
@@ -501,7 +570,7 @@ def personalize(template: FaceModel, skin: np.ndarray, T: np.ndarray, unit: str,
     frame to the face frame. Returns the model and a report of what moved."""
     fdp_old = template.feature_point_positions()
     model = copy.deepcopy(template)
-    model.skin_vertices = np.asarray(skin, dtype=np.float64).copy()
+    model.skin_vertices, lining_moved = hidden_skin_behind_visible(template, skin)
     fdp_new = model.feature_point_positions()
     mouth = _ratio(fdp_old, fdp_new, "8.3", "8.4") or 1.0
     # a smile (a photo) or a pout widens the mouth, not the teeth: their scale stays within
@@ -603,7 +672,8 @@ def personalize(template: FaceModel, skin: np.ndarray, T: np.ndarray, unit: str,
     report = {"method": method, "scan_unit": unit, "bone_vertices_pushed_under_skin": pushed,
               "fapu_ratio": fapu_ratio, "eye_scale": eye_scale, "orbits_deepened": orbits_deepened,
               "mouth_parts_moved_back_m": mouth_moved,
-              "muscle_attachments_moved": moved_muscles, "hidden_skin_lifted_off_bone": lifted}
+              "muscle_attachments_moved": moved_muscles, "hidden_skin_lifted_off_bone": lifted,
+              "hidden_skin_moved_behind_visible": lining_moved}
     return model, report
 
 
