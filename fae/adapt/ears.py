@@ -38,7 +38,9 @@ SIDE_WINDOW = 0.08  # m: the side map reaches this far from the template ear's c
 CELL = 0.0015  # m: the side map's grid step
 OPEN_RADIUS = 0.02  # m: what is narrower than this disc stands out of the side
 EAR_HEIGHT = 0.004  # m: points standing out of the side more than this are ear
-EAR_AREA = (0.3, 1.45)  # a candidate's area (side view) in shares of the template ear's footprint (a clean ear: 0.5-1.4; merged with curls: 1.5)
+# a candidate's area (side view) in shares of the template ear's footprint: a clean ear
+# 0.5-1.4 (the menpo3d mask's, with the mask's rim, 1.34-1.39); merged with curls 1.46-1.53
+EAR_AREA = (0.3, 1.45)
 EAR_REACH = 0.07  # m: the footprint's shift onto a candidate (y, z) is at most this
 MIN_EAR_POINTS = 30
 MAX_TURN = 25.0  # degrees (a sculpted helix alone, slid round a whole ear, turns 33)

@@ -8,8 +8,10 @@ is head; `pairs` are corresponding points found by looking at both faces
 (fae.render.landmarks.landmark_pairs, in the face frame); `landmarks` are MPEG-4 feature
 points the user gave (scan frame); the ears, which no face-landmark model sees, are found
 by their shape (fae.adapt.ears), join them, and are carried to the scan's before the
-stiff stages (a marble bust's sit 4.5 cm below where the template's fall). The skin is fitted by fae.adapt.nonrigid.fit_to_scan,
-the anatomy carried by fae.adapt.transfer.personalize, and the errors measured in the
+stiff stages (a marble bust's sit 4.5 cm below where the template's fall). The skin is
+fitted by fae.adapt.nonrigid.fit_to_scan, the anatomy carried by
+fae.adapt.transfer.personalize (which also moves the hidden skin back behind the visible
+skin where the fit pressed it flat), and the errors measured in the
 scan's own frame through the head's scan_transform (fae.adapt.errors.scan_fit_errors),
 over the face regions' skin that a scanner sees, less the eyelids' rims within EYE_RIM of
 an eyeball (a scan shows the eye itself there, and that skin is not fitted to it).

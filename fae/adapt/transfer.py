@@ -251,26 +251,27 @@ def hidden_skin_off_bones(template: FaceModel, model: FaceModel, margin: float =
     return int(moved.sum())
 
 
-LINING_CLEARANCE = 0.001  # m: skin hidden at rest keeps this much (or its template's) behind the visible skin
+LINING_CLEARANCE = 0.001  # m: hidden skin keeps this much (or its template's) behind the visible skin
 LINING_REACH = 0.004  # m: hidden skin farther than this from the visible skin is left alone
 LINING_PUSH_RADIUS = 0.002  # m over which a push spreads among the hidden skin
 LINING_ROUNDS = 3
 
 
 def hidden_skin_behind_visible(template: FaceModel, X: np.ndarray) -> tuple[np.ndarray, int]:
-    """The fitted skin X (n, 3) metres with its hidden skin (not visible_skin of the template,
-    the mouth's lining left out: the lids' lining, the nostrils, the backs of the ears)
-    moved back where the fit brought it nearer the visible skin than min(its template
-    clearance, LINING_CLEARANCE), all but its rim beside the visible skin: along the direction from its closest visible point, spread
-    over LINING_PUSH_RADIUS among the hidden skin only, and held wherever it would fold a
-    triangle or pass an edge through other skin. The fit pulls the visible skin onto the scan and lets the hidden skin
-    follow its neighbours, so a sculpted lid pressed in or a thin nostril wing can leave
-    the lining touching the skin at rest, and the slightest motion then brings it out
-    through the skin. Returns the skin and how many vertices moved."""
+    """The fitted skin X (n, 3) metres (a copy) with its hidden skin (not visible_skin of
+    the template, the mouth's lining left out: the lids' lining, the nostrils, the backs
+    of the ears), all but its rim beside the visible skin, moved back where the fit
+    brought it nearer the visible skin than min(its template clearance, LINING_CLEARANCE):
+    along the direction from its closest visible point, spread over LINING_PUSH_RADIUS
+    among the hidden skin only, and held wherever it would fold a triangle or pass an edge
+    through other skin. The fit pulls the visible skin onto the scan and lets the hidden
+    skin follow its neighbours, so a sculpted lid pressed in or a thin nostril wing can
+    leave the lining touching the skin at rest, and the slightest motion then brings it
+    out through the skin. Returns the skin and how many vertices moved."""
     from fae.adapt.nonrigid import folded_triangles
 
     P = np.asarray(template.skin_vertices, dtype=np.float64)
-    X = np.asarray(X, dtype=np.float64)
+    X = np.array(X, dtype=np.float64)
     F = np.asarray(template.skin_faces, dtype=np.int64)
     names = list(template.region_names)
     seen = visible_skin(template)
