@@ -2,6 +2,7 @@
 
     found_ears(template, scan) -> ([Ear], report)
     ear_pairs(template, scan) -> ((faces (k,), bary (k, 3), points (k, 3)) or None, report)
+    ears_carried(P, X, ears) -> X (n, 3): the skin with each found ear carried there
 
 No face-landmark model sees ears, and a scan's ears may sit centimetres from where the
 template's fall after the face is placed (a marble bust's 4.5 cm lower): the fit then
@@ -201,7 +202,8 @@ def found_ears(template: FaceModel, scan: Surface) -> tuple[list[Ear], dict]:
         s_ear = np.flatnonzero(s_map.seen(scan.V, ndimage.binary_dilation(s_cells, iterations=2)))
         t_ear = np.flatnonzero(ear & t_map.seen(P, t_cells))
         if len(s_ear) < MIN_EAR_POINTS or len(t_ear) < MIN_EAR_POINTS:
-            report[name] = {"found": False, "why": f"{len(s_ear)} scan points stand out where the ear is"}
+            report[name] = {"found": False, "why": f"{len(s_ear)} scan points and {len(t_ear)} template points "
+                                                   f"seen of the ear (at least {MIN_EAR_POINTS} each)"}
             continue
         A = P[t_ear]
         R, t, rms = ear_rigid(A, scan.V[s_ear], ear_shift(t_map, t_cells, s_map, shift))

@@ -391,6 +391,9 @@ def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray
     if landmarks is not None:
         lm_corners = label[F_in[landmarks[0]]]  # (k, 3) welded corners of each feature point's triangle
     fixed = None
+    if start is not None and (landmarks is None or len(start) != len(landmarks[0])):
+        raise ValueError(f"fit_to_scan: {len(start)} start weights for "
+                         f"{0 if landmarks is None else len(landmarks[0])} feature points")
     if landmarks is not None and len(landmarks[0]):
         share = np.ones(len(landmarks[0])) if start is None else np.asarray(start, dtype=np.float64)
         use = share > 0
@@ -399,12 +402,12 @@ def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray
     X = apply_transform(A, P)
     ring = adjacency_matrix(F, n)
     fold_ref = fold_reference(P, F)  # every round tests its step against the template
-    if carry is not None:
-        X = blend_away_folds(P, X, group_means(np.asarray(carry(X[label]), dtype=np.float64), label, n), F, ring,
-                             reference=fold_ref)[0]
-    X_whole = X
     edges = mesh_edges(F)
     query = MeshQuery(X, F)
+    if carry is not None:  # neither folding nor cutting through itself, as every stage
+        X = whole(P, X, group_means(np.asarray(carry(X[label]), dtype=np.float64), label, n), F, ring, edges,
+                  query, reference=fold_ref)[0]
+    X_whole = X
     L = graph_laplacian(F, n, P, NEIGHBOUR_RADIUS)
     L_graph = L
     if stiffness is not None:

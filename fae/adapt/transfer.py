@@ -52,7 +52,7 @@ from fae.adapt.calibration import apply_transform, calibration_transform, outlie
 from fae.adapt.correspondence import grid_sample
 from fae.adapt.csrbf import wendland_c2
 from fae.adapt.errors import Surface, surface
-from fae.adapt.geometry import per_vertex_normals, within
+from fae.adapt.geometry import per_face_normals, per_vertex_normals, within
 from fae.adapt.multilevel import fit_template
 from fae.adapt.query import MeshQuery
 from fae.adapt.rbf import RBF, rbf_interpolant, rbf_weights
@@ -261,8 +261,9 @@ def hidden_skin_behind_visible(template: FaceModel, X: np.ndarray) -> tuple[np.n
     """The fitted skin X (n, 3) metres (a copy) with its hidden skin (not visible_skin of
     the template, the mouth's lining left out: the lids' lining, the nostrils, the backs
     of the ears), all but its rim beside the visible skin, moved back where the fit
-    brought it nearer the visible skin than min(its template clearance, LINING_CLEARANCE):
-    along the direction from its closest visible point, spread over LINING_PUSH_RADIUS
+    brought it nearer the visible skin than min(its template clearance, LINING_CLEARANCE),
+    or through it: along its closest visible triangle's normal, to the side the template
+    has it on, spread over LINING_PUSH_RADIUS
     among the hidden skin only, and held wherever it would fold a triangle or pass an edge
     through other skin. The fit pulls the visible skin onto the scan and lets the hidden
     skin follow its neighbours, so a sculpted lid pressed in or a thin nostril wing can
@@ -289,17 +290,21 @@ def hidden_skin_behind_visible(template: FaceModel, X: np.ndarray) -> tuple[np.n
     at = np.flatnonzero(hidden)
     if len(at) == 0 or len(shown) == 0:
         return X, 0
-    _, clearance, tri, _ = MeshQuery(P, shown).closest_points(P[at], LINING_REACH)
-    want = np.where(tri >= 0, np.minimum(clearance, LINING_CLEARANCE), 0.0)
+    near_P, clearance, tri_P, _ = MeshQuery(P, shown).closest_points(P[at], LINING_REACH)
+    want = np.where(tri_P >= 0, np.minimum(clearance, LINING_CLEARANCE), 0.0)
+    # which side of the visible skin each lies on, from the template: the side of its
+    # closest visible triangle's normal (a fit may have pressed it flat against, or through)
+    side = np.sign(np.einsum("ij,ij->i", P[at] - near_P, per_face_normals(P, shown)[np.maximum(tri_P, 0)]))
     moved = np.zeros(len(X), dtype=bool)
     for _ in range(LINING_ROUNDS):
-        near, gap, tri, _ = MeshQuery(X, shown).closest_points(X[at], LINING_REACH)
-        need = np.where(tri >= 0, want - gap, 0.0)
+        near, _, tri, _ = MeshQuery(X, shown).closest_points(X[at], LINING_REACH)
+        away = side[:, None] * per_face_normals(X, shown)[np.maximum(tri, 0)]
+        gap = np.einsum("ij,ij->i", X[at] - near, away)  # signed: < 0 through the skin
+        need = np.where((tri >= 0) & (tri_P >= 0), want - gap, 0.0)
         push = need > 1e-5
         if not push.any():
             break
-        away = (X[at[push]] - near[push]) / np.maximum(gap[push], 1e-9)[:, None]
-        D = smooth_push(X, away * need[push, None], at[push], LINING_PUSH_RADIUS)
+        D = smooth_push(X, away[push] * need[push, None], at[push], LINING_PUSH_RADIUS)
         D[~hidden] = 0.0
         # held wherever it would fold a triangle or pass an edge through other skin (what the
         # fit left so is not this push's doing)
@@ -316,6 +321,8 @@ def hidden_skin_behind_visible(template: FaceModel, X: np.ndarray) -> tuple[np.n
             D[F[new].ravel()] = 0.0
             D[edges[new_edges].ravel()] = 0.0
             D[F[through[new_edges]].ravel()] = 0.0
+        else:  # still not clean: this round moves nothing
+            D[:] = 0.0
         moved |= np.linalg.norm(D, axis=1) > 1e-7
         X = X + D
     return X, int(moved.sum())
