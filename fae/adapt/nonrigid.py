@@ -370,7 +370,8 @@ def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray
     template's: the scan closest to it is scalp, not ear); carry(X) -> X (n, 3) metres,
     template vertex order: the skin after the start with parts found on the scan carried
     there (the ears: fae.adapt.ears.ears_carried), since the stiff stages do not move a part
-    centimetres apart from the rest; blended back wherever that folds the skin.
+    centimetres apart from the rest; blended back wherever that folds the skin or cuts
+    through itself.
     """
     t0 = time.perf_counter()
     P_in = np.asarray(P, dtype=np.float64)
