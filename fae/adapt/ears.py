@@ -30,6 +30,7 @@ import numpy as np
 from scipy import ndimage, signal
 from scipy.spatial import cKDTree
 
+from fae.adapt.binding import coverage_weights
 from fae.adapt.calibration import similarity_icp
 from fae.adapt.errors import Surface
 from fae.adapt.query import MeshQuery
@@ -48,6 +49,7 @@ MAX_TURN = 25.0  # degrees (a sculpted helix alone, slid round a whole ear, turn
 MAX_RESIDUAL = 0.003  # m, trimmed RMS of the ICP (sculpted ears: 2.0-2.9)
 PAIRS_PER_EAR = 40
 PROJECT_REACH = 0.005  # m: a mapped ear point is put onto the scan when this close
+EAR_FADE = 0.06  # m: the skin this far around an ear follows it when it is carried
 
 
 @dataclass
@@ -236,8 +238,6 @@ def ear_pairs(template: FaceModel, scan: Surface) -> tuple[tuple[np.ndarray, np.
             np.vstack([e.points for e in ears])), report
 
 
-EAR_FADE = 0.06  # m: the skin this far around an ear follows it when it is carried
-
 
 def ears_carried(P: np.ndarray, X: np.ndarray, ears: list[Ear]) -> np.ndarray:
     """(n, 3) metres: the skin X (n, 3) (the template P (n, 3) placed on the scan) with each
@@ -249,7 +249,6 @@ def ears_carried(P: np.ndarray, X: np.ndarray, ears: list[Ear]) -> np.ndarray:
     with the skin came out through it on a marble bust."""
     Y = np.asarray(X, dtype=np.float64).copy()
     for e in ears:
-        s = np.clip(1.0 - cKDTree(P[e.vertices]).query(P)[0] / EAR_FADE, 0.0, 1.0)
-        w = s * s * (3.0 - 2.0 * s)
+        w = coverage_weights(cKDTree(P[e.vertices]).query(P)[0], 0.0, EAR_FADE)
         Y += w[:, None] * (P @ e.R.T + e.t - Y)
     return Y
