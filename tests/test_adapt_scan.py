@@ -242,6 +242,14 @@ def test_errors_are_measured_in_the_scan_frame_with_coverage():
     e3 = scan_fit_errors(skin2, F, face, V, F, neck=neck)
     assert e3["scan_to_skin_rms"] > 1.5 and abs(e3["head_to_skin_rms"] - 1.0) < 0.1
     assert 0.8 < e3["head_coverage"] <= 1.0
+    # scan the skin does not reach (the neck 3 cm off, past the 2 % of the diagonal a hole
+    # may be) drops out of the covered RMS, not out of the one over every point
+    skin4 = skin.copy()
+    skin4[neck] = V[neck] * 1.3
+    e4 = scan_fit_errors(skin4, F, face, V, F)
+    assert e4["scan_coverage"] < 0.95 and e4["scan_to_skin_rms"] < 1.5  # 1.3 mm
+    assert e4["scan_to_skin_all_rms"] > 4.0 * e4["scan_to_skin_rms"]  # 7.0 mm
+    assert abs(e["scan_to_skin_all_rms"] - e["scan_to_skin_rms"]) < 1e-9  # all covered: the same
 
 
 def test_per_face_normals_of_the_template_are_unit(template):

@@ -140,7 +140,11 @@ def scan_fit_errors(skin_V: np.ndarray, skin_F: np.ndarray, face: np.ndarray, sc
     skin ends) or beyond COVER_SHARE of the diagonal have no counterpart there: they are
     left out of the RMS and counted against coverage, which is reported beside each RMS.
     Returns face_to_scan_rms, scan_to_skin_rms (scan units), both also / diagonal
-    (*_rel), face_coverage, scan_coverage, diagonal. neck (n,) bool, the skin of the neck:
+    (*_rel), face_coverage, scan_coverage, diagonal, and scan_to_skin_all_rms(_rel): over
+    every scan point but those nearest the skin's open rim, the ones farther than
+    COVER_SHARE counted at their distance (the skin covers the whole head, so there a
+    point it does not reach is an error of the fit, or scan the head part should not
+    hold: a bust's drapery). neck (n,) bool, the skin of the neck:
     with it, head_to_skin_rms(_rel) and head_coverage are the scan_to_skin figures over the
     scan points whose nearest skin vertex is not neck (cranium, face and ears).
     """
@@ -148,15 +152,19 @@ def scan_fit_errors(skin_V: np.ndarray, skin_F: np.ndarray, face: np.ndarray, sc
     scan_V = np.asarray(scan_V, dtype=np.float64)
     diagonal = float(np.linalg.norm(np.ptp(scan_V, axis=0)))
     reach = COVER_SHARE * diagonal
-    def distances(X, V, F):
+    def distances(X, V, F, within=reach):
         F = np.asarray(F, dtype=np.int64)
-        _, d, tri, _ = MeshQuery(V, F).closest_points(X, reach)
+        _, d, tri, _ = MeshQuery(V, F).closest_points(X, within)
         rim = boundary_vertices(F, len(V))[F].any(axis=1)
         return np.where((tri >= 0) & ~rim[np.maximum(tri, 0)], d, np.inf)
 
     on_scan = distances(skin_V[face], scan_V, scan_F)
     on_skin = distances(scan_V, skin_V, skin_F)
-    out = {"diagonal": diagonal}
+    everywhere = distances(scan_V, skin_V, skin_F, within=2.0 * diagonal)
+    everywhere = everywhere[np.isfinite(everywhere)]
+    all_rms = float(np.sqrt(np.mean(everywhere ** 2))) if len(everywhere) else float("inf")
+    out = {"diagonal": diagonal, "scan_to_skin_all_rms": all_rms,
+           "scan_to_skin_all_rms_rel": all_rms / diagonal if diagonal > 0 else float("inf")}
     figures = [("face_to_scan", on_scan), ("scan_to_skin", on_skin)]
     if neck is not None:  # each scan point belongs where its nearest skin vertex does
         on_neck = np.asarray(neck, dtype=bool)[cKDTree(skin_V).query(scan_V)[1]]
