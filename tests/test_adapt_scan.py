@@ -248,7 +248,7 @@ def test_errors_are_measured_in_the_scan_frame_with_coverage():
     skin4[neck] = V[neck] * 1.3
     e4 = scan_fit_errors(skin4, F, face, V, F)
     assert e4["scan_coverage"] < 0.95 and e4["scan_to_skin_rms"] < 1.5  # 1.3 mm
-    assert e4["scan_to_skin_all_rms"] > 4.0 * e4["scan_to_skin_rms"]  # 7.0 mm
+    assert 5.0 < e4["scan_to_skin_all_rms"] < 10.0  # 7.0 mm
     assert abs(e["scan_to_skin_all_rms"] - e["scan_to_skin_rms"]) < 1e-9  # all covered: the same
 
 

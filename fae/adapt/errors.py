@@ -159,8 +159,11 @@ def scan_fit_errors(skin_V: np.ndarray, skin_F: np.ndarray, face: np.ndarray, sc
         return np.where((tri >= 0) & ~rim[np.maximum(tri, 0)], d, np.inf)
 
     on_scan = distances(skin_V[face], scan_V, scan_F)
-    on_skin = distances(scan_V, skin_V, skin_F)
-    everywhere = distances(scan_V, skin_V, skin_F, within=2.0 * diagonal)
+    # every scan point's distance (no scan point lies farther from the skin than the
+    # diagonal of both together); those within reach are the covered ones
+    both = np.vstack([scan_V, skin_V])
+    everywhere = distances(scan_V, skin_V, skin_F, within=1.01 * float(np.linalg.norm(np.ptp(both, axis=0))))
+    on_skin = np.where(everywhere <= reach, everywhere, np.inf)
     everywhere = everywhere[np.isfinite(everywhere)]
     all_rms = float(np.sqrt(np.mean(everywhere ** 2))) if len(everywhere) else float("inf")
     out = {"diagonal": diagonal, "scan_to_skin_all_rms": all_rms,

@@ -189,8 +189,8 @@ def _finish(args, model, report, V, F, keep, started, start_mapping=None) -> int
     print(f"{args.output}: head part {part['head_vertices']} of {part['scan_vertices']} scan vertices; face skin->scan "
           f"RMS {e['face_to_scan_rms_rel'] * 100:.3f} % of the head diagonal ({e['face_coverage'] * 100:.0f} % "
           f"covered), scan->skin RMS {e['scan_to_skin_rms_rel'] * 100:.3f} % ({e['scan_coverage'] * 100:.0f} % "
-          f"covered, {e['scan_to_skin_all_rms_rel'] * 100:.3f} % counting every point; without the neck "
-          f"{e['head_to_skin_rms_rel'] * 100:.3f} %); "
+          f"covered; without the neck {e['head_to_skin_rms_rel'] * 100:.3f} %), "
+          f"{e['scan_to_skin_all_rms_rel'] * 100:.3f} % counting every point; "
           f"{report['folded_triangles']['visible']} folded triangles; {report['total_seconds']:.1f} s")
     return 0
 
