@@ -243,7 +243,6 @@ def ear_pairs(template: FaceModel, scan: Surface) -> tuple[tuple[np.ndarray, np.
             np.vstack([e.points for e in ears])), report
 
 
-
 def ears_carried(P: np.ndarray, X: np.ndarray, ears: list[Ear]) -> np.ndarray:
     """(n, 3) metres: the skin X (n, 3) (the template P (n, 3) placed on the scan) with each
     ear carried to where `ears` found it (P's ear vertices moved rigidly by the ear's R, t)

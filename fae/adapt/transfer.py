@@ -264,10 +264,11 @@ def hidden_skin_behind_visible(template: FaceModel, X: np.ndarray) -> tuple[np.n
     brought it nearer the visible skin than min(its template clearance, LINING_CLEARANCE),
     or through it: along its closest visible triangle's normal, to the side the template
     has it on, spread over LINING_PUSH_RADIUS among the hidden skin only, and held wherever
-    it would fold a triangle or pass an edge through other skin. The fit pulls the visible skin onto the scan and lets the hidden
-    skin follow its neighbours, so a sculpted lid pressed in or a thin nostril wing can
-    leave the lining touching the skin at rest, and the slightest motion then brings it
-    out through the skin. Returns the skin and how many vertices moved."""
+    it would fold a triangle or pass an edge through other skin. The fit pulls the visible
+    skin onto the scan and lets the hidden skin follow its neighbours, so a sculpted lid
+    pressed in or a thin nostril wing can leave the lining touching the skin at rest, and
+    the slightest motion then brings it out through the skin. Returns the skin and how
+    many vertices moved."""
     from fae.adapt.nonrigid import folded_triangles
 
     P = np.asarray(template.skin_vertices, dtype=np.float64)
