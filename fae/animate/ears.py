@@ -8,7 +8,9 @@ skin solver spends nothing on the ears (fae.sim simulates only skin near muscles
 
 The ear is the skin region of the feature point's triangle when that region's name says
 "ear" (the generic head and every head adapted from it); around it the weight falls with
-geodesic distance as the smoothstep 1 - 3 r^2 + 2 r^3 over a fade that widens with the
+geodesic distance (the heat method's, potpourri3d: Dijkstra's along edges zig-zags, and a
+triangle whose corners' distances came by different zig-zags got a gradient twice the
+fade's, which turned 27 triangles under the jaw over at the limit) as the smoothstep 1 - 3 r^2 + 2 r^3 over a fade that widens with the
 value: `FADE_ES` x ES0 while the ear has moved at most GRADIENT x that / SMOOTHSTEP_SLOPE,
 then as far as keeps the skin's displacement gradient within GRADIENT (an edge along the
 motion at most 1 + GRADIENT, one against it at least 1 - GRADIENT its rest length). The
@@ -25,10 +27,12 @@ Predictable case); a table baked from the physics (fae.animate.bake) is this one
 from __future__ import annotations
 
 import numpy as np
-from scipy.sparse.csgraph import dijkstra
+import potpourri3d
+from scipy.sparse.csgraph import connected_components
 
 from fae.animate.faptables import FAP_DIRECTION, FAP_FEATURE_POINT, FAP_LIMITS, fap_unit_scale
 from fae.io.facemodel import FaceDefTable
+from fae.mesh import adjacency
 
 EAR_FAPS = (65, 66, 67, 68)
 FADE_ES = 0.2  # the narrowest fade, x ES0
@@ -37,9 +41,8 @@ GRADIENT = 0.6  # the largest displacement gradient the fade allows (metres per 
 SMOOTHSTEP_SLOPE = 1.5  # the largest slope of 1 - 3 r^2 + 2 r^3 over r in [0, 1]
 
 
-def ear_tables(face, fapu: dict[str, float], graph) -> list[FaceDefTable]:
-    """FaceDefTables (part "skin") of the ear FAPs of `face`; `graph` is the skin's (V, V)
-    edge-length matrix (fae.animate.calibrate.edge_length_graph)."""
+def ear_tables(face, fapu: dict[str, float]) -> list[FaceDefTable]:
+    """FaceDefTables (part "skin") of the ear FAPs of `face`."""
     own = {t.fap for t in face.face_def_tables if t.source == "authored"}  # a baked table is the physics' copy of these
     unit = fap_unit_scale(face)
     es0 = fapu["ES"] * 1024.0
@@ -47,6 +50,7 @@ def ear_tables(face, fapu: dict[str, float], graph) -> list[FaceDefTable]:
     names = list(face.region_names)
     region = np.asarray(face.skin_region)
     out = []
+    geodesic = None
     for k in EAR_FAPS:
         point = face.feature_points.get(FAP_FEATURE_POINT[k - 1])
         if k in own or point is None or point.part != "skin":
@@ -60,7 +64,13 @@ def ear_tables(face, fapu: dict[str, float], graph) -> list[FaceDefTable]:
         limit = float(np.abs(FAP_LIMITS[k - 1]).max())
         values = fade_values(limit, unit[k - 1], narrowest)
         fades = np.array([fade_width(v * unit[k - 1], narrowest) for v in values])
-        d = dijkstra(graph, directed=False, indices=ear, limit=fades[-1], min_only=True)
+        if geodesic is None:  # factorized once, for the first ear that needs it
+            geodesic = potpourri3d.MeshHeatMethodDistanceSolver(np.asarray(face.skin_vertices, dtype=np.float64),
+                                                                faces)
+            _, component = connected_components(adjacency(faces, face.skin_vertex_count), directed=False)
+        d = np.asarray(geodesic.compute_distance_multisource([int(i) for i in ear]))
+        d[ear] = 0.0
+        d[~np.isin(component, component[ear])] = np.inf  # the heat method gives other pieces a constant
         idx = np.flatnonzero(d < fades[-1])
         # the skin's displacement at each value (+ and - alike), metres: the ear carried whole
         step = unit[k - 1] * FAP_DIRECTION[k - 1]

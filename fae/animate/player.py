@@ -106,7 +106,7 @@ class PlayableHead:
         self.engine = engine
         self.fapu = fapu_of(model)
         graph = edge_length_graph(model)
-        authored = [t for t in model.face_def_tables if t.source == "authored"] + ear_tables(model, self.fapu, graph)
+        authored = [t for t in model.face_def_tables if t.source == "authored"] + ear_tables(model, self.fapu)
         if engine == "fdt":
             baked = [t for t in model.face_def_tables if t.source == "physics"]
             covered = {(t.fap, t.part) for t in baked}
