@@ -255,10 +255,13 @@ def test_menpo3d_template(template, shared_data, template_folds):
     if not folder.is_dir():
         pytest.skip("menpo3d template not in the shared data")
     rt = retarget(template, read_target(folder / "template.ply", folder / "template.ljson"))
-    # 49 of 50 FAPs (98 %): the left inner lip corner's stretch reaches 0.65 of value x MW
-    # (its point lies 6 mm inside the mouth from the outer corner's, where the template has
-    # one point for both). The lids take their FAPU gain from their own motion: with a
-    # uniform motion's gain the lower lids moved 1.43x (47/50; 43-47 in older builds).
+    # 48 of 50 FAPs (96 %): the left lip corner's stretch reaches 0.65 of value x MW at the
+    # inner corner and 0.57-1.05 at the outer one, as builds of the template differ (the
+    # mask's inner corner lies 6 mm inside the mouth from its outer one, where the template
+    # has one point for both, so both bind beside the template's corner, where its motion
+    # falls off). The lids take their FAPU gain from their own motion settled at half range:
+    # with a uniform motion's gain the lower lids moved 1.43x (47/50; 43-47 in older
+    # builds), with the linear motion at rest the left upper lid 0.73-1.03x across builds.
     # The mask's eyes are nearly shut (IRISD a tenth of the template's): without the FAPU
     # gains its lids moved 13-16x their value x IRISD
     # Its face folds over 0.9 % of its area (1.5 % before the template's caps were flipped

@@ -453,30 +453,6 @@ def _control_responses(probe: _Probe, rig, count: int) -> list[np.ndarray]:
                                             probe.jaw_response(rig, 2, 1e-4)]
 
 
-def linear_fap_motion(face, faps) -> dict[int, np.ndarray]:
-    """FAP k -> (V, 3) metres per unit of its value: the skin's linear response at rest to
-    each FAP of `faps` sent alone and positive, through `face`'s calibrated mapping
-    (gain_pos; the table scales, which correct the amplitude, left out). FAPs the mapping
-    does not move are left out, and all of them when the mapping does not fit the head's
-    muscles and fields (MappingMismatch: calibrate again)."""
-    from fae.animate.controls import MappingMismatch
-    from fae.animate.rigid import RigidRig
-
-    fapu = fapu_of(face)
-    fields = pull_fields(face, fapu)
-    model = skin_model(face, fields=fields)
-    try:
-        FapControls(face, model)
-    except MappingMismatch:
-        return {}
-    gain = np.asarray(face.fap_mapping["gain_pos"], dtype=np.float64)
-    todo = [k for k in faps if np.any(gain[k - 1])]
-    if not todo:
-        return {}
-    responses = _control_responses(_Probe(face, model), RigidRig(face, fapu), len(face.muscles) + len(fields))
-    return {k: sum(gain[k - 1, c] * responses[c] for c in np.flatnonzero(gain[k - 1])) for k in todo}
-
-
 def _solve(J: np.ndarray, target: np.ndarray, cost: np.ndarray, lower: np.ndarray) -> np.ndarray:
     norms = np.linalg.norm(J, axis=0)
     ok = norms > 1e-9

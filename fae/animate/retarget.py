@@ -20,8 +20,8 @@ vertex a 3x3 T = R_fit S R_template^T (fae.adapt.binding.frame_transforms: the p
 local frames and box scales, eq. 5-9) turns a motion vector of the template into one of
 the fitted skin, i.e. of the target; a smooth per-axis factor over the target's skin
 (fapu_gain_field) then pins the motion of each FAP's feature point to value x the target's
-own FAPU, as the standard defines it (the eyelids' from the template's own linear motion
-for each lid FAP, fae.animate.calibrate.linear_fap_motion, the others' from a uniform one). Motion fades to zero where the target extends beyond
+own FAPU, as the standard defines it (the eyelids' from the template's own motion for each
+lid FAP, settled at half its range, the others' from a uniform one). Motion fades to zero where the target extends beyond
 what the template covers (shoulders, plinth, hair: COVERAGE_NEAR..COVERAGE_FAR metres from
 the fitted skin). The target's separate pieces that sit on the fitted head's eyeballs,
 teeth or tongue become rigid parts moved by the template's eye, head, jaw and tongue
@@ -284,19 +284,27 @@ def fapu_gain_field(model: FaceModel, carried: Callable[[np.ndarray], np.ndarray
 
 
 def _template_fap_motion(template: FaceModel, used: np.ndarray) -> dict[int, tuple[np.ndarray, float]]:
-    """FAP k -> ((u, 3) the template skin's linear motion per unit of k at the vertices
-    `used`, metres; how far it moves the template's own feature point of k along k's
-    direction) for the eyelids' FAPs (MOTION_GAIN_FAPS), empty for a template without a
-    mapping."""
-    from fae.animate.calibrate import linear_fap_motion
-    from fae.animate.faptables import FAP_DIRECTION, FAP_FEATURE_POINT
+    """FAP k -> ((u, 3) the template skin's motion per unit of k at the vertices `used`,
+    metres, as settled with k alone at half its range (where verify-faps measures it; the
+    linear response at rest left the lids' margins, which stop on the eyeball, 20-25 %
+    short on a target that binds there); how far it moves the template's own feature point
+    of k along k's direction) for the eyelids' FAPs (MOTION_GAIN_FAPS), empty for a
+    template without a mapping."""
+    from fae.animate.faptables import FAP_DIRECTION, FAP_FEATURE_POINT, FAP_LIMITS
+    from fae.animate.player import Player, needs_calibration, playable_head
+    from fae.animate.verify import settled_skin
 
-    if not template.fap_mapping or "gain_pos" not in template.fap_mapping:
+    if not template.fap_mapping or "gain_pos" not in template.fap_mapping or needs_calibration(template):
         return {}
     faps = [k for k in MOTION_GAIN_FAPS if FAP_FEATURE_POINT[k - 1] in template.feature_points
             and template.feature_points[FAP_FEATURE_POINT[k - 1]].part == "skin"]
+    player = Player(playable_head(template))
+    rest = np.asarray(template.skin_vertices, dtype=np.float64)
     out = {}
-    for k, motion in linear_fap_motion(template, faps).items():
+    for k in faps:
+        values = np.zeros(68)
+        values[k - 1] = FAP_LIMITS[k - 1, 1] / 2.0
+        motion = (settled_skin(player, values) - rest) / values[k - 1]
         # the point's own displacement (its barycentric blend of the field)
         own = float(template.surface_point_position(template.feature_points[FAP_FEATURE_POINT[k - 1]], motion)
                     @ FAP_DIRECTION[k - 1])
