@@ -284,6 +284,9 @@ def hidden_skin_behind_visible(template: FaceModel, X: np.ndarray) -> tuple[np.n
     rim = np.zeros(len(P), dtype=bool)
     mixed = F[seen[F].any(axis=1) & ~seen[F].all(axis=1)]
     rim[mixed.ravel()] = True
+    for point in template.feature_points.values():  # a lid's point may bind just inside its margin
+        if point.part == "skin":
+            rim[F[point.triangle][np.asarray(point.bary) > 0.0]] = True
     hidden &= ~rim
     shown = F[seen[F].all(axis=1)]  # triangles with every corner visible
     edges = mesh_edges(F)
