@@ -255,19 +255,18 @@ def test_menpo3d_template(template, shared_data, template_folds):
     if not folder.is_dir():
         pytest.skip("menpo3d template not in the shared data")
     rt = retarget(template, read_target(folder / "template.ply", folder / "template.ljson"))
-    # 48 of 50 FAPs (96 %): the left lip corner's stretch reaches 0.65 of value x MW at the
-    # inner corner and 0.57-1.05 at the outer one, as builds of the template differ (the
-    # mask's inner corner lies 6 mm inside the mouth from its outer one, where the template
-    # has one point for both, so both bind beside the template's corner, where its motion
-    # falls off). The lids take their FAPU gain from their own motion settled at half range:
-    # with a uniform motion's gain the lower lids moved 1.43x (47/50; 43-47 in older
-    # builds), with the linear motion at rest the left upper lid 0.73-1.03x across builds.
+    # 50 of 50 FAPs: the lids and lips take their FAPU gain from their own motion settled
+    # at half range. With a uniform motion's gain the lower lids moved 1.43x and the left
+    # lip corner's stretch 0.57-0.69x as builds of the template differ (the mask's inner
+    # corner lies 6 mm inside the mouth from its outer one, where the template has one
+    # point for both, so both bind beside the template's corner, where its motion falls
+    # off); with the template's linear motion at rest the left upper lid moved 0.73-1.03x.
     # The mask's eyes are nearly shut (IRISD a tenth of the template's): without the FAPU
     # gains its lids moved 13-16x their value x IRISD
     # Its face folds over 0.9 % of its area (1.5 % before the template's caps were flipped
     # away). The flips cut the template's own share further, 0.5 % -> 0.1 %, so 4x the
     # template's no longer bounds the mask: an absolute floor of 1.2 % does.
-    report, _ = check_target(template, rt, template_folds, min_pass=0.96, fold_factor=FOLD_FACTOR_SCANNED,
+    report, _ = check_target(template, rt, template_folds, min_pass=0.98, fold_factor=FOLD_FACTOR_SCANNED,
                              fold_floor=0.012)
     assert all(r["ok"] for r in report if r["fap"] in (19, 20, 21, 22))
 

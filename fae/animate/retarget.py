@@ -20,8 +20,9 @@ vertex a 3x3 T = R_fit S R_template^T (fae.adapt.binding.frame_transforms: the p
 local frames and box scales, eq. 5-9) turns a motion vector of the template into one of
 the fitted skin, i.e. of the target; a smooth per-axis factor over the target's skin
 (fapu_gain_field) then pins the motion of each FAP's feature point to value x the target's
-own FAPU, as the standard defines it (the eyelids' from the template's own motion for each
-lid FAP, settled at half its range, the others' from a uniform one). Motion fades to zero where the target extends beyond
+own FAPU, as the standard defines it (the lids' and lips' from the template's own motion
+for each of their FAPs, settled at half its range, the others' from a uniform one). Motion
+fades to zero where the target extends beyond
 what the template covers (shoulders, plinth, hair: COVERAGE_NEAR..COVERAGE_FAR metres from
 the fitted skin). The target's separate pieces that sit on the fitted head's eyeballs,
 teeth or tongue become rigid parts moved by the template's eye, head, jaw and tongue
@@ -68,14 +69,16 @@ PIN_REACH = 0.03  # metres around the given feature points within which the fit 
 FDP_REGION_REACH = 0.006  # metres: a feature point looks this far for triangles of its own region
 GAIN_REACH = 0.03  # metres around the FAPs' feature points over which their FAPU gains spread
 GAIN_LIMITS = (0.05, 4.0)  # the least and most a FAPU gain scales the carried motion by
-# FAPs whose FAPU gain comes from their own motion (fapu_gain_field): the eyelids, whose
-# points on a mask with the eyes nearly shut bind where the lid's motion differs from that
-# at the template's point (menpo3d's lower lids at 1.43x with a uniform motion's gain).
-# Not the lips: a lip point and its twin are one point of the template and several
-# millimetres apart on a target (menpo3d's inner and outer mouth corners, 6 mm), and the
-# factors each FAP's own motion asks for there, spread over the skin between them, pushed
-# the corners' stretch and the lower lip's raises to 1.3-1.6x
-MOTION_GAIN_FAPS = (19, 20, 21, 22)
+# FAPs whose FAPU gain comes from their own motion (fapu_gain_field), settled at half range
+# where verify-faps measures it: the eyelids, whose points on a mask with the eyes nearly
+# shut bind where the lid's motion differs from that at the template's point (menpo3d's
+# lower lids at 1.43x with a uniform motion's gain), and the lips, whose points and their
+# twins are one point of the template and several millimetres apart on a target (menpo3d's
+# inner and outer mouth corners, 6 mm), both beside the template's corner where its motion
+# falls off (its corners' stretch at 0.57-0.69x with a uniform motion's gain; with the
+# template's linear motion at rest instead of the settled one, 1.3-1.6x)
+MOTION_GAIN_FAPS = (19, 20, 21, 22) + tuple(range(4, 14)) + tuple(range(51, 61))
+SETTLE_FRAMES = 30  # frames of 1/25 s to settle each (within 1 % of verify-faps' 60 on the generic head)
 NECK_FADE = (0.02, 0.09)  # metres below the chin (2.1) where the head pose starts and ends fading out
 
 
@@ -288,8 +291,8 @@ def _template_fap_motion(template: FaceModel, used: np.ndarray) -> dict[int, tup
     metres, as settled with k alone at half its range (where verify-faps measures it; the
     linear response at rest left the lids' margins, which stop on the eyeball, 20-25 %
     short on a target that binds there); how far it moves the template's own feature point
-    of k along k's direction) for the eyelids' FAPs (MOTION_GAIN_FAPS), empty for a
-    template without a mapping."""
+    of k along k's direction) for the lids' and lips' FAPs (MOTION_GAIN_FAPS), empty for
+    a template without a mapping."""
     from fae.animate.faptables import FAP_DIRECTION, FAP_FEATURE_POINT, FAP_LIMITS
     from fae.animate.player import Player, needs_calibration, playable_head
     from fae.animate.verify import settled_skin
@@ -304,7 +307,7 @@ def _template_fap_motion(template: FaceModel, used: np.ndarray) -> dict[int, tup
     for k in faps:
         values = np.zeros(68)
         values[k - 1] = FAP_LIMITS[k - 1, 1] / 2.0
-        motion = (settled_skin(player, values) - rest) / values[k - 1]
+        motion = (settled_skin(player, values, max_frames=SETTLE_FRAMES) - rest) / values[k - 1]
         # the point's own displacement (its barycentric blend of the field)
         own = float(template.surface_point_position(template.feature_points[FAP_FEATURE_POINT[k - 1]], motion)
                     @ FAP_DIRECTION[k - 1])
