@@ -69,6 +69,35 @@ def test_neck_has_no_long_slivers(head):
     assert np.linalg.norm(V[e[:, 0]] - V[e[:, 1]], axis=1).max() <= MAX_EDGE * MM * 1.001
 
 
+def _midline_back(V: np.ndarray, F: np.ndarray, heights: np.ndarray) -> np.ndarray:
+    """z (m) of the back of the skin's midsagittal outline at each height (m): the rearmost
+    point where the plane x = 0 cuts the skin at that height."""
+    import trimesh
+
+    segments = trimesh.intersections.mesh_plane(trimesh.Trimesh(V, F, process=False), [1.0, 0.0, 0.0], [0.0, 0.0, 0.0])
+    a, b = segments[:, 0], segments[:, 1]
+    out = []
+    for y in heights:
+        cross = (a[:, 1] - y) * (b[:, 1] - y) <= 0.0
+        t = (y - a[cross, 1]) / np.where(b[cross, 1] != a[cross, 1], b[cross, 1] - a[cross, 1], 1.0)
+        out.append(np.min(a[cross, 2] + t * (b[cross, 2] - a[cross, 2])))
+    return np.array(out)
+
+
+def test_back_of_the_neck_rises_into_the_skull_without_a_notch(head, fdp):
+    """A person's nape curves gently into the back of the skull. A notch under the skull
+    (the neck's rounded box left one 4.7 cm deep) is kept by every fit to a scan as a
+    crease across the nape, since no scan point lies near its floor."""
+    occiput_y = 0.0  # the skull's back is farthest back near the eyes' height
+    heights = np.arange(occiput_y, fdp["2.1"][1] - 0.03, -0.002)
+    z = _midline_back(head.skin_vertices, head.skin_faces, heights)
+    # a gentle curve: the nape's deepest point within 2 cm of the line from the skull's
+    # back to the neck's (a person's: 1-2 cm; the notch this replaced: 4.7 cm)
+    skull, neck = z[0], z[-1]
+    line = skull + (neck - skull) * (heights - heights[0]) / (heights[-1] - heights[0])
+    assert np.max(z - line) < 0.02, f"the nape dips {np.max(z - line) * 1000:.0f} mm in front of the line"
+
+
 def test_refining_long_triangles_keeps_the_surface_closed_and_oriented():
     import trimesh
 

@@ -64,6 +64,18 @@ def sdf_round_box(P: np.ndarray, center, half_size, radius: float) -> np.ndarray
     return outside + inside - radius
 
 
+def sdf_column(P: np.ndarray, center_xz, half_xz, corner: float, bottom: float, top: float,
+               edge: float) -> np.ndarray:
+    """(n,) signed distance to an upright column: a rectangle in xz (centre (2,), half sizes
+    (2,), corners rounded by `corner`) swept from height `bottom` to `top`, its flat ends'
+    rims rounded by `edge` (a rounded box would round its ends by `corner` too)."""
+    q = np.abs(P[:, [0, 2]] - np.asarray(center_xz, dtype=np.float64)) - (np.asarray(half_xz, dtype=np.float64) - corner)
+    across = np.linalg.norm(np.maximum(q, 0.0), axis=1) + np.minimum(q.max(axis=1), 0.0) - corner
+    along = np.abs(P[:, 1] - 0.5 * (top + bottom)) - 0.5 * (top - bottom)
+    w = np.stack([across + edge, along + edge], axis=1)
+    return np.linalg.norm(np.maximum(w, 0.0), axis=1) + np.minimum(w.max(axis=1), 0.0) - edge
+
+
 def smooth_union(a: np.ndarray, b: np.ndarray, k: float) -> np.ndarray:
     """Polynomial smooth minimum of two distance fields, blend width k (same unit)."""
     if k <= 0:

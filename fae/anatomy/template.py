@@ -95,6 +95,61 @@ def _unflipped(V: np.ndarray) -> np.ndarray:
 
 # --- meshes ----------------------------------------------------------------------------------
 
+NAPE_REGIONS = ("neck", "jaw_l", "jaw_r")
+
+
+def nape_moved(V: np.ndarray, F: np.ndarray, region: np.ndarray, relax: int = 8) -> np.ndarray:
+    """(n, 3) mm: the skin vertices V (n, 3) mm of the neck and jaw regions that the nape's
+    column changes (template_shapes.skin_sdf with nape) moved onto it, each along its own
+    ray from the neck's axis at its height (the back of the neck is star-shaped about it:
+    the notch's walls keep their order), then `relax` rounds of tangential smoothing back
+    onto it (the walls land packed into thin bands, which fold at the first squeeze)."""
+    from fae.mesh import adjacency, vertex_normals
+
+    V = np.asarray(V, dtype=np.float64)
+    near = np.isin(region, [REGION_NAMES.index(r) for r in NAPE_REGIONS])
+    def shaped(P):
+        return S.skin_sdf(P, nape=True)
+
+    moved = near & (np.abs(shaped(V) - S.skin_sdf(V)) > 1e-3)
+
+    def onto(P):
+        d = P[:, [0, 2]] - S.NECK_AXIS_XZ
+        r0 = np.linalg.norm(d, axis=1)
+        u = d / r0[:, None]
+
+        def at(r):
+            return np.column_stack([S.NECK_AXIS_XZ[0] + r * u[:, 0], P[:, 1], S.NECK_AXIS_XZ[1] + r * u[:, 1]])
+
+        # out (or in) in 1 mm steps to the first point across the surface, then bisection
+        sign = np.where(shaped(at(r0)) < 0.0, 1.0, -1.0)
+        lo, hi = r0.copy(), r0.copy()
+        going = np.ones(len(P), dtype=bool)
+        for _ in range(80):
+            lo[going] = hi[going]
+            hi[going] += sign[going]
+            going &= (shaped(at(hi)) < 0.0) == (sign > 0)
+            if not going.any():
+                break
+        for _ in range(30):
+            mid = 0.5 * (lo + hi)
+            inside = shaped(at(mid)) < 0.0
+            lo = np.where(inside == (sign > 0), mid, lo)
+            hi = np.where(inside == (sign > 0), hi, mid)
+        return at(0.5 * (lo + hi))
+
+    W = V.copy()
+    W[moved] = onto(V[moved])
+    A = adjacency(np.asarray(F, dtype=np.int64), len(V))
+    degree = np.asarray(A.sum(axis=1)).ravel()
+    for _ in range(relax):
+        step = (A @ W)[moved] / degree[moved, None] - W[moved]
+        N = vertex_normals(W, F)[moved]
+        step -= np.sum(step * N, axis=1, keepdims=True) * N
+        W[moved] = onto(W[moved] + step)
+    return W
+
+
 def symmetric_mesh(sdf, lo, hi, step: float, half_faces: int, refine_below: float | None = None,
                    kept_edges=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Mirror-symmetric closed mesh of `sdf < 0` (mm): (V (n, 3) mm, F (m, 3), mirror (n,)).
@@ -334,6 +389,8 @@ def build_template() -> FaceModel:
     V, F, mirror = symmetric_mesh(S.skin_sdf, (0.0, -240.0, -125.0), (100.0, 130.0, 130.0), SKIN_STEP, SKIN_HALF_FACES,
                                   refine_below=NECK_REFINE_BELOW, kept_edges=_unflipped)
     region = skin_regions(V, F)
+    V = nape_moved(V, F, region)
+    V = 0.5 * (V + V[mirror] * np.array([-1.0, 1.0, 1.0]))  # exactly symmetric again
     parts_mm: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     for name, (sdf, lo, hi, step, half_faces) in _PART_SPECS.items():
         PV, PF, _ = symmetric_mesh(sdf, lo, hi, step, half_faces)

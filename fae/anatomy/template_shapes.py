@@ -15,6 +15,7 @@ import numpy as np
 
 from fae.anatomy.geometry import (
     sdf_capsule,
+    sdf_column,
     sdf_ellipsoid,
     sdf_polyline,
     sdf_round_box,
@@ -39,6 +40,10 @@ OCCLUSAL_Y = -80.0  # upper and lower teeth meet here
 JAW_PIVOT = np.array([0.0, -18.0, 10.0])  # on the line through both condyles
 CONDYLE_X = 50.0
 BONE_MARGIN = 2.5  # least soft tissue over any bone
+NECK_AXIS_XZ = np.array([0.0, -18.0])  # the neck's upright axis (x, z)
+NAPE_FRONT_Z = 30.0  # the nape's column reaches forward to z = -NAPE_FRONT_Z
+NAPE_FRONT_BLEND = 30.0  # over which the column's front fades out
+NAPE_BLEND = 25.0  # the column's blend into the neck (the sides and back swell by a quarter of it)
 
 # dental arch: half-ellipse in the xz plane (centre z, semi-axes along x and z)
 ARCH_CENTER_Z = 44.0
@@ -72,8 +77,9 @@ def _arch_band(P: np.ndarray, arch: tuple[float, float], half_width, y_lo: float
 
 # --- skin ----------------------------------------------------------------------------------
 
-def _skull_mass(P: np.ndarray) -> np.ndarray:
-    """Cranium and face volume without the features (P already mirrored)."""
+def _skull_mass(P: np.ndarray, nape: bool = False) -> np.ndarray:
+    """Cranium and face volume without the features (P already mirrored); nape: the back of
+    the neck rises into the occiput (see skin_sdf)."""
     cranium = sdf_ellipsoid(P, (0.0, 22.0, -6.0), (75.0, 98.0, 100.0))
     # flatten the temples a little and the back of the head less
     temples = sdf_ellipsoid(P, (0.0, 10.0, 10.0), (71.0, 110.0, 104.0))
@@ -97,7 +103,12 @@ def _skull_mass(P: np.ndarray) -> np.ndarray:
     cheek = sdf_ellipsoid(P, (42.0, -50.0, 60.0), (20.0, 26.0, 20.0))
     head = smooth_union(head, cheek, 20.0)
     # neck
-    neck = sdf_round_box(P, (0.0, -160.0, -18.0), (56.0, 70.0, 58.0), 44.0)
+    neck = sdf_round_box(P, (NECK_AXIS_XZ[0], -160.0, NECK_AXIS_XZ[1]), (56.0, 70.0, 58.0), 44.0)
+    if nape:  # the neck's back half as a column up to the skull: the box's round top left a notch
+        column = sdf_column(P, NECK_AXIS_XZ, (56.0, 58.0), 44.0, -186.0, -60.0, 24.0)
+        # blended into the neck's rounded top and the jaw behind (a plain union left a groove
+        # under the ear where the column's side met them)
+        neck = smooth_union(neck, smooth_intersect(column, P[:, 2] + NAPE_FRONT_Z, NAPE_FRONT_BLEND), NAPE_BLEND)
     head = smooth_union(head, neck, 30.0)
     return head
 
@@ -188,10 +199,17 @@ def _aperture(P: np.ndarray) -> np.ndarray:
     return np.maximum(np.maximum(np.maximum(vertical, horizontal), front), near)
 
 
-def skin_sdf(P: np.ndarray) -> np.ndarray:
-    """(n,) signed distance (mm, negative inside the soft tissue) of the whole skin surface."""
+def skin_sdf(P: np.ndarray, nape: bool = False) -> np.ndarray:
+    """(n,) signed distance (mm, negative inside the soft tissue) of the whole skin surface.
+
+    nape: the skin as shaped, whose neck's back rises into the occiput (the neck's rounded
+    box alone leaves a notch 4 cm deep under the skull, which every fit to a scan kept as a
+    crease across the nape). The skin is meshed without it and its nape then moved onto
+    it (fae.anatomy.template): the whole field decimates as one, and a neck meshed
+    otherwise decimated the face into another triangulation, which everything tuned on the
+    face's would have to be tuned on again."""
     P = _mirror(P)
-    head = _skull_mass(P)
+    head = _skull_mass(P, nape)
     head = smooth_union(head, _brow(P), 9.0)
     # orbit hollow above and below the eye, then lids that wrap the eyeball
     hollow = sdf_ellipsoid(P, EYE_CENTER + np.array([0.0, 1.0, 14.0]), (17.0, 13.0, 9.0))
