@@ -45,7 +45,9 @@ measures the target's own FAP response against value x the target's FAPU.
 from __future__ import annotations
 
 import os
+import threading
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -79,6 +81,7 @@ GAIN_LIMITS = (0.05, 4.0)  # the least and most a FAPU gain scales the carried m
 # template's linear motion at rest instead of the settled one, 1.3-1.6x)
 MOTION_GAIN_FAPS = (19, 20, 21, 22) + tuple(range(4, 14)) + tuple(range(51, 61))
 SETTLE_FRAMES = 30  # frames of 1/25 s to settle each (within 1 % of verify-faps' 60 on the generic head)
+SETTLE_THREADS = 4  # at most, settling side by side
 NECK_FADE = (0.02, 0.09)  # metres below the chin (2.1) where the head pose starts and ends fading out
 
 
@@ -301,18 +304,24 @@ def _template_fap_motion(template: FaceModel, used: np.ndarray) -> dict[int, tup
         return {}
     faps = [k for k in MOTION_GAIN_FAPS if FAP_FEATURE_POINT[k - 1] in template.feature_points
             and template.feature_points[FAP_FEATURE_POINT[k - 1]].part == "skin"]
-    player = Player(playable_head(template))
+    head = playable_head(template)
     rest = np.asarray(template.skin_vertices, dtype=np.float64)
-    out = {}
-    for k in faps:
+    local = threading.local()  # a Player per thread, all on the one head
+
+    def settled_motion(k: int) -> tuple[np.ndarray, float]:
+        if not hasattr(local, "player"):
+            local.player = Player(head)
         values = np.zeros(68)
         values[k - 1] = FAP_LIMITS[k - 1, 1] / 2.0
-        motion = (settled_skin(player, values, max_frames=SETTLE_FRAMES) - rest) / values[k - 1]
+        motion = (settled_skin(local.player, values, max_frames=SETTLE_FRAMES) - rest) / values[k - 1]
         # the point's own displacement (its barycentric blend of the field)
         own = float(template.surface_point_position(template.feature_points[FAP_FEATURE_POINT[k - 1]], motion)
                     @ FAP_DIRECTION[k - 1])
-        out[k] = (motion[used], own)
-    return out
+        return motion[used], own
+
+    # the settles do not depend on each other, and Warp's CPU kernels release the GIL
+    with ThreadPoolExecutor(max(1, min(SETTLE_THREADS, os.cpu_count() or 1))) as pool:
+        return dict(zip(faps, pool.map(settled_motion, faps)))
 
 
 def _reanchored(M: np.ndarray, a: np.ndarray, b: np.ndarray, s: float) -> np.ndarray:
