@@ -144,3 +144,22 @@ def seamed_surface(V: np.ndarray, F: np.ndarray, uv: np.ndarray
     F2, seam, uv2 = wrapped_seam(F, uv)
     N = vertex_normals(V, F)
     return np.concatenate([V, V[seam]]), F2, uv2, np.concatenate([N, N[seam]]), seam
+
+
+def coincident_groups(V: np.ndarray, tol: float = 1e-7) -> tuple[int, np.ndarray]:
+    """Groups of points of V (n, 3) closer than `tol` metres (chained): the number of groups
+    k and each point's group label (n,) in 0..k-1."""
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    V = np.asarray(V, dtype=np.float64)
+    pairs = cKDTree(V).query_pairs(tol, output_type="ndarray") if len(V) > 1 else np.zeros((0, 2), int)
+    g = sp.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(V), len(V)))
+    return connected_components(g, directed=False)
+
+
+def group_means(X: np.ndarray, label: np.ndarray, k: int) -> np.ndarray:
+    """(k, d): the mean of the rows of X (n, d) in each group of `label` (n,)."""
+    X = np.asarray(X, dtype=np.float64).reshape(len(X), -1)
+    count = np.bincount(label, minlength=k)[:, None]
+    return np.column_stack([np.bincount(label, X[:, a], minlength=k) for a in range(X.shape[1])]) / count

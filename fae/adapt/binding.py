@@ -132,7 +132,7 @@ def pinned_to_points(X: np.ndarray, F: np.ndarray, face: np.ndarray, bary: np.nd
     (X's unit) from every point. A fit's feature points are where its data let them be;
     this puts them where they were given, so that a binding through X pairs the given
     points with the template's own."""
-    from fae.adapt.geometry import coincident_groups, group_means
+    from fae.mesh import coincident_groups, group_means
     from scipy.spatial import cKDTree
 
     X = np.asarray(X, dtype=np.float64)
@@ -240,11 +240,11 @@ SEAM_NORMAL_COS = 0.5  # coincident vertices whose one-sided normals differ more
 
 def seam_groups(V: np.ndarray, F: np.ndarray) -> np.ndarray:
     """(n,) int64 labels, shared by the vertices of V (n, 3), F (m, 3) that are one point of
-    the surface split along a texture seam: coincident (fae.adapt.geometry.coincident_groups)
+    the surface split along a texture seam: coincident (fae.mesh.coincident_groups)
     and, each seen from its own triangles, facing the same way (within 60 degrees). Lips
     modelled closed but cut apart also coincide; they face each other (the upper lip's
     underside down, the lower's top up) and keep labels of their own, so they can part."""
-    from fae.adapt.geometry import coincident_groups
+    from fae.mesh import coincident_groups
 
     V = np.asarray(V, dtype=np.float64)
     n = len(V)

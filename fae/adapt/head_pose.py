@@ -46,7 +46,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from fae.adapt.calibration import scan_unit, similarity_icp, similarity_transform
-from fae.adapt.geometry import coincident_groups
+from fae.mesh import coincident_groups
 from fae.anatomy.surface_points import markup_positions
 from fae.io.facemodel import FaceModel
 

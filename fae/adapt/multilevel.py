@@ -37,12 +37,13 @@ from fae.adapt.correspondence import (closest_pairs, curvature_features, feature
 from fae.adapt.csrbf import CSRBF, csrbf_interpolant, csrbf_weights
 from fae.adapt.errors import (Surface, combined_error, compatible_closest_points, distance_error,
                               marker_error, surface, symmetric_rms)
-from fae.adapt.geometry import coincident_groups, group_means, per_vertex_normals
+from fae.adapt.geometry import per_vertex_normals
 from fae.adapt.local import (OffsetSmoother, limit_offsets, lowpass_pyramid, nearest_neighbor_adaptation,
                              offset_clearance)
 from fae.adapt.query import MeshQuery
 from fae.adapt.rbf import RBF, rbf_interpolant, rbf_weights
 from fae.adapt.untangle import edge_crossings, mesh_edges, untangle
+from fae.mesh import coincident_groups, group_means
 
 METHODS = PAPER_METHODS
 GLOBAL_LIMIT = 500  # paper 000 §4.3: global RBF below this many pairs, CSRBF above

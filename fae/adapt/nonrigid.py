@@ -63,7 +63,8 @@ from fae.linalg import symmetric_splu
 from fae.adapt.errors import Surface
 from fae.adapt.query import MeshQuery
 from fae.adapt.untangle import mesh_edges, untangle
-from fae.adapt.geometry import adjacency_matrix, coincident_groups, face_normal_vectors, group_means, per_vertex_normals
+from fae.adapt.geometry import adjacency_matrix, face_normal_vectors, per_vertex_normals
+from fae.mesh import coincident_groups, group_means
 
 STIFFNESS = (30.0, 12.0, 5.0, 2.0, 1.0, 0.5)  # a per stage, coarse to fine
 NEIGHBOUR_RADIUS = 0.006  # m: vertices this close are neighbours in the smoothness term

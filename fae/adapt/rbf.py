@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from fae.adapt.geometry import coincident_groups, group_means
+from fae.mesh import coincident_groups, group_means
 
 KERNELS = ("biharmonic", "wendland", "multiquadric")
 
