@@ -108,6 +108,7 @@ def nape_moved(V: np.ndarray, F: np.ndarray, region: np.ndarray, relax: int = 8)
 
     V = np.asarray(V, dtype=np.float64)
     near = np.isin(region, [REGION_NAMES.index(r) for r in NAPE_REGIONS])
+
     def shaped(P):
         return S.skin_sdf(P, nape=True)
 
