@@ -303,7 +303,7 @@ def _template_fap_motion(template: FaceModel, used: np.ndarray) -> dict[int, tup
     if not template.fap_mapping or "gain_pos" not in template.fap_mapping or needs_calibration(template):
         return {}
     faps = [k for k in MOTION_GAIN_FAPS if FAP_FEATURE_POINT[k - 1] in template.feature_points
-            and template.feature_points[FAP_FEATURE_POINT[k - 1]].part == "skin"]
+            and template.feature_points[FAP_FEATURE_POINT[k - 1]].part == "skin" and FAP_LIMITS[k - 1, 1] > 0]
     head = playable_head(template)
     rest = np.asarray(template.skin_vertices, dtype=np.float64)
     local = threading.local()  # a Player per thread, all on the one head
