@@ -10,10 +10,11 @@ The ear is the skin region of the feature point's triangle when that region's na
 "ear" (the generic head and every head adapted from it); around it the weight falls with
 geodesic distance (the heat method's, potpourri3d: Dijkstra's along edges zig-zags, and a
 triangle whose corners' distances came by different zig-zags got a gradient twice the
-fade's, which turned 27 triangles under the jaw over at the limit) as the smoothstep 1 - 3 r^2 + 2 r^3 over a fade that widens with the
-value: `FADE_ES` x ES0 while the ear has moved at most GRADIENT x that / SMOOTHSTEP_SLOPE,
-then as far as keeps the skin's displacement gradient within GRADIENT (an edge along the
-motion at most 1 + GRADIENT, one against it at least 1 - GRADIENT its rest length). The
+fade's, which turned 27 triangles under the jaw over at the limit) as the smoothstep
+1 - 3 r^2 + 2 r^3 over a fade that widens with the value: `FADE_ES` x ES0 while the ear
+has moved at most GRADIENT x that / SMOOTHSTEP_SLOPE, then as far as keeps the skin's
+displacement gradient within GRADIENT (an edge along the motion at most 1 + GRADIENT, one
+against it at least 1 - GRADIENT its rest length). The
 standard lets an ear move 900 ENS units (5 cm on the generic head): over a fixed 1.3 cm
 fade the scalp at the ear's root stretched 7.5x. The table holds the fields at doubling
 values up to the limit and the standard's piecewise-linear rule blends between them, so a
