@@ -249,6 +249,26 @@ def test_an_ear_at_the_standards_limits_leaves_the_skin_whole_and_a_twitch_stays
     player.reset()
 
 
+def test_a_vertex_no_triangle_uses_leaves_the_ear_tables_as_they_were(face):
+    """A head whose skin carries a stray vertex (an exporter's leftover) still gets its ear
+    tables, the same as without it (the heat method's solver refuses unreferenced vertices)."""
+    from fae.animate.ears import ear_tables
+
+    base = {t.fap: t for t in ear_tables(face, fapu_of(face))}
+    stray = copy.deepcopy(face)
+    middle = len(face.skin_vertices) // 2  # a stray vertex in the middle: later indices shift by one
+    stray.skin_vertices = np.insert(face.skin_vertices, middle, [0.0, 0.0, 0.0], axis=0)
+    stray.skin_faces = np.where(face.skin_faces >= middle, face.skin_faces + 1, face.skin_faces).astype(face.skin_faces.dtype)
+    stray.skin_region = np.insert(face.skin_region, middle, face.skin_region[0])
+    got = {t.fap: t for t in ear_tables(stray, fapu_of(face))}
+    assert sorted(got) == sorted(base) == [65, 66, 67, 68]
+    for k, t in base.items():
+        shifted = np.where(t.vertices >= middle, t.vertices + 1, t.vertices)
+        assert np.array_equal(np.sort(got[k].vertices), np.sort(shifted))
+        np.testing.assert_allclose(got[k].displacements[:, np.argsort(got[k].vertices)],
+                                   t.displacements[:, np.argsort(shifted)], atol=1e-9)
+
+
 def test_open_jaw_does_not_open_the_mouth_and_the_lips_ride_on_the_jaw_as_streams_send_them(player):
     """open_jaw at its full range: the chin goes down 2 cm, the bottom of the neck (held by
     the body, not the jaw) stays, and the skin between jaw and neck stretches smoothly (no

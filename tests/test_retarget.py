@@ -268,7 +268,8 @@ def test_menpo3d_template(template, shared_data, template_folds):
     # template's no longer bounds the mask: an absolute floor of 1.2 % does.
     report, _ = check_target(template, rt, template_folds, min_pass=0.98, fold_factor=FOLD_FACTOR_SCANNED,
                              fold_floor=0.012)
-    assert all(r["ok"] for r in report if r["fap"] in (19, 20, 21, 22))
+    # the lids, and the mouth corners' stretch and raise at both of the mask's corners
+    assert all(r["ok"] for r in report if r["fap"] in (19, 20, 21, 22, 6, 7, 12, 13, 53, 54, 59, 60))
 
 
 @pytest.mark.slow

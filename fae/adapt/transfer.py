@@ -264,7 +264,8 @@ def hidden_skin_behind_visible(template: FaceModel, X: np.ndarray) -> tuple[np.n
     brought it nearer the visible skin than min(its template clearance, LINING_CLEARANCE),
     or through it: along its closest visible triangle's normal, to the side the template
     has it on, spread over LINING_PUSH_RADIUS among the hidden skin only, and held wherever
-    it would fold a triangle or pass an edge through other skin. The fit pulls the visible
+    it would fold a triangle or pass an edge through other skin (the rim and the corners
+    feature points bind to stay where the fit put them). The fit pulls the visible
     skin onto the scan and lets the hidden skin follow its neighbours, so a sculpted lid
     pressed in or a thin nostril wing can leave the lining touching the skin at rest, and
     the slightest motion then brings it out through the skin. Returns the skin and how
@@ -280,7 +281,8 @@ def hidden_skin_behind_visible(template: FaceModel, X: np.ndarray) -> tuple[np.n
     if "mouth_cavity" in names:
         hidden &= np.asarray(template.skin_region) != names.index("mouth_cavity")
     # the rim (hidden skin beside visible skin: a lid's margin) stays: feature points bind
-    # to its triangles, and it is where the two meet anyway
+    # to its triangles, and it is where the two meet anyway; so do the corners feature
+    # points bind to elsewhere (the upper lids' points lie just inside their margins)
     rim = np.zeros(len(P), dtype=bool)
     mixed = F[seen[F].any(axis=1) & ~seen[F].all(axis=1)]
     rim[mixed.ravel()] = True

@@ -65,11 +65,15 @@ def ear_tables(face, fapu: dict[str, float]) -> list[FaceDefTable]:
         limit = float(np.abs(FAP_LIMITS[k - 1]).max())
         values = fade_values(limit, unit[k - 1], narrowest)
         fades = np.array([fade_width(v * unit[k - 1], narrowest) for v in values])
-        if geodesic is None:  # factorized once, for the first ear that needs it
-            geodesic = potpourri3d.MeshHeatMethodDistanceSolver(np.asarray(face.skin_vertices, dtype=np.float64),
-                                                                faces)
+        if geodesic is None:  # factorized once, for the first ear that needs it, on the vertices in use
+            used = np.unique(faces)
+            compact = np.full(face.skin_vertex_count, -1)
+            compact[used] = np.arange(len(used))
+            geodesic = potpourri3d.MeshHeatMethodDistanceSolver(
+                np.asarray(face.skin_vertices, dtype=np.float64)[used], compact[faces])
             _, component = connected_components(adjacency(faces, face.skin_vertex_count), directed=False)
-        d = np.asarray(geodesic.compute_distance_multisource([int(i) for i in ear]))
+        d = np.full(face.skin_vertex_count, np.inf)
+        d[used] = geodesic.compute_distance_multisource([int(i) for i in compact[ear] if i >= 0])
         d[ear] = 0.0
         d[~np.isin(component, component[ear])] = np.inf  # the heat method gives other pieces a constant
         idx = np.flatnonzero(d < fades[-1])

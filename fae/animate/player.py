@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fae.animate.bake import bake_tables, baked_model, has_baked_tables
-from fae.animate.calibrate import calibrate, edge_length_graph, pull_fields
+from fae.animate.calibrate import calibrate, pull_fields
 from fae.animate.ears import ear_tables
 from fae.animate.controls import FapControls, MappingMismatch, merge_lip_pairs
 from fae.animate.facedef import FaceDefOffsets
@@ -105,7 +105,6 @@ class PlayableHead:
         self.device = device
         self.engine = engine
         self.fapu = fapu_of(model)
-        graph = edge_length_graph(model)
         authored = [t for t in model.face_def_tables if t.source == "authored"] + ear_tables(model, self.fapu)
         if engine == "fdt":
             baked = [t for t in model.face_def_tables if t.source == "physics"]
@@ -115,7 +114,7 @@ class PlayableHead:
             self.controls = FapControls(model)
             self.rest_skin = np.asarray(model.skin_vertices, dtype=np.float64)
         else:
-            self.sim = skin_model(model, device=device, fields=pull_fields(model, self.fapu, graph))
+            self.sim = skin_model(model, device=device, fields=pull_fields(model, self.fapu))
             self.controls = FapControls(model, self.sim)
             self.tables = authored
             self.rest_skin = None

@@ -304,6 +304,8 @@ def _template_fap_motion(template: FaceModel, used: np.ndarray) -> dict[int, tup
         return {}
     faps = [k for k in MOTION_GAIN_FAPS if FAP_FEATURE_POINT[k - 1] in template.feature_points
             and template.feature_points[FAP_FEATURE_POINT[k - 1]].part == "skin" and FAP_LIMITS[k - 1, 1] > 0]
+    if not faps:
+        return {}
     head = playable_head(template)
     rest = np.asarray(template.skin_vertices, dtype=np.float64)
     local = threading.local()  # a Player per thread, all on the one head
