@@ -21,7 +21,8 @@ from fae.adapt.errors import scan_fit_errors
 from fae.adapt.geometry import per_face_normals
 from fae.adapt.head_pose import find_head, kept_part
 from fae.adapt.errors import surface
-from fae.adapt.nonrigid import PROJECT_TURN, blend_away_folds, folded_triangles, projected_part_way, scan_pairs
+from fae.adapt.nonrigid import (PROJECT_TURN, blend_away_folds, fit_to_scan, folded_triangles, projected_part_way,
+                                scan_pairs)
 from fae.adapt.synthetic import bust_scan
 from fae.anatomy.checks import facemodel_problems
 from fae.animate.verify import passed_fraction, verify_faps
@@ -223,6 +224,32 @@ def test_skin_over_a_hollow_pairs_with_its_floor_not_its_steep_side():
     assert len(idx) == 0
 
 
+def test_skin_whose_shape_lacks_a_rim_of_its_scan_is_pulled_onto_it():
+    # an ear's dish against a scanned ear whose rolled rim stands beyond it: the skin's own
+    # closest points all lie on the flat, and only the scan's points on the rim can pull it there
+    def grid(xs, ys):
+        V = np.array([[x, y, 0.0] for y in ys for x in xs])
+        m = len(xs)
+        F = [[j * m + i, j * m + i + 1, (j + 1) * m + i + 1] for j in range(len(ys) - 1) for i in range(m - 1)]
+        F += [[j * m + i, (j + 1) * m + i + 1, (j + 1) * m + i] for j in range(len(ys) - 1) for i in range(m - 1)]
+        return V, np.array(F)
+
+    P, F = grid(np.linspace(-0.03, 0.03, 13), np.linspace(-0.03, 0.03, 13))
+    S, SF = grid(np.linspace(-0.045, 0.045, 61), np.linspace(-0.045, 0.045, 61))
+    S[:, 2] += 0.004 * np.exp(-((S[:, 0] - 0.036) / 0.004) ** 2)  # a rim 4 mm high, 6 mm beyond the skin's edge
+    scan = surface(S, SF)
+    rim = (np.abs(S[:, 0]) < 0.038) & (np.abs(S[:, 1]) < 0.025)
+    reach, rms = [], []
+    for fill in (None, np.ones(len(P), bool)):
+        fit = fit_to_scan(P, F, scan, np.ones(len(P), bool), fill=fill)
+        assert fit.folded == 0
+        d = surface(fit.vertices, F).query.closest_points(S[rim], 0.02)[1]
+        reach.append(fit.vertices[:, 0].max())
+        rms.append(np.sqrt(np.mean(d ** 2)))
+    assert reach[0] < 0.031 and rms[0] > 0.002  # without the scan's pull: the skin ends at its own edge
+    assert reach[1] > 0.034 and rms[1] < 0.0008  # with it: onto the rim (2.4 -> 0.5 mm)
+
+
 def test_errors_are_measured_in_the_scan_frame_with_coverage():
     sphere = trimesh.creation.icosphere(subdivisions=4, radius=100.0)  # a scan in mm
     V, F = np.asarray(sphere.vertices), np.asarray(sphere.faces)
@@ -269,7 +296,8 @@ def test_a_scanned_bust_becomes_a_head(shared_data, name, tmp_path):
     assert report["folded_triangles"]["all"] == 0
     e = report["errors"]
     assert e["face_to_scan_rms_rel"] < 0.001 and e["face_coverage"] > 0.95  # 0.058-0.096 %
-    assert e["scan_to_skin_rms_rel"] < 0.006
+    # the scan's points pull the ears, scalp and neck too: 0.19-0.29 % (0.28-0.32 % without)
+    assert e["scan_to_skin_rms_rel"] < 0.0035 and e["head_to_skin_rms_rel"] < 0.0032
     part = report["head_part"]
     assert part["head_vertices"] < 0.9 * part["scan_vertices"]  # the plinth and shoulders are left out
     assert facemodel_problems(read_facemodel(out)) == []

@@ -46,6 +46,11 @@ REGION_STIFFNESS = {"eyelid_upper_l": 3.0, "eyelid_upper_r": 3.0, "eyelid_lower_
 # FAPs moved 1.5-1.8x their value; its outer lip corners 0.6x)
 NO_RAYS = ("lip_upper", "lip_lower")
 NO_RAYS_NEAR_EYE = 0.004  # m
+# skin the scan's own points pull in the fit's detail stages: the template's ears are plain
+# dishes beside a real ear's rolled rim and deep bowl, and its scalp and neck are smooth
+# beside hair and tendons (the busts' scan->skin RMS 0.28-0.32 % -> 0.19-0.29 %; ears were
+# half of it). The face is left to its own pairs: pulled too, it lay further off (0.058 -> 0.062 %)
+FILL_REGIONS = ("ear_l", "ear_r", "scalp", "neck")
 EYE_RIM = 0.0025  # m: skin this close to an eyeball follows its neighbours, not the scan
 MAX_FACE_RMS_REL = 0.004  # face skin -> scan RMS / head diagonal beyond which the fit failed
 MIN_FACE_COVERAGE = 0.8  # share of the face skin within reach of the scan below which it failed
@@ -122,7 +127,8 @@ def adapt_to_scan(template: FaceModel, scan_V: np.ndarray, scan_F: np.ndarray, h
     fit = fit_to_scan(P, F, scan, seen, landmarks=lm, stiffness=stiffness,
                       rays=~in_regions(template, NO_RAYS) & ~near_eyeballs(template, NO_RAYS_NEAR_EYE), start=start,
                       placed=placed,
-                      carry=(lambda X: ears_carried(P, X, ears)) if ears else None)
+                      carry=(lambda X: ears_carried(P, X, ears)) if ears else None,
+                      fill=in_regions(template, FILL_REGIONS))
     t_fit = time.perf_counter() - t0
     model, report = personalize(template, fit.vertices, T, head.unit, "surface")
     # the errors, in the scan's own frame through the head's scan_transform (no refit)

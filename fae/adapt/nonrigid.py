@@ -27,7 +27,11 @@ output of the last:
    bound to the skin by barycentric rows b_k, their weight f(a) fading with the stiffness
    (they place the parts, the scan gives the detail). Every matched vertex has a data row
    in every round (one that finds no pair is asked to stay), so a stage factors its
-   sparse matrix once and solves x, y and z together.
+   sparse matrix once and solves x, y and z together. In the detail stages the scan
+   pulls back where asked (`fill`, scan_pulls): each scan point pulls the skin's
+   closest point towards itself, which reaches what the skin's own closest points never
+   see (the rolled rim and the bowl of a real ear beside the template's plain dish);
+   each vertex's target is its own pair and those pulls, averaged by weight.
 3. No fold, no tear: a round's step may not fold a triangle (turn it more than FOLD_ANGLE
    from the template's) that the last round left whole: around any it does, the step is
    blended back (blend_away_folds), and the scan's pull is let go there (QUIET_RINGS
@@ -191,6 +195,33 @@ def scan_pairs(X: np.ndarray, NX: np.ndarray, scan: Surface, reach: float, candi
     return idx[ok], pts[ok]
 
 
+def scan_pulls(X: np.ndarray, NX: np.ndarray, F: np.ndarray, skin: MeshQuery, scan: Surface, reach: float,
+               fill: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The scan's pull on the skin X (n, 3), F (m, 3): each scan vertex within `reach` metres
+    of a skin triangle whose corners are all `fill` (n,) bool, with compatible normals
+    (NX (n, 3)) and not near the scan's edge, pulls that triangle's closest point towards
+    itself, shared among its corners by their barycentric weights. The skin's own pairs
+    (scan_pairs) reach only what lies nearest the skin; these reach what the skin's shape
+    lacks (an ear's rolled rim, the bowl of its concha). Returns the summed pulls (n, 3)
+    metres and the summed weights (n,). skin: a MeshQuery of F, moved to X here."""
+    n = len(X)
+    skin.move(X)
+    pts, dist, face, bary = skin.closest_points(scan.V, reach)
+    ok = face >= 0
+    ok[ok] &= fill[F[face[ok]]].all(axis=1)
+    N = np.einsum("nk,nkd->nd", bary[ok], NX[F[face[ok]]])
+    sel = np.flatnonzero(ok)
+    good = np.sum(N * scan.N[sel], axis=1) >= np.cos(np.radians(MAX_NORMAL_ANGLE)) * np.linalg.norm(N, axis=1)
+    sel = sel[good]
+    vf = np.zeros(len(scan.V), dtype=bool)  # scan vertices on faces near its edge pull nothing
+    vf[scan.F[near_edge(scan)].ravel()] = True
+    sel = sel[~vf[sel]]
+    corners, w = F[face[sel]].ravel(), bary[sel].ravel()
+    pull = np.repeat(scan.V[sel] - pts[sel], 3, axis=0) * w[:, None]
+    acc = np.stack([np.bincount(corners, weights=pull[:, k], minlength=n) for k in range(3)], axis=1)
+    return acc, np.bincount(corners, weights=w, minlength=n)
+
+
 def _scan_normals(scan: Surface, face: np.ndarray, bary: np.ndarray) -> np.ndarray:
     """(k, 3) unit normals of the scan at points given by face (k,) (-1: none, zero normal)
     and bary (k, 3)."""
@@ -351,7 +382,8 @@ def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray
                 head: np.ndarray | None = None, stiffness: np.ndarray | None = None,
                 detail: np.ndarray | None = None, rays: np.ndarray | None = None,
                 start: np.ndarray | None = None, placed: np.ndarray | None = None,
-                carry: Callable[[np.ndarray], np.ndarray] | None = None) -> SurfaceFit:
+                carry: Callable[[np.ndarray], np.ndarray] | None = None,
+                fill: np.ndarray | None = None) -> SurfaceFit:
     """Fit the template skin P (n, 3) metres, F (m, 3) to `scan` (face frame, head part only).
 
     movable (n,) bool: skin a scanner can see (the rest follows its neighbours); landmarks:
@@ -372,7 +404,8 @@ def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray
     template vertex order: the skin after the start with parts found on the scan carried
     there (the ears: fae.adapt.ears.ears_carried), since the stiff stages do not move a part
     centimetres apart from the rest; blended back wherever that folds the skin or cuts
-    through itself.
+    through itself. fill (n,) bool: skin the scan's own points pull too in the detail
+    stages (scan_pulls; default none): where the scan has shape the template lacks.
     """
     t0 = time.perf_counter()
     P_in = np.asarray(P, dtype=np.float64)
@@ -390,6 +423,8 @@ def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray
         np.bincount(label, weights=np.asarray(detail, dtype=float), minlength=n) > 0)
     if placed is not None:
         placed = np.bincount(label, weights=np.asarray(placed, dtype=float), minlength=n) > 0
+    if fill is not None:
+        fill = np.bincount(label, weights=np.asarray(fill, dtype=float), minlength=n) > 0
     if landmarks is not None:
         lm_corners = label[F_in[landmarks[0]]]  # (k, 3) welded corners of each feature point's triangle
     fixed = None
@@ -406,6 +441,7 @@ def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray
     fold_ref = fold_reference(P, F)  # every round tests its step against the template
     edges = mesh_edges(F)
     query = MeshQuery(X, F)
+    pull_query = MeshQuery(X, F) if fill is not None else None
     if carry is not None:  # neither folding nor cutting through itself, as every stage
         X = whole(P, X, group_means(np.asarray(carry(X[label]), dtype=np.float64), label, n), F, ring, edges,
                   query, reference=fold_ref)[0]
@@ -447,6 +483,9 @@ def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray
             idx, Q = idx_all[keep], Q_all[keep]
             rhs = np.zeros((n, 3))
             rhs[idx] = Q - X[idx]
+            if fill is not None and a < DETAIL_STIFFNESS:
+                acc, wsum = scan_pulls(X, NX, F, pull_query, scan, reach, fill & matched & ~quiet)
+                rhs = (rhs + acc) / (1.0 + wsum[:, None])
             if B is not None:
                 rhs += fade * LANDMARK_WEIGHT * (B.T @ (landmarks[2] - B @ X))
             X_next = X + solve(rhs)
