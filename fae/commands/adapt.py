@@ -101,6 +101,10 @@ def run(args) -> int:
     if args.method != "surface" and args.compare:
         print("fae adapt: --compare needs --method surface", file=sys.stderr)
         return 2
+    if args.method == "surface":  # imported while the scan is read and its head found
+        from fae.render.landmarks import preload_landmark_model
+
+        preload_landmark_model()
     outputs = {"-o": args.output, "--report": args.report, "--plot": args.plot, "--compare": args.compare}
     try:
         problem = overwritten_input(outputs, {"scan": args.scan, "--landmarks file": args.landmarks,

@@ -133,6 +133,29 @@ def detect_pixels(image: np.ndarray) -> np.ndarray | None:
     return None if points is None else points[:, :2]
 
 
+def preload_landmark_model() -> None:
+    """Start importing MediaPipe (half a second, most of it matplotlib) on a thread of its
+    own, so that it is there when a caller that reads and searches a scan first needs it.
+    Does nothing when MediaPipe is not installed; detect_points reports that."""
+    import importlib.util
+    import threading
+
+    if importlib.util.find_spec("mediapipe") is None:
+        return
+
+    def load():
+        import os
+
+        os.environ.setdefault("GLOG_minloglevel", "2")
+        os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
+        try:
+            import mediapipe  # noqa: F401
+        except Exception:  # noqa: BLE001 - detect_points imports it again and says what is wrong
+            pass
+
+    threading.Thread(target=load, name="mediapipe-import", daemon=True).start()
+
+
 def detect_points(image: np.ndarray) -> np.ndarray | None:
     """MediaPipe Face Mesh's 468 points (468, 3) of an RGB image (H, W, 3) uint8: pixels
     (x right, y down) and the model's own depth (z away from the viewer, in pixels of the
