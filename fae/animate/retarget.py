@@ -15,7 +15,10 @@ points exactly as `fae adapt` fits it to a scan (fae.adapt.workflow.adapt_scan, 
 face-landmark model: the feature points given stand in for it), which is a far denser
 correspondence than an RBF through a few dozen points. Each target vertex is bound to the
 closest point of the fitted skin (triangle + barycentric coordinates); since the fitted
-skin has the template's topology, that point is also a point of the template. Per template
+skin has the template's topology, that point is also a point of the template. Where
+neighbours on the target bind to points far apart on the template (either side of a
+crease), their bindings are averaged over the target's mesh (smoothed_across_jumps): the
+menpo3d mask's fold lines along its creases went, and its folded share halved. Per template
 vertex a 3x3 T = R_fit S R_template^T (fae.adapt.binding.frame_transforms: the paper's
 local frames and box scales, eq. 5-9) turns a motion vector of the template into one of
 the fitted skin, i.e. of the target; a smooth per-axis factor over the target's skin
@@ -78,8 +81,10 @@ GAIN_LIMITS = (0.05, 4.0)  # the least and most a FAPU gain scales the carried m
 # twins are one point of the template and several millimetres apart on a target (menpo3d's
 # inner and outer mouth corners, 6 mm), both beside the template's corner where its motion
 # falls off (its corners' stretch at 0.57-0.69x with a uniform motion's gain; with the
-# template's linear motion at rest instead of the settled one, 1.3-1.6x)
-MOTION_GAIN_FAPS = (19, 20, 21, 22) + tuple(range(4, 14)) + tuple(range(51, 61))
+# template's linear motion at rest instead of the settled one, 1.3-1.6x); and the nose
+# wings, whose points sit in the alar crease, where the binding is averaged (a uniform
+# motion's gain left them at 0.54-0.63x on the mask)
+MOTION_GAIN_FAPS = (19, 20, 21, 22) + tuple(range(4, 14)) + tuple(range(51, 61)) + (61, 62)
 SETTLE_FRAMES = 30  # frames of 1/25 s to settle each (within 1 % of verify-faps' 60 on the generic head)
 SETTLE_THREADS = 4  # at most, settling side by side
 NECK_FADE = (0.02, 0.09)  # metres below the chin (2.1) where the head pose starts and ends fading out
@@ -417,6 +422,55 @@ def _target_feature_points(template: FaceModel, fitted: FaceModel, given: dict[s
     return out, source
 
 
+JUMP_STRETCH = 2.5  # a target edge whose ends bind this many times its length apart on the template jumps
+JUMP_RINGS = 2  # rings around a jump whose rows are averaged with their neighbours'
+JUMP_ROUNDS = 3  # rounds of that averaging
+
+
+def smoothed_across_jumps(G: sp.csr_matrix, U: np.ndarray, Y: np.ndarray, F: np.ndarray,
+                          groups: np.ndarray | None = None) -> sp.csr_matrix:
+    """The gather matrix G (k, m) with its rows averaged over the target's mesh where the
+    binding jumps: U (k, 3) the template points the target's vertices Y (k, 3), F (f, 3)
+    are bound to; an edge whose ends' U lie more than JUMP_STRETCH times its own length
+    apart crosses a jump (a crease of the fitted skin, where neighbours on the target take
+    closest points on either side of it, or the binding's fallback for a point facing away
+    changes direction), and the motion carried there would shear the triangles across it
+    and fold them. Rows within JUMP_RINGS rings of one are replaced JUMP_ROUNDS times by the
+    mean of their own and their neighbours' (rows sum to their coverage either way: a
+    neutral frame still gives the rest exactly). groups (k,): vertices split along a
+    texture seam (one label per point) are neighbours of each other's neighbours."""
+    from fae.mesh import adjacency
+
+    g = np.arange(len(Y)) if groups is None else np.asarray(groups, dtype=np.int64)
+    k = int(g.max()) + 1  # one point per seam group: its first vertex stands for it
+    first = np.zeros(k, dtype=np.int64)
+    first[g[::-1]] = np.arange(len(Y))[::-1]
+    Fg = g[np.asarray(F, dtype=np.int64)]
+    edges = np.vstack([Fg[:, [0, 1]], Fg[:, [1, 2]], Fg[:, [2, 0]]])
+    edges = edges[edges[:, 0] != edges[:, 1]]
+    Yg, Ug = Y[first], U[first]
+    length = np.linalg.norm(Yg[edges[:, 0]] - Yg[edges[:, 1]], axis=1)
+    apart = np.linalg.norm(Ug[edges[:, 0]] - Ug[edges[:, 1]], axis=1)
+    jump = apart > JUMP_STRETCH * np.maximum(length, 1e-9)
+    zone = np.zeros(k, dtype=bool)
+    zone[edges[jump].ravel()] = True
+    if not zone.any():
+        return G
+    A = adjacency(Fg, k)
+    for _ in range(JUMP_RINGS):
+        zone |= (A @ zone.astype(np.float64)) > 0
+    A = (A + sp.identity(k, format="csr")).tocsr()
+    mean = sp.diags(1.0 / np.asarray(A.sum(axis=1)).ravel()) @ A
+    # the zone's rows are averaged; every other row stays itself
+    step = (sp.diags(zone.astype(np.float64)) @ mean + sp.diags((~zone).astype(np.float64))).tocsr()
+    out = G.tocsr()[first]
+    for _ in range(JUMP_ROUNDS):
+        out = (step @ out).tocsr()
+    out = out[g].tocsr()  # split vertices share their point's row
+    out.eliminate_zeros()
+    return out
+
+
 def retarget(template: FaceModel, target: TargetMesh, say: Callable[[str], None] | None = None) -> Retarget:
     """Bind `target` to `template` (module docstring). Raises RetargetError when the target
     cannot be animated (too few feature points, no head found at them)."""
@@ -505,6 +559,7 @@ def retarget(template: FaceModel, target: TargetMesh, say: Callable[[str], None]
     bound[TF[face[coverage > 0.5]].ravel()] = True
     Tv, scale = frame_transforms(P, X, TF, used=bound)
     G = gather_matrix(face, bary, coverage, TF, len(P))
+    G = smoothed_across_jumps(G, np.einsum("kj,kjd->kd", bary, P[TF[face]]), Ys, skin_F, seams)
     used = np.flatnonzero(np.asarray(abs(G).sum(axis=0)).ravel() > 0)
     G = G[:, used].tocsr()
     nearest = TF[face, np.argmax(bary, axis=1)]
