@@ -469,8 +469,16 @@ def _solve(J: np.ndarray, target: np.ndarray, cost: np.ndarray, lower: np.ndarra
     return out
 
 
-def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frames: int = 20, start: dict | None = None):
+def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frames: int = 20, start: dict | None = None,
+              early_stop: bool = True):
     """A copy of FaceModel `face` with `fap_mapping` filled (see module docstring).
+
+    early_stop: a probe ends once its points are still (SETTLE_TOLERANCE), else it runs
+    all `settle_frames`. Whether a point counts as still is a threshold, which a small
+    change of the head flips: the probe then measures a few frames' creep more or less, and
+    its table scale moves by as much (a brow's 10 % for a change of the philtrum). Without
+    it, the mapping follows the head continuously: what a template build wants, where
+    every test is tuned to the mapping, and speed matters less than for a user's head.
 
     start: the mapping of a similar head (the template a personalized head was adapted
     from): its table scales, the solver's nonlinearity measured there, start the
@@ -592,7 +600,7 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
             # that is what it measures; the "hold" job probes it with them
             controls = jaw_alone if JAW_OPEN in job[1] and job[3] == "probe" else ctl
             return settle(part, solver, controls, job[2], rig, frames=settle_frames, scratch=scratch,
-                          watch=None if job[3] == "hold" else watch_points(job[1]))
+                          watch=None if job[3] == "hold" or not early_stop else watch_points(job[1]))
         finally:
             contexts[key].put((solver, scratch))
 
