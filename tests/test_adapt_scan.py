@@ -306,6 +306,28 @@ def test_a_scanned_bust_becomes_a_head(shared_data, name, tmp_path):
 
 
 @needs_mediapipe
+def test_a_head_that_is_not_whole_is_not_written(bust, tmp_path, capsys, monkeypatch):
+    """fae adapt checks the head it made as `fae template check` does (skin inside a bone,
+    a bone through the skin, the skin through itself) and writes none that fails, unless
+    told to with --force. The check is the anatomy's own (tested on its own); here a
+    fit of the suite's bust is made to fail it."""
+    import fae.anatomy.checks
+
+    scan = tmp_path / "bust.obj"
+    trimesh.Trimesh(bust.vertices, bust.faces, process=False).export(scan)
+    problem = "skin: 3 skin vertices lie inside the mandible (first: vertex 2198)"
+    monkeypatch.setattr(fae.anatomy.checks, "facemodel_problems", lambda model: [problem])
+    out, rep = tmp_path / "head.glb", tmp_path / "r.json"
+    assert main(["adapt", str(scan), "-o", str(out), "--report", str(rep), "--no-calibrate"]) == 2
+    err = capsys.readouterr().err
+    assert "not whole" in err and "inside the mandible" in err and "--force" in err
+    assert not out.exists()
+    assert any("inside the mandible" in v for v in json.loads(rep.read_text())["verdict"])
+    assert main(["adapt", str(scan), "-o", str(out), "--no-calibrate", "--force"]) == 0
+    assert out.exists()
+
+
+@needs_mediapipe
 @pytest.mark.slow
 def test_a_noisy_bust_with_a_hole_in_the_cheek_gives_a_whole_head_or_an_error(bust, template, tmp_path, capsys):
     V = np.asarray(bust.vertices, float).copy()

@@ -176,7 +176,9 @@ def _finish(args, model, report, V, F, keep, started, start_mapping=None) -> int
     verdict = report["verdict"] = report.get("verdict", []) + implausible_fit(report)
     if _refused(args, args.scan, verdict, report, "; --landmarks may help"):
         return 2
-    model = _calibrated(args, model, report, start_mapping)
+    model = _calibrated_if_whole(args, args.scan, model, report, start_mapping)
+    if model is None:
+        return 2
     picture = None
     if args.compare:  # drawn before anything is written: a failure here leaves nothing behind
         from fae.render.compare import comparison_image
@@ -229,6 +231,27 @@ def _write_outputs(args, model, report: dict, picture) -> None:
 
         with atomic_path(args.compare) as tmp:
             write_png(tmp, picture)
+
+
+def _calibrated_if_whole(args, source: str, model, report: dict, start_mapping: dict | None = None):
+    """The model calibrated (_calibrated), or None when it is not whole (fae template
+    check's problems: skin inside a bone, a bone through the skin, the skin cutting
+    through itself, ...) and --force was not given: each problem is said, as
+    `fae template check` would, and nothing is written. The check runs beside the
+    calibration, whose set-up leaves a core free."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from fae.anatomy.checks import facemodel_problems
+
+    with ThreadPoolExecutor(1) as pool:
+        check = pool.submit(facemodel_problems, model)
+        calibrated = _calibrated(args, model, report, start_mapping)
+        problems = [f"the head is not whole ({p}): `fae template check` would fail it" for p in check.result()]
+    if problems:
+        report["verdict"] = report.get("verdict", []) + problems
+        if _refused(args, source, problems, report):
+            return None
+    return calibrated
 
 
 def _calibrated(args, model, report: dict, start_mapping: dict | None = None):
@@ -299,7 +322,9 @@ def _run_paper(args, template, V, F, landmarks) -> int:
     verdict = report["verdict"] = implausible_fit(report)
     if _refused(args, args.scan, verdict, report):
         return 2
-    model = _calibrated(args, model, report, template.fap_mapping)
+    model = _calibrated_if_whole(args, args.scan, model, report, template.fap_mapping)
+    if model is None:
+        return 2
     _write_outputs(args, model, report, None)
     if args.plot:
         write_plot(report, args.plot)
@@ -436,7 +461,9 @@ def _run_photo(args) -> int:
         return 2
     if _refused(args, args.photo, verdict, report):
         return 2
-    model = _calibrated(args, model, report, template.fap_mapping)
+    model = _calibrated_if_whole(args, args.photo, model, report, template.fap_mapping)
+    if model is None:
+        return 2
     picture = None
     if args.compare:  # drawn before anything is written: a failure here leaves nothing behind
         from fae.render.compare import photo_comparison_image
