@@ -11,7 +11,9 @@ watertight), interpolated and lowered to stay a lower bound.
 from __future__ import annotations
 
 import hashlib
+import os
 from collections import OrderedDict
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import warp as wp
@@ -28,6 +30,7 @@ GRID_PADDING = 0.01  # metres between a mesh's bounding box and its grid's
 # coarse grid's, interpolated (the coarse cell's diagonal is 3.5 cells: its sign holds there)
 NEAR_BAND = 4.0
 FAR_MARGIN = 1.5
+SPLIT_THREADS = 4  # at most, computing one grid's samples side by side
 
 
 @wp.func
@@ -41,10 +44,10 @@ def _grid_point(tid: int, origin: wp.vec3, spacing: float, ny: int, nz: int):
 
 @wp.kernel
 def _grid_near_signed_distance(mesh: wp.uint64, origin: wp.vec3, spacing: float, ny: int, nz: int,
-                               band: float, out: wp.array(dtype=float)):
+                               band: float, first: int, out: wp.array(dtype=float)):
     # within `band` of the surface: exact distance, signed by the normal there; farther
-    # samples are left as they are (filled from the coarse grid)
-    tid = wp.tid()
+    # samples are left as they are (filled from the coarse grid). Samples from `first` on.
+    tid = wp.tid() + first
     p = _grid_point(tid, origin, spacing, ny, nz)
     query = wp.mesh_query_point_sign_normal(mesh, p, band, 1.0e-6)
     if query.result:
@@ -56,8 +59,8 @@ def _grid_near_signed_distance(mesh: wp.uint64, origin: wp.vec3, spacing: float,
 
 @wp.kernel
 def _grid_signed_distance(mesh: wp.uint64, origin: wp.vec3, spacing: float, ny: int, nz: int,
-                          max_dist: float, out: wp.array(dtype=float)):
-    tid = wp.tid()
+                          max_dist: float, first: int, out: wp.array(dtype=float)):
+    tid = wp.tid() + first
     p = _grid_point(tid, origin, spacing, ny, nz)
     query = wp.mesh_query_point_sign_winding_number(mesh, p, max_dist, 2.0, 0.5)
     if query.result:
@@ -100,9 +103,9 @@ def signed_distance_grid(V: np.ndarray, F: np.ndarray, cell: float = 0.003, max_
     # exact distance near the surface on all: a third of the time of the winding number on all
     coarse_dims = (dims + 1) // 2
     coarse = wp.zeros(int(np.prod(coarse_dims)), dtype=float, device=device)
-    wp.launch(_grid_signed_distance, dim=coarse.shape[0], device=device,
-              inputs=[mesh.id, wp.vec3(*lo.astype(np.float32)), float(2.0 * spacing), int(coarse_dims[1]),
-                      int(coarse_dims[2]), max_dist, coarse])
+    _launch_split(_grid_signed_distance, coarse.shape[0], device,
+                  [mesh.id, wp.vec3(*lo.astype(np.float32)), float(2.0 * spacing), int(coarse_dims[1]),
+                   int(coarse_dims[2]), max_dist], coarse)
     far = _upsampled(coarse.numpy().reshape(tuple(coarse_dims)), dims)
     # interpolation overshoots by up to about a cell where the distance bends (the medial
     # axis, deep inside or far out): far samples are lowered so that they stay lower bounds
@@ -112,9 +115,9 @@ def signed_distance_grid(V: np.ndarray, F: np.ndarray, cell: float = 0.003, max_
     depth = np.abs(far)
     far = np.sign(far) * (depth - FAR_MARGIN * spacing * np.clip((depth - band) / band, 0.0, 1.0))
     out = wp.array(far.astype(np.float32).ravel(), dtype=float, device=device)
-    wp.launch(_grid_near_signed_distance, dim=out.shape[0], device=device,
-              inputs=[mesh.id, wp.vec3(*lo.astype(np.float32)), float(spacing), int(dims[1]), int(dims[2]),
-                      float(band), out])
+    _launch_split(_grid_near_signed_distance, out.shape[0], device,
+                  [mesh.id, wp.vec3(*lo.astype(np.float32)), float(spacing), int(dims[1]), int(dims[2]),
+                   float(band)], out)
     values = out.numpy().reshape(tuple(dims)).copy()
     values.setflags(write=False)  # shared by every caller through the cache
     lo.setflags(write=False)
@@ -122,6 +125,26 @@ def signed_distance_grid(V: np.ndarray, F: np.ndarray, cell: float = 0.003, max_
     while len(_GRID_CACHE) > _GRID_CACHE_SIZE:
         _GRID_CACHE.popitem(last=False)
     return _GRID_CACHE[key]
+
+
+def _launch_split(kernel, n: int, device: str, inputs: list, out) -> None:
+    """Launch `kernel` over samples 0..n-1 (its inputs, then the first sample, then `out`).
+    On the CPU a launch runs on one core: the samples are split into one range per core,
+    launched side by side (Warp lets go of the GIL while a kernel runs)."""
+    parts = 1 if wp.get_device(device).is_cuda else max(1, min(SPLIT_THREADS, os.cpu_count() or 1))
+    bounds = np.linspace(0, n, parts + 1).astype(int)
+
+    def run(k: int) -> None:
+        if bounds[k + 1] > bounds[k]:
+            wp.launch(kernel, dim=int(bounds[k + 1] - bounds[k]), device=device,
+                      inputs=[*inputs, int(bounds[k]), out])
+
+    if parts == 1:
+        run(0)
+        return
+    wp.load_module(device=device)  # loaded once, before two threads would both load it
+    with ThreadPoolExecutor(parts) as pool:
+        list(pool.map(run, range(parts)))
 
 
 def _upsampled(coarse: np.ndarray, dims: np.ndarray) -> np.ndarray:
