@@ -296,8 +296,11 @@ def test_a_scanned_bust_becomes_a_head(shared_data, name, tmp_path):
     assert report["folded_triangles"]["all"] == 0
     e = report["errors"]
     assert e["face_to_scan_rms_rel"] < 0.001 and e["face_coverage"] > 0.95  # 0.058-0.096 %
-    # the scan's points pull the ears, scalp and neck too: 0.19-0.29 % (0.28-0.32 % without)
-    assert e["scan_to_skin_rms_rel"] < 0.0035 and e["head_to_skin_rms_rel"] < 0.0032
+    # the scan's points pull the ears, scalp and neck too: scan -> skin 0.19 / 0.28 / 0.24 %,
+    # without the neck 0.16 / 0.27 / 0.19 % (0.29 / 0.32 / 0.28 % and 0.28 / 0.33 / 0.23 % without)
+    most, most_head = {"marble_bust": (0.0022, 0.0019), "man_with_wreath": (0.0031, 0.0030),
+                       "demosthenes": (0.0027, 0.0022)}[name]
+    assert e["scan_to_skin_rms_rel"] < most and e["head_to_skin_rms_rel"] < most_head
     part = report["head_part"]
     assert part["head_vertices"] < 0.9 * part["scan_vertices"]  # the plinth and shoulders are left out
     assert facemodel_problems(read_facemodel(out)) == []

@@ -101,10 +101,6 @@ def run(args) -> int:
     if args.method != "surface" and args.compare:
         print("fae adapt: --compare needs --method surface", file=sys.stderr)
         return 2
-    if args.method == "surface":  # imported while the scan is read and its head found
-        from fae.render.landmarks import preload_landmark_model
-
-        preload_landmark_model()
     outputs = {"-o": args.output, "--report": args.report, "--plot": args.plot, "--compare": args.compare}
     try:
         problem = overwritten_input(outputs, {"scan": args.scan, "--landmarks file": args.landmarks,
@@ -113,6 +109,10 @@ def run(args) -> int:
             problem = problem or (path and output_problem(path) and f"{flag} {output_problem(path)}")
         if problem:
             raise ValueError(problem)
+        if args.method == "surface":  # imported while the scan is read and its head found
+            from fae.render.landmarks import preload_landmark_model
+
+            preload_landmark_model()
         V, F = read_scan(args.scan)
         problem = scan_problem(V, F, args.scan)
         landmarks = read_landmarks(args.landmarks, V) if args.landmarks and not problem else None
@@ -238,13 +238,20 @@ def _calibrated_if_whole(args, source: str, model, report: dict, start_mapping: 
     check's problems: skin inside a bone, a bone through the skin, the skin cutting
     through itself, ...) and --force was not given: each problem is said, as
     `fae template check` would, and nothing is written. The check runs beside the
-    calibration, whose set-up leaves a core free."""
+    calibration (the busts' calibration took as long with it as without). A check that
+    fails to run counts as a problem."""
     from concurrent.futures import ThreadPoolExecutor
 
     from fae.anatomy.checks import facemodel_problems
 
+    def checked(model) -> list[str]:
+        try:
+            return facemodel_problems(model)
+        except Exception as exc:  # noqa: BLE001 - a head that cannot be checked is not written as whole
+            return [f"it could not be checked ({type(exc).__name__}: {exc})"]
+
     with ThreadPoolExecutor(1) as pool:
-        check = pool.submit(facemodel_problems, model)
+        check = pool.submit(checked, model)
         calibrated = _calibrated(args, model, report, start_mapping)
         problems = [f"the head is not whole ({p}): `fae template check` would fail it" for p in check.result()]
     if problems:

@@ -140,14 +140,15 @@ def preload_landmark_model() -> None:
     import importlib.util
     import threading
 
+    import os
+
     if importlib.util.find_spec("mediapipe") is None:
         return
+    # set here, not on the thread: the environment is not safe to change beside other threads
+    os.environ.setdefault("GLOG_minloglevel", "2")  # MediaPipe's C++ log lines are not for users
+    os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
 
     def load():
-        import os
-
-        os.environ.setdefault("GLOG_minloglevel", "2")
-        os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
         try:
             import mediapipe  # noqa: F401
         except Exception:  # noqa: BLE001 - detect_points imports it again and says what is wrong
