@@ -138,9 +138,8 @@ def preload_landmark_model() -> None:
     own, so that it is there when a caller that reads and searches a scan first needs it.
     Does nothing when MediaPipe is not installed; detect_points reports that."""
     import importlib.util
-    import threading
-
     import os
+    import threading
 
     if importlib.util.find_spec("mediapipe") is None:
         return
