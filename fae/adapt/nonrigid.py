@@ -442,7 +442,6 @@ def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray
     fold_ref = fold_reference(P, F)  # every round tests its step against the template
     edges = mesh_edges(F)
     query = MeshQuery(X, F)
-    pull_query = MeshQuery(X, F) if fill is not None else None
     if carry is not None:  # neither folding nor cutting through itself, as every stage
         X = whole(P, X, group_means(np.asarray(carry(X[label]), dtype=np.float64), label, n), F, ring, edges,
                   query, reference=fold_ref)[0]
@@ -485,7 +484,7 @@ def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray
             rhs = np.zeros((n, 3))
             rhs[idx] = Q - X[idx]
             if fill is not None and a < DETAIL_STIFFNESS:
-                acc, wsum = scan_pulls(X, NX, F, pull_query, scan, reach, fill & matched & ~quiet)
+                acc, wsum = scan_pulls(X, NX, F, query, scan, reach, fill & matched & ~quiet)
                 rhs = (rhs + FILL_WEIGHT * acc) / (1.0 + FILL_WEIGHT * wsum[:, None])
             if B is not None:
                 rhs += fade * LANDMARK_WEIGHT * (B.T @ (landmarks[2] - B @ X))
