@@ -38,7 +38,6 @@ may pull its skin.
 from __future__ import annotations
 
 import itertools
-import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 
@@ -46,6 +45,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from fae.adapt.calibration import scan_unit, similarity_icp, similarity_transform
+from fae.cores import workers
 from fae.mesh import coincident_groups
 from fae.anatomy.surface_points import markup_positions
 from fae.io.facemodel import FaceModel
@@ -276,7 +276,7 @@ def head_pose(head: TemplateHead, scan_V: np.ndarray) -> tuple[float, np.ndarray
         return score(s, R, t), s, R, t
 
     # the starts are independent: on every core (the tree queries and numpy release the GIL)
-    with ThreadPoolExecutor(max(1, min(4, os.cpu_count() or 1))) as pool:
+    with ThreadPoolExecutor(workers(4)) as pool:
         scored = sorted(pool.map(coarse_fit, starts), key=lambda x: x[0])
         refined = list(pool.map(fine_fit, scored[:REFINED_STARTS]))
     best = (np.inf, 1.0, np.eye(3), np.zeros(3))  # (no start, or none scored: the identity)

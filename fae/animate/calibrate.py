@@ -67,7 +67,6 @@ Controls C: the head's muscles, then the pull fields, then jaw (angle rad, thrus
 from __future__ import annotations
 
 import copy
-import os
 import queue
 import threading
 from concurrent.futures import ThreadPoolExecutor
@@ -85,6 +84,7 @@ from fae.animate.faptables import (FAP_DIRECTION, FAP_FEATURE_POINT, FAP_LIMITS,
                                    SKIN_TRANSLATION_FAPS, fap_unit_scale, fapu_of)
 from fae.mpeg4.faps import FAP_COUNT
 from fae.mpeg4.fdps import mirror_point
+from fae.cores import workers
 from fae.linalg import symmetric_splu
 from fae.mesh import adjacency
 from fae.sim.build import (EYE_CLEARANCE, PullField, dilate, eyeball_sphere, mesh_edges, skin_model,
@@ -568,7 +568,7 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
     controls_face = copy.copy(face)
     # the settles of one pass do not depend on each other (each starts from rest and holds only
     # its batch's FAPs): they run on every core, each thread with its own solver and state
-    workers = max(1, min(SETTLE_THREADS, os.cpu_count() or 1))
+    threads = workers(SETTLE_THREADS)
     # a batch without a jaw FAP moves only its footprint: its probes run on that part of the
     # skin alone (PART_RINGS more rings free around it; the rest held, as it is at rest),
     # the same steps on 40 % of the particles on average (half the thread time); the jaw's
@@ -645,7 +645,7 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
             values = np.zeros(FAP_COUNT)
             values[JAW_OPEN - 1] = half[JAW_OPEN - 1]
             jobs.append((1.0, [JAW_OPEN], values, "hold"))
-        with ThreadPoolExecutor(workers) as pool:
+        with ThreadPoolExecutor(threads) as pool:
             skins = list(pool.map(settled, jobs))
         carried = {}
         for (side, todo, _, kind), skin in zip(jobs, skins):
@@ -703,7 +703,7 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
         controls_face.fap_mapping = mapping
         ctl = FapControls(controls_face, model)
         jobs = _probe_jobs(batches, refining, half)
-        with ThreadPoolExecutor(workers) as pool:
+        with ThreadPoolExecutor(threads) as pool:
             skins = list(pool.map(settled, jobs))
         refining = []
         for (side, todo, _, _), skin in zip(jobs, skins):

@@ -60,6 +60,7 @@ import scipy.sparse as sp
 
 from fae.adapt.binding import (bind_to_surface, coverage_weights, frame_transforms, gather_matrix,
                                pinned_to_points, seam_groups, welded_components)
+from fae.cores import workers
 from fae.io.facemodel import FaceModel, Part, SurfacePoint
 from fae.mesh import vertex_normals
 
@@ -327,7 +328,7 @@ def _template_fap_motion(template: FaceModel, used: np.ndarray) -> dict[int, tup
         return motion[used], own
 
     # the settles do not depend on each other, and Warp's CPU kernels release the GIL
-    with ThreadPoolExecutor(max(1, min(SETTLE_THREADS, os.cpu_count() or 1))) as pool:
+    with ThreadPoolExecutor(workers(SETTLE_THREADS)) as pool:
         return dict(zip(faps, pool.map(settled_motion, faps)))
 
 

@@ -33,6 +33,7 @@ from typing import Callable
 
 from fae.batch.jobs import Job, file_sha256
 from fae.batch.manifest import kept_entry, new_entry, read_previous, write_manifest
+from fae.cores import usable_cores
 from fae.io.atomic import atomic_path
 
 # Each worker process renders with one thread; parallelism comes from the processes.
@@ -56,10 +57,6 @@ class BatchResult:
     @property
     def failed(self) -> list[dict]:
         return [e for e in self.entries if e["status"] == "failed"]
-
-
-def usable_cores() -> int:
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
 def default_workers() -> int:

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import asyncio
 import math
-import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -19,6 +18,7 @@ from typing import Callable, Protocol
 
 import numpy as np
 
+from fae.cores import usable_cores
 from fae.io.frames import DenseFrame
 
 
@@ -159,8 +159,7 @@ class FacePool:
             raise ValueError(f"spares: expected >= 0, got {spares}")
         self.factory = factory
         self.spares = spares
-        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-        self._executor = ThreadPoolExecutor(max_workers=threads or max(1, cores), thread_name_prefix="fae-face")
+        self._executor = ThreadPoolExecutor(max_workers=threads or usable_cores(), thread_name_prefix="fae-face")
         self._ready: list[FaceWorker] = []
         self._fill()
 

@@ -32,9 +32,10 @@ from __future__ import annotations
 import ctypes
 import os
 
+from fae.cores import usable_cores
+
 os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
-_CORES = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-os.environ.setdefault("LP_NUM_THREADS", str(max(1, _CORES - 1)))
+os.environ.setdefault("LP_NUM_THREADS", str(max(1, usable_cores() - 1)))
 
 import numpy as np  # noqa: E402
 from OpenGL import GL  # noqa: E402

@@ -11,12 +11,13 @@ watertight), interpolated and lowered to stay a lower bound.
 from __future__ import annotations
 
 import hashlib
-import os
 from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import warp as wp
+
+from fae.cores import workers
 
 # nothing here is differentiated: no adjoint code to compile
 wp.set_module_options({"enable_backward": False})
@@ -131,7 +132,7 @@ def _launch_split(kernel, n: int, device: str, inputs: list, out) -> None:
     """Launch `kernel` over samples 0..n-1 (its inputs, then the first sample, then `out`).
     On the CPU a launch runs on one core: the samples are split into one range per core,
     launched side by side (Warp lets go of the GIL while a kernel runs)."""
-    parts = 1 if wp.get_device(device).is_cuda else max(1, min(SPLIT_THREADS, os.cpu_count() or 1))
+    parts = 1 if wp.get_device(device).is_cuda else workers(SPLIT_THREADS)
     bounds = np.linspace(0, n, parts + 1).astype(int)
 
     def run(k: int) -> None:
