@@ -400,7 +400,9 @@ def test_a_blink_as_streams_send_it_closes_the_eye(player):
     its deepest the upper lid's point 3.1 comes within 15 % of the opening (3.1 over 3.3,
     12 mm) of the lower lid's (1.1 mm measured; 4 mm, a third of the eye open, while the
     lid followed a step in 3-4 frames and its limit was scaled as its half range), and a
-    lid held at 1024 within 5 % (0.1 mm; 1.8 mm before its limit was measured)."""
+    lid held at 1024 within 8 % (0.9 mm: the lids' fronts meet, the points lie on their
+    inner edges, 0.5 and 0.3 mm from the fronts' edges; 0.1 mm while the upper lid ran
+    3 mm past the lower lid's margin, 1.8 mm before its limit was measured)."""
     face = player.face
     gap = {}
     for name, shape in (("blink", [512, 1024, 1024, 512, 0]), ("held", [1024] * 25)):
@@ -416,7 +418,46 @@ def test_a_blink_as_streams_send_it_closes_the_eye(player):
     rest = face.feature_point_positions()
     rest_opening = rest["3.1"][1] - rest["3.3"][1]
     assert gap["blink"] < 0.15 * rest_opening
-    assert abs(gap["held"]) < 0.05 * rest_opening
+    assert abs(gap["held"]) < 0.08 * rest_opening
+
+
+def test_a_shut_upper_lid_rests_on_the_lower_lids_margin(player):
+    """Through a blink as streams send it (512, 1024, 1024, 512, 0) and a lid held at 1024,
+    the upper lid's skin within 3 mm of its margin (away from the eye's corners) never lies
+    more than 1.2 mm below the lower lid's margin at its own x (0.6 and 0.9 mm measured; 2.3
+    and 3.4 mm, in front of the lower lid, when nothing kept them apart: the shut eye
+    showed a jagged dark line where the two cut each other), and the lower lid's margin
+    is not pushed down (within 0.8 mm of rest; 0.6 mm, as without the contact)."""
+    from fae.mesh import adjacency
+    from fae.sim.build import lid_margin_vertices
+
+    face = player.face
+    V = np.asarray(face.skin_vertices)
+    names = list(face.region_names)
+    region = np.asarray(face.skin_region)
+    A = adjacency(np.asarray(face.skin_faces), len(V))
+    eyes = []
+    for side in "lr":
+        upper, lower = (lid_margin_vertices(face, f"eyelid_{which}_{side}", f"eye_{side}", A) for which in ("upper", "lower"))
+        assert len(upper) >= 10 and len(lower) >= 10
+        over = V[:, 1] - np.interp(V[:, 0], V[upper, 0], V[upper, 1])
+        x0, x1 = V[lower[0], 0], V[lower[-1], 0]
+        inward = (V[:, 0] > x0 + 0.15 * (x1 - x0)) & (V[:, 0] < x1 - 0.15 * (x1 - x0))
+        eyes.append((np.flatnonzero((region == names.index(f"eyelid_upper_{side}")) & (over < 0.003) & inward), lower))
+    below, pushed = 0.0, 0.0
+    for shape in ([512, 1024, 1024, 512, 0], [1024] * 30):
+        player.reset()
+        for a in shape:
+            v = np.zeros(68)
+            v[[18, 19]] = a
+            skin = player.step(v, dt=1 / 25)
+            for near, lower in eyes:
+                order = np.argsort(skin[lower, 0])
+                edge = np.interp(skin[near, 0], skin[lower[order], 0], skin[lower[order], 1])
+                below = max(below, float(np.max(edge - skin[near, 1])))
+                pushed = max(pushed, float(np.abs(skin[lower] - V[lower]).max()))
+    assert below < 0.0012
+    assert pushed < 0.0008
 
 
 def test_a_blinking_lids_lining_stays_above_its_front_margin(player):
@@ -436,6 +477,7 @@ def test_a_blinking_lids_lining_stays_above_its_front_margin(player):
     lids = [names.index(n) for n in ("eyelid_upper_l", "eyelid_upper_r")]
     upper, lower = vertex_of[pairs["upper"]], vertex_of[pairs["lower"]]
     on_lid = (upper >= 0) & (lower >= 0) & np.isin(region[np.maximum(upper, 0)], lids)
+    on_lid &= region[np.maximum(upper, 0)] == region[np.maximum(lower, 0)]  # (not the lids' contact)
     assert on_lid.sum() >= 20
     upper, lower, gap = upper[on_lid], lower[on_lid], pairs["gap"][on_lid]
     worst = np.inf

@@ -45,7 +45,8 @@ mean edge are moved back, epidermis edges where the skin is seen are kept betwee
 `strain_min` 0.4 and `strain_max` 1.8 x their rest length, and lip particles facing each
 other within `lip_reach` 3 mm stay in order (so does each upper lid's lining within as much
 of its front's margin: it sinks no further below the margin than at rest, nor rises more
-than `LID_MARGIN_SLACK` over its rest height), in up to
+than `LID_MARGIN_SLACK` over its rest height; and an upper lid's skin near its margin stays
+above the lower lid's margin, `LID_CONTACT_BAND`), in up to
 `fold_passes` 3 passes per substep.
 """
 
@@ -62,7 +63,7 @@ from scipy.spatial import cKDTree
 from fae.io.facemodel import FaceModel
 from fae.mesh import adjacency_from_edges, vertex_areas, vertex_normals
 from fae.mesh import edges as mesh_edges
-from fae.sim.folds import CreaseVertex, GuardedTriangle, LipPair, crease_vertices, guarded_triangles, lip_pairs
+from fae.sim.folds import CreaseVertex, GuardedTriangle, LipPair, crease_vertices, guarded_triangles, lid_pairs, lip_pairs
 from fae.sim.model import (BONE_COUNT, BONE_NAMES, LAYER_COUNT, MUSCLE_FIELD, MUSCLE_LINEAR, MUSCLE_SPHINCTER,
                            SkinModel)
 from fae.sim.sdf import sample_grid, signed_distance_grid
@@ -257,6 +258,13 @@ EYE_LINING_SLACK = 0.001
 # and held in such a band they were squeezed to a tenth of their length)
 EYE_BAND_REGIONS = ("eyelid_lower_l", "eyelid_lower_r", "cheek_l", "cheek_r")
 UPPER_LID_REGIONS = ("eyelid_upper_l", "eyelid_upper_r")
+# each eye's upper and lower lid, in the order of EYE_PARTS; the upper lid's skin within
+# LID_CONTACT_BAND above its margin (metres) stays above the lower lid's margin
+# (fae.sim.folds.lid_pairs): the margin's front and lining edges alone let the skin between
+# them through
+LID_CONTACT_BAND = 0.003
+LID_CORNER_SHARE = 0.1
+LID_REGION_PAIRS = (("eyelid_upper_l", "eyelid_lower_l"), ("eyelid_upper_r", "eyelid_lower_r"))
 # An upper lid is a thin fold, its front over its lining. As a blink opened, the front's
 # crease came back into the socket ahead of the lining and the margin rolled out: for a
 # frame the lining's dark back showed over the iris (1,200 of 45,000 rays from the front
@@ -277,6 +285,21 @@ LID_MARGIN_SLACK = 0.0005
 # own rest distance less EYE_SLACK, where less).
 LINING_STANDOFF = 0.004
 LID_FRONT_OVER_LINING = 0.0012
+
+
+def lid_margin_vertices(face: FaceModel, region_name: str, eye_name: str, A: sp.spmatrix) -> np.ndarray:
+    """(M,) int: skin vertices of lid region `region_name` on its margin (its front, the skin
+    farther than EYE_CLEARANCE from eyeball part `eye_name`, next to its lining, the skin
+    nearer), sorted by x; empty when the head lacks either. A (V, V): skin adjacency."""
+    names = list(face.region_names)
+    sphere = eyeball_sphere(face, eye_name)
+    if region_name not in names or sphere is None:
+        return np.zeros(0, dtype=np.int64)
+    V = np.asarray(face.skin_vertices, dtype=np.float64)
+    lid = np.asarray(face.skin_region) == names.index(region_name)
+    front = lid & (np.linalg.norm(V - sphere[0], axis=1) - sphere[1] >= EYE_CLEARANCE)
+    rim = np.flatnonzero(front & (A @ (lid & ~front).astype(np.float64) > 0))
+    return rim[np.argsort(V[rim, 0], kind="stable")]
 
 
 def eyeball_sphere(face: FaceModel, name: str) -> tuple[np.ndarray, float] | None:
@@ -582,6 +605,21 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
         lip = np.concatenate([lip, lip_pairs(q, pid(0, np.flatnonzero(hidden & simulated)),
                                              pid(0, np.flatnonzero(rim & simulated)), particle_jaw,
                                              float(p["lip_reach"]), most_slack=LID_MARGIN_SLACK)])
+    # and each eye's lids: the upper lid's margin stays above the lower lid's
+    for (upper_name, lower_name), eye_name in zip(LID_REGION_PAIRS, EYE_PARTS):
+        upper_margin, lower_margin = (lid_margin_vertices(face, n, eye_name, A) for n in (upper_name, lower_name))
+        if len(upper_margin) < 2 or len(lower_margin) < 2:
+            continue
+        # the upper lid's skin within LID_CONTACT_BAND above its margin, front and lining
+        V = np.asarray(face.skin_vertices, dtype=np.float64)
+        over = V[:, 1] - np.interp(V[:, 0], V[upper_margin, 0], V[upper_margin, 1])
+        # (not in the eye's corners, where the lids meet at rest: held there, the corner's
+        # lining came out through its front)
+        x0, x1 = np.sort(V[lower_margin[[0, -1]], 0])
+        inward = (V[:, 0] > x0 + LID_CORNER_SHARE * (x1 - x0)) & (V[:, 0] < x1 - LID_CORNER_SHARE * (x1 - x0))
+        near = (region == names.index(upper_name)) & (over < LID_CONTACT_BAND) & inward & simulated
+        lower_margin = lower_margin[simulated[lower_margin]]
+        lip = np.concatenate([lip, lid_pairs(q, pid(0, np.flatnonzero(near)), pid(0, lower_margin), particle_jaw)])
     lip = lip[movable[lip["upper"]] | movable[lip["lower"]]]
 
     # Bone distance grids and which particles must stay outside them.

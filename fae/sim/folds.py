@@ -39,7 +39,9 @@ mends a long band of strained edges only in part: the limits hold loosely.
 
 Lip contact, in the same passes: the particles of the upper and lower lip that face each
 other at rest (within `lip_reach`) are kept in order along the head's up direction carried
-by their holds: the lips meet and press, but one does not pass through the other.
+by their holds: the lips meet and press, but one does not pass through the other. A
+shut upper lid rests on the lower lid's margin the same way (`lid_pairs`), taking the
+whole correction itself.
 
 The numpy twin is `fae.sim.reference.ReferenceSolver.guard_folds`.
 """
@@ -272,13 +274,16 @@ class LipPair:
     jaw weight of their holds (mean), the least height (metres) of the upper over the
     lower along the head's up direction carried by that hold: 0, or less where the upper lies
     lower at rest, and the most (+inf for the lips, which part freely; an upper lid's margin
-    keeps its lining within a little of its rest height over the front)."""
+    keeps its lining within a little of its rest height over the front), and the share of
+    a correction the upper particle takes (the lower takes the rest: half each for the lips;
+    all of it for a closing lid, which stops on the lower lid without pushing it down)."""
 
     upper: int
     lower: int
     jaw: float
     gap: float
     most: float
+    upper_share: float
 
 
 def lip_pairs(q: np.ndarray, upper: np.ndarray, lower: np.ndarray, jaw: np.ndarray, reach: float,
@@ -302,6 +307,39 @@ def lip_pairs(q: np.ndarray, upper: np.ndarray, lower: np.ndarray, jaw: np.ndarr
     rec["jaw"] = 0.5 * (jaw[pairs[:, 0]] + jaw[pairs[:, 1]])
     rec["gap"] = np.minimum(0.0, q[pairs[:, 0], 1] - q[pairs[:, 1], 1])
     rec["most"] = np.inf if most_slack is None else np.maximum(0.0, q[pairs[:, 0], 1] - q[pairs[:, 1], 1]) + most_slack
+    rec["upper_share"] = 0.5
+    return rec
+
+
+def lid_pairs(q: np.ndarray, upper: np.ndarray, lower_margin: np.ndarray, jaw: np.ndarray) -> np.ndarray:
+    """Structured array of `LipPair`: each particle of `upper` (ids: an upper lid's skin near
+    its margin) with the two particles of `lower_margin` (ids along the lower lid's margin,
+    sorted by x) on either side of it across the face (x) at rest q (P, 3), its least
+    height over each the lower margin's height at the particle's own x (straight between
+    the two) relative to that partner (the rest height, where less): a shut lid's margin
+    lies along the lower lid's edges, not on a staircase of their corners. The upper
+    particle takes each correction (a closing lid stops on the lower lid without pushing it
+    down).
+
+    The lids are 10 mm apart at rest, too far for `lip_pairs`' reach: a closing lid's margin
+    ran past the lower lid's by up to 2.5 mm, in front of it, and the two cut each other in a
+    jagged dark line across the shut eye."""
+    if len(upper) == 0 or len(lower_margin) == 0:
+        return np.zeros(0, dtype=LipPair.numpy_dtype())
+    x = q[lower_margin, 0]
+    at = np.searchsorted(x, q[upper, 0])
+    left, right = lower_margin[np.maximum(at - 1, 0)], lower_margin[np.minimum(at, len(x) - 1)]
+    edge_y = np.interp(q[upper, 0], x, q[lower_margin, 1])
+    pu = np.concatenate([upper, upper])
+    pl = np.concatenate([left, right])
+    gap = np.minimum(np.concatenate([edge_y, edge_y]) - q[pl, 1], q[pu, 1] - q[pl, 1])
+    pairs, first = np.unique(np.column_stack([pu, pl]), axis=0, return_index=True)
+    rec = np.zeros(len(pairs), dtype=LipPair.numpy_dtype())
+    rec["upper"], rec["lower"] = pairs[:, 0], pairs[:, 1]
+    rec["jaw"] = 0.5 * (jaw[pairs[:, 0]] + jaw[pairs[:, 1]])
+    rec["gap"] = gap[first]
+    rec["most"] = np.inf
+    rec["upper_share"] = 1.0
     return rec
 
 
@@ -314,7 +352,7 @@ def separate_lips(particle_q: wp.array(dtype=wp.vec3), pairs: wp.array(dtype=Lip
     lower-lip partner (along the head's up direction carried by their holds) and the partner
     are moved apart, half the overlap each; a pair with a most height (an upper lid's lining
     over its front's margin: fae.sim.build) is drawn together, half the excess each, when the
-    upper rises beyond it."""
+    upper rises beyond it. Each moves by its share (`LipPair.upper_share`)."""
     k = wp.tid()
     if k >= pair_count:
         return
@@ -325,10 +363,12 @@ def separate_lips(particle_q: wp.array(dtype=wp.vec3), pairs: wp.array(dtype=Lip
     overlap = wp.max(pair.gap - height, 0.0) - wp.max(height - pair.most, 0.0)
     if overlap == 0.0:
         return
-    wp.atomic_add(particle_move, pair.upper, up * (0.5 * overlap))
-    wp.atomic_add(particle_move, pair.lower, up * (-0.5 * overlap))
-    wp.atomic_add(particle_moves, pair.upper, 1.0)
-    wp.atomic_add(particle_moves, pair.lower, 1.0)
+    if pair.upper_share > 0.0:
+        wp.atomic_add(particle_move, pair.upper, up * (pair.upper_share * overlap))
+        wp.atomic_add(particle_moves, pair.upper, 1.0)
+    if pair.upper_share < 1.0:
+        wp.atomic_add(particle_move, pair.lower, up * ((pair.upper_share - 1.0) * overlap))
+        wp.atomic_add(particle_moves, pair.lower, 1.0)
     wp.atomic_add(guarded_count, 0, 1)
 
 

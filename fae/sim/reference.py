@@ -308,7 +308,7 @@ class ReferenceSolver:
         move = (a[:, None] * g[..., :1] + b[:, None] * g[..., 1:]) * beta[:, None, None]
         idx, move = ids[hit].reshape(-1), move[hit].reshape(-1, 3)
         crease_idx, crease_move, creased = self.crease_moves(q, bone_rotation, moved)
-        lip_idx, lip_move = self.lip_moves(q, bone_rotation)
+        lip_idx, lip_move, lip_hits = self.lip_moves(q, bone_rotation)
         idx = np.concatenate([idx, crease_idx, lip_idx])
         move = np.concatenate([move, crease_move, lip_move])
         total = _accumulate(P, idx, move)
@@ -323,14 +323,14 @@ class ReferenceSolver:
         against = np.sum(qd[i] * c, axis=1)
         qd[i] -= c * (np.minimum(against, 0.0) / np.maximum(np.sum(c * c, axis=1), 1e-300))[:, None]
         self.collide(q, qd, q_prev, bone_rotation, bone_translation, hold, only=on)
-        return int(hit.sum()) + len(crease_idx) + len(lip_idx) // 2, on
+        return int(hit.sum()) + len(crease_idx) + lip_hits, on
 
-    def lip_moves(self, q: np.ndarray, bone_rotation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(particles (2k,), moves (2k, 3) metres): lip pairs that overlap, moved apart (as
-        fae.sim.folds.separate_lips)."""
+    def lip_moves(self, q: np.ndarray, bone_rotation: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+        """(particles (m,), moves (m, 3) metres, k): the k lip pairs that overlap, moved apart
+        by their shares (as fae.sim.folds.separate_lips)."""
         lp = self.a["lip_pair"]
         if len(lp) == 0:
-            return np.zeros(0, dtype=np.int64), np.zeros((0, 3))
+            return np.zeros(0, dtype=np.int64), np.zeros((0, 3)), 0
         u, low = lp["upper"].astype(np.int64), lp["lower"].astype(np.int64)
         w = lp["jaw"].astype(np.float64)[:, None]
         y = np.array([0.0, 1.0, 0.0])
@@ -338,9 +338,12 @@ class ReferenceSolver:
         up /= np.linalg.norm(up, axis=1, keepdims=True)
         height = np.sum((q[u] - q[low]) * up, axis=1)
         overlap = np.maximum(lp["gap"] - height, 0.0) - np.maximum(height - lp["most"], 0.0)
-        hit = overlap != 0.0
-        half = up[hit] * (0.5 * overlap[hit])[:, None]
-        return np.concatenate([u[hit], low[hit]]), np.concatenate([half, -half])
+        share = lp["upper_share"].astype(np.float64)
+        move = up * overlap[:, None]
+        up_hit, low_hit = (overlap != 0.0) & (share > 0.0), (overlap != 0.0) & (share < 1.0)
+        return (np.concatenate([u[up_hit], low[low_hit]]),
+                np.concatenate([move[up_hit] * share[up_hit, None], move[low_hit] * (share[low_hit, None] - 1.0)]),
+                int(np.count_nonzero(overlap)))
 
     def crease_moves(self, q: np.ndarray, bone_rotation: np.ndarray,
                      moved: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, int]:
