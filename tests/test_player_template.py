@@ -424,10 +424,10 @@ def test_a_blink_as_streams_send_it_closes_the_eye(player):
 def test_a_shut_upper_lid_rests_on_the_lower_lids_margin(player):
     """Through a blink as streams send it (512, 1024, 1024, 512, 0) and a lid held at 1024,
     the upper lid's skin within 3 mm of its margin (away from the eye's corners) never lies
-    more than 1.2 mm below the lower lid's margin at its own x (0.6 and 0.9 mm measured; 2.3
-    and 3.4 mm, in front of the lower lid, when nothing kept them apart: the shut eye
+    more than 1.2 mm below the lower lid's margin at its own x (0.5 and 0.9 mm measured; 2.1
+    and 3.2 mm, in front of the lower lid, when nothing kept them apart: the shut eye
     showed a jagged dark line where the two cut each other), and the lower lid's margin
-    is not pushed down (within 0.8 mm of rest; 0.6 mm, as without the contact)."""
+    is not pushed down (within 0.8 mm of rest; 0.5 mm, as without the contact)."""
     from fae.mesh import adjacency
     from fae.sim.build import lid_margin_vertices
 
@@ -439,7 +439,7 @@ def test_a_shut_upper_lid_rests_on_the_lower_lids_margin(player):
     eyes = []
     for side in "lr":
         upper, lower = (lid_margin_vertices(face, f"eyelid_{which}_{side}", f"eye_{side}", A) for which in ("upper", "lower"))
-        assert len(upper) >= 10 and len(lower) >= 10
+        assert len(upper) >= 8 and len(lower) >= 8
         over = V[:, 1] - np.interp(V[:, 0], V[upper, 0], V[upper, 1])
         x0, x1 = V[lower[0], 0], V[lower[-1], 0]
         inward = (V[:, 0] > x0 + 0.15 * (x1 - x0)) & (V[:, 0] < x1 - 0.15 * (x1 - x0))

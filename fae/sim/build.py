@@ -264,6 +264,7 @@ UPPER_LID_REGIONS = ("eyelid_upper_l", "eyelid_upper_r")
 # them through
 LID_CONTACT_BAND = 0.003
 LID_CORNER_SHARE = 0.1
+MARGIN_ENVELOPE_DX, MARGIN_ENVELOPE_DY = 0.002, 0.0005
 LID_REGION_PAIRS = (("eyelid_upper_l", "eyelid_lower_l"), ("eyelid_upper_r", "eyelid_lower_r"))
 # An upper lid is a thin fold, its front over its lining. As a blink opened, the front's
 # crease came back into the socket ahead of the lining and the margin rolled out: for a
@@ -288,17 +289,29 @@ LID_FRONT_OVER_LINING = 0.0012
 
 
 def lid_margin_vertices(face: FaceModel, region_name: str, eye_name: str, A: sp.spmatrix) -> np.ndarray:
-    """(M,) int: skin vertices of lid region `region_name` on its margin (its front, the skin
-    farther than EYE_CLEARANCE from eyeball part `eye_name`, next to its lining, the skin
-    nearer), sorted by x; empty when the head lacks either. A (V, V): skin adjacency."""
+    """(M,) int: skin vertices of lid region `region_name` along its margin, sorted by x;
+    empty when the head lacks the region or eyeball part `eye_name`. A (V, V): skin
+    adjacency.
+
+    The margin is where the lid's front (skin whose normal faces away from the eyeball's
+    centre) turns into its lining (facing it): on an adapted head the lid can stand several
+    millimetres off the eyeball, so nearness to it does not tell the two apart. Of those
+    vertices, one deep in a crease (an upper lid's folds over its margin) is left out: any
+    within MARGIN_ENVELOPE_DX of another across the face that lies more than
+    MARGIN_ENVELOPE_DY farther from the eye's opening (above it, for an upper lid)."""
     names = list(face.region_names)
     sphere = eyeball_sphere(face, eye_name)
     if region_name not in names or sphere is None:
         return np.zeros(0, dtype=np.int64)
     V = np.asarray(face.skin_vertices, dtype=np.float64)
+    F = np.asarray(face.skin_faces)
     lid = np.asarray(face.skin_region) == names.index(region_name)
-    front = lid & (np.linalg.norm(V - sphere[0], axis=1) - sphere[1] >= EYE_CLEARANCE)
-    rim = np.flatnonzero(front & (A @ (lid & ~front).astype(np.float64) > 0))
+    out = V - sphere[0]
+    rim = np.flatnonzero(lid & (np.einsum("ij,ij->i", vertex_normals(V, F), out) > 0.0))
+    away = V[rim, 1] if "upper" in region_name else -V[rim, 1]  # from the opening
+    near = np.abs(V[rim, 0][:, None] - V[rim, 0][None, :]) < MARGIN_ENVELOPE_DX
+    deep = np.any(near & (away[:, None] - away[None, :] > MARGIN_ENVELOPE_DY), axis=1)
+    rim = rim[~deep]
     return rim[np.argsort(V[rim, 0], kind="stable")]
 
 
@@ -416,7 +429,7 @@ def _muscle_weights(face: FaceModel, points: np.ndarray) -> list[tuple[dict, np.
 
 def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | None = None,
                params: dict | None = None, only: np.ndarray | None = None,
-               like: SkinModel | None = None) -> SkinModel:
+               like: SkinModel | None = None, lid_contact: bool = True) -> SkinModel:
     """The SkinModel of `face` on `device` ("cpu" or "cuda"), with extra pull `fields`.
 
     params override `face.layer_params` and the module defaults (see module docstring).
@@ -426,6 +439,7 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
     params without `only`, whose jaw weights, stable substep and what depends on the face
     alone (edges, normals, muscle weights, seen skin) the part takes: the same steps, so the
     part settles as that skin does in the whole, and a part costs 30-40 ms to make.
+    lid_contact: whether a closing upper lid stops on the lower lid's margin (lid_pairs).
     """
     p = dict(DEFAULTS)
     p.update({k: v for k, v in (face.layer_params or {}).items() if k in DEFAULTS})
@@ -606,7 +620,7 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
                                              pid(0, np.flatnonzero(rim & simulated)), particle_jaw,
                                              float(p["lip_reach"]), most_slack=LID_MARGIN_SLACK)])
     # and each eye's lids: the upper lid's margin stays above the lower lid's
-    for (upper_name, lower_name), eye_name in zip(LID_REGION_PAIRS, EYE_PARTS):
+    for (upper_name, lower_name), eye_name in zip(LID_REGION_PAIRS if lid_contact else (), EYE_PARTS):
         upper_margin, lower_margin = (lid_margin_vertices(face, n, eye_name, A) for n in (upper_name, lower_name))
         if len(upper_margin) < 2 or len(lower_margin) < 2:
             continue
