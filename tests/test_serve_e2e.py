@@ -9,10 +9,12 @@ from __future__ import annotations
 
 import asyncio
 import os
+import re
 import signal
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -62,6 +64,16 @@ class ServeProcess:
                 self.port = int(line.split("listening on ", 1)[1].split()[0].rsplit(":", 1)[1])
                 self._port.set()
         self._port.set()
+
+    def wait_for_line(self, pattern: str, timeout: float = 5.0) -> bool:
+        """True once a line matching regex `pattern` has been written on stderr (the server
+        logs what it did after doing it: a client may see a socket closed first)."""
+        deadline = time.monotonic() + timeout
+        while not any(re.search(pattern, line) for line in list(self.lines)):
+            if time.monotonic() > deadline:
+                return False
+            time.sleep(0.05)
+        return True
 
     def stop(self, sig: int, timeout: float = 120.0) -> tuple[int, str]:
         """Send `sig`; (exit status, everything it wrote on stderr)."""

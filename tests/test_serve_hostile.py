@@ -6,7 +6,6 @@ must still be served. Every wait is bounded; the bounds prove "does not hang", n
 from __future__ import annotations
 
 import asyncio
-import re
 import time
 from pathlib import Path
 
@@ -86,7 +85,7 @@ def test_idle_sockets_cannot_lock_a_client_out_and_are_closed_when_idle(server):
         return closed
 
     assert all(run(main()))
-    assert re.search(r"idle for 3 s; closing", "".join(server.lines))
+    assert server.wait_for_line(r"idle for 3 s; closing"), "".join(server.lines)
 
 
 def test_one_address_holds_at_most_its_share_of_places(server):
