@@ -7,7 +7,9 @@ more than 90 degrees from its rest normal, or when it sits on a **crease**: an e
 two triangles, at most 45 degrees apart at rest, are now more than 90 degrees apart (a
 hinge fold shows as a dark line before either side has turned 90 degrees). Edge
 **strain** is an edge's length over its rest length, over the edges of visible triangles
-(not shorter than `STRAIN_MIN_EDGE` of the median edge). The lips **cross** when an edge
+(not shorter than `STRAIN_MIN_EDGE` of the median edge, and not within skin hidden at
+rest, both ends: a closing lid's lining stretches over the eyeball unseen behind its front;
+should it come out, the lining and back checks below see it). The lips **cross** when an edge
 of one lip passes through a triangle of the other (a segment-triangle test between the
 two lip regions): the lower lip has gone through the upper one, or the reverse. The
 **lining shows** when an edge of skin hidden at rest (the eyelids' lining behind their
@@ -141,23 +143,35 @@ def median_edge_length(V: np.ndarray, F: np.ndarray) -> float:
     return float(np.median(np.linalg.norm(V[F[:, 0]] - V[F[:, 1]], axis=1))) if len(F) else 0.0
 
 
-def lining_pairs(face, visible_triangles: np.ndarray, reach: float = LINING_REACH) -> np.ndarray:
+def _mouth_and_lips(face) -> np.ndarray:
+    """(V,) bool: skin vertices of the mouth's lining and the lips."""
+    names = list(face.region_names)
+    return np.isin(np.asarray(face.skin_region), [names.index(r) for r in (*HIDDEN_REGIONS, *LIP_REGIONS) if r in names])
+
+
+def hidden_at_rest(face) -> np.ndarray:
+    """(V,) bool: skin vertices that no outward ray leaves at rest (fae.adapt.transfer.
+    visible_skin: the lids' lining, the backs of the ears, the nostrils, a few pits), the
+    mouth and lips left out (their inner sides show as soon as the mouth opens)."""
+    from fae.adapt.transfer import visible_skin
+
+    return ~visible_skin(face) & ~_mouth_and_lips(face)
+
+
+def lining_pairs(face, visible_triangles: np.ndarray, reach: float = LINING_REACH,
+                 hidden: np.ndarray | None = None) -> np.ndarray:
     """(k, 3) int: (edge's two skin vertices, triangle index) pairs to test per frame: each
     edge with an end that no outward ray leaves at rest (fae.adapt.transfer.visible_skin:
     the lids' lining, the backs of the ears, the nostrils, and a few pits of the chin, neck
     and scalp; the mouth and lips left out) against the triangles of `visible_triangles`
     (T,) bool with no hidden corner, within `reach` metres of it at rest beyond the
-    triangle's own size, sharing no vertex with it."""
+    triangle's own size, sharing no vertex with it (hidden: `hidden_at_rest(face)`, when at hand)."""
     from scipy.spatial import cKDTree
-
-    from fae.adapt.transfer import visible_skin
 
     V = np.asarray(face.skin_vertices, dtype=np.float64)
     F = np.asarray(face.skin_faces, dtype=np.int64)
-    names = list(face.region_names)
-    region = np.asarray(face.skin_region)
-    lips = np.isin(region, [names.index(r) for r in (*HIDDEN_REGIONS, *LIP_REGIONS) if r in names])
-    hidden = ~visible_skin(face) & ~lips
+    lips = _mouth_and_lips(face)
+    hidden = hidden_at_rest(face) if hidden is None else hidden
     E = _triangle_edges(F[hidden[F].any(axis=1) & ~lips[F].any(axis=1)])
     E = E[hidden[E].any(axis=1)]
     tris = np.flatnonzero(visible_triangles & ~hidden[F].any(axis=1))
@@ -215,6 +229,11 @@ class SkinCheck:
         e = np.concatenate([F[self.visible][:, [0, 1]], F[self.visible][:, [1, 2]], F[self.visible][:, [2, 0]]])
         e.sort(axis=1)
         self.edges = np.unique(e, axis=0)
+        # (skin hidden at rest stretches unseen: a closing lid's lining, drawn down over the
+        # eyeball behind its front; if it comes out, the lining and back checks see it; an
+        # edge from it to skin seen at rest may be seen)
+        hidden = hidden_at_rest(face)
+        self.edges = self.edges[~hidden[self.edges].all(axis=1)]
         self.rest_length = np.linalg.norm(V[self.edges[:, 0]] - V[self.edges[:, 1]], axis=1)
         keep = self.rest_length >= STRAIN_MIN_EDGE * np.median(self.rest_length)
         self.edges, self.rest_length = self.edges[keep], self.rest_length[keep]
@@ -233,7 +252,7 @@ class SkinCheck:
         if all(r in names for r in LIP_REGIONS):
             up, low = (np.flatnonzero(np.isin(r, [names.index(x)]).all(axis=1)) for x in LIP_REGIONS)
             self.lips = [(F[up], _triangle_edges(F[low])), (F[low], _triangle_edges(F[up]))]
-        self.lining = lining_pairs(face, self.visible)
+        self.lining = lining_pairs(face, self.visible, hidden=hidden)
         self.front_rays = front_ray_origins(face, self.visible)
         self._query = None
 
