@@ -368,3 +368,70 @@ def test_a_stretched_edge_is_pulled_back_within_the_strain_limit(face, model):
     assert np.abs(got - ref_q).max() < 1e-6
     assert worst(got) < 0.75 * worst(q)
     assert np.linalg.norm(got[others] - q0[others], axis=1).max() > 1e-5  # its neighbours come along
+
+
+def test_the_lips_contact_kernel_moves_each_partner_by_its_share_as_the_numpy_twin_does():
+    """Pairs that overlap (upper below lower), that rise past a most height, and that are
+    clear, with upper shares 0, 0.25, 0.5 and 1 and holds turned by the jaw: the Warp kernel
+    and ReferenceSolver.lip_moves give the same moves, the same number of moves per particle
+    and the same count of pairs corrected; a share of 1 leaves the lower partner where it is."""
+    from fae.sim import folds
+    from fae.sim.folds import LipPair
+    from fae.sim.reference import _accumulate
+
+    rng = np.random.default_rng(3)
+    P, K = 40, 64
+    q = rng.normal(size=(P, 3)) * 0.01
+    rec = np.zeros(K, dtype=LipPair.numpy_dtype())
+    rec["upper"], rec["lower"] = rng.integers(0, 20, K), rng.integers(20, 40, K)
+    rec["jaw"] = rng.uniform(0.0, 1.0, K)
+    rec["gap"] = rng.normal(size=K) * 0.01
+    rec["most"] = np.where(rng.uniform(size=K) < 0.3, rng.uniform(0.0, 0.01, K), np.inf)
+    rec["upper_share"] = rng.choice([0.0, 0.25, 0.5, 1.0], K)
+    a = 0.2
+    rot = np.stack([np.eye(3), np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])])
+    move, moves = wp.zeros(P, dtype=wp.vec3, device="cpu"), wp.zeros(P, dtype=float, device="cpu")
+    count = wp.zeros(1, dtype=int, device="cpu")
+    wp.launch(folds.separate_lips, dim=K, device="cpu",
+              inputs=[wp.array(q.astype(np.float32), dtype=wp.vec3, device="cpu"), wp.array(rec, dtype=LipPair, device="cpu"),
+                      wp.array(rot.astype(np.float32), dtype=wp.mat33, device="cpu"), K],
+              outputs=[move, moves, count])
+    ref = object.__new__(ReferenceSolver)
+    ref.a = {"lip_pair": rec}
+    idx, mv, hits = ref.lip_moves(q, rot)
+    assert 10 < hits < K and count.numpy()[0] == hits
+    np.testing.assert_allclose(move.numpy(), _accumulate(P, idx, mv), atol=1e-7)
+    np.testing.assert_array_equal(moves.numpy(), np.bincount(idx, minlength=P))
+    one = rec[:1].copy()
+    one["upper"], one["lower"], one["jaw"], one["gap"], one["most"], one["upper_share"] = 0, 1, 0.0, 0.01, np.inf, 1.0
+    ref.a = {"lip_pair": one}  # the upper 1 cm short of its least height: it alone moves, 1 cm up
+    idx, mv, hits = ref.lip_moves(np.zeros((2, 3)), rot)
+    assert hits == 1 and list(idx) == [0]
+    np.testing.assert_allclose(mv[0], [0.0, 0.01, 0.0], atol=1e-12)
+
+
+def test_a_lid_is_held_above_the_lower_margin_between_its_points_not_above_the_higher_one():
+    """lid_pairs: a lower margin of points at x 0, 1, 2, 3 mm and heights 0, 1, 0, -1 mm; an
+    upper particle at x 0.5 mm is held at least at 0.5 mm (the straight margin there), from
+    either partner; one at x 2.5 at -0.5 mm; beyond the margin's ends the end's height; a
+    partner not simulated (-1) leaves its pair out, not the heights; an upper particle below
+    the margin at rest is held no higher than it lies."""
+    from fae.sim.folds import lid_pairs
+
+    lower_rest = np.array([[0.0, 0.0, 0.0], [1.0, 1.0, 0.0], [2.0, 0.0, 0.0], [3.0, -1.0, 0.0]]) * 1e-3
+    lower = np.arange(4)
+    upper_rest = np.array([[0.5, 5.0, 0.0], [2.5, 5.0, 0.0], [-1.0, 5.0, 0.0], [1.5, -2.0, 0.0]]) * 1e-3
+    upper = np.arange(4, 8)
+    jaw = np.zeros(8)
+    rec = lid_pairs(upper, upper_rest, lower, lower_rest, jaw)
+    floor = {4: 0.5e-3, 5: -0.5e-3, 6: 0.0, 7: -2e-3}
+    assert set(rec["upper"]) == set(floor) and np.all(rec["upper_share"] == 1.0) and np.all(np.isinf(rec["most"]))
+    for r in rec:
+        assert lower_rest[r["lower"], 1] + r["gap"] == pytest.approx(floor[r["upper"]], abs=1e-9)
+    lower_part = lower.copy()
+    lower_part[1] = -1
+    part = lid_pairs(upper, upper_rest, lower_part, lower_rest, jaw)
+    assert 1 not in part["lower"] and len(part) < len(rec)
+    for r in part:
+        assert lower_rest[r["lower"], 1] + r["gap"] == pytest.approx(floor[r["upper"]], abs=1e-9)
+    assert len(lid_pairs(upper, upper_rest, lower[:0], lower_rest[:0], jaw)) == 0

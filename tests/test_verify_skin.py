@@ -128,7 +128,8 @@ def test_a_lids_lining_stretched_behind_its_front_is_not_a_tear_but_its_front_is
     """Skin hidden at rest (the upper lid's lining, drawn down over the eyeball behind the
     lid's front as it closes: 2.4x in every blinking xface stream) stretches unseen: an upper
     lid's lining vertex among lining neighbours only, moved 3 mm up, leaves the strain at
-    rest; the same move of a front vertex of the lid stretches its edges past 2x."""
+    rest (at least 1.6x, for any such vertex, when it counted); the same move of a front
+    vertex of the lid stretches its edges past 2x."""
     from fae.animate.skin_check import hidden_at_rest
     from fae.mesh import adjacency
 
@@ -137,12 +138,13 @@ def test_a_lids_lining_stretched_behind_its_front_is_not_a_tear_but_its_front_is
     hidden = hidden_at_rest(face)
     A = adjacency(F, len(V0))
     lid = np.asarray(face.skin_region) == list(face.region_names).index("eyelid_upper_l")
-    among_hidden = hidden & (A @ (~hidden).astype(np.float64) == 0)
+    lining = hidden & lid
+    among_hidden = lining & (A @ (~lining).astype(np.float64) == 0)
     among_seen = ~hidden & (A @ hidden.astype(np.float64) == 0)
-    for moved, torn in ((np.flatnonzero(lid & among_hidden)[0], False), (np.flatnonzero(lid & among_seen)[0], True)):
+    for moved, worst in ((np.flatnonzero(lid & among_hidden)[0], (0.99, 1.01)), (np.flatnonzero(lid & among_seen)[0], (2.0, 9.0))):
         V = V0.copy()
         V[moved, 1] += 0.003
-        assert (check.frame(V).stretch > 2.0) == torn
+        assert worst[0] < check.frame(V).stretch < worst[1]
 
 
 def test_a_corner_moved_across_its_triangle_turns_it_over(face, check):

@@ -7,9 +7,9 @@ more than 90 degrees from its rest normal, or when it sits on a **crease**: an e
 two triangles, at most 45 degrees apart at rest, are now more than 90 degrees apart (a
 hinge fold shows as a dark line before either side has turned 90 degrees). Edge
 **strain** is an edge's length over its rest length, over the edges of visible triangles
-(not shorter than `STRAIN_MIN_EDGE` of the median edge, and not within skin hidden at
-rest, both ends: a closing lid's lining stretches over the eyeball unseen behind its front;
-should it come out, the lining and back checks below see it). The lips **cross** when an edge
+(not shorter than `STRAIN_MIN_EDGE` of the median edge, and not within an upper lid's
+lining, both ends hidden at rest: it stretches over the eyeball unseen behind the lid's
+front as the lid closes; should it come out, the lining and back checks below see it). The lips **cross** when an edge
 of one lip passes through a triangle of the other (a segment-triangle test between the
 two lip regions): the lower lip has gone through the upper one, or the reverse. The
 **lining shows** when an edge of skin hidden at rest (the eyelids' lining behind their
@@ -42,7 +42,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fae.mesh import triangle_normals
-from fae.sim.build import HIDDEN_REGIONS
+from fae.sim.build import HIDDEN_REGIONS, UPPER_LID_REGIONS
 
 FOLD_COS = 0.0  # cos 90 degrees: a normal turned further than this is folded
 # a crease: two neighbours at most 45 degrees apart at rest, more than 90 degrees apart now
@@ -229,11 +229,14 @@ class SkinCheck:
         e = np.concatenate([F[self.visible][:, [0, 1]], F[self.visible][:, [1, 2]], F[self.visible][:, [2, 0]]])
         e.sort(axis=1)
         self.edges = np.unique(e, axis=0)
-        # (skin hidden at rest stretches unseen: a closing lid's lining, drawn down over the
-        # eyeball behind its front; if it comes out, the lining and back checks see it; an
-        # edge from it to skin seen at rest may be seen)
-        hidden = hidden_at_rest(face)
-        self.edges = self.edges[~hidden[self.edges].all(axis=1)]
+        # (an upper lid's lining stretches unseen: drawn down over the eyeball behind the
+        # lid's front as it closes; an edge from it to skin seen at rest may be seen. Other
+        # skin hidden at rest, the lower lids' lining, the ears' backs, comes into view as
+        # lids open wide or the head turns: its edges count)
+        hidden_skin = hidden_at_rest(face)
+        upper_lids = np.isin(region, [names.index(r) for r in UPPER_LID_REGIONS if r in names])
+        unseen = hidden_skin & upper_lids
+        self.edges = self.edges[~unseen[self.edges].all(axis=1)]
         self.rest_length = np.linalg.norm(V[self.edges[:, 0]] - V[self.edges[:, 1]], axis=1)
         keep = self.rest_length >= STRAIN_MIN_EDGE * np.median(self.rest_length)
         self.edges, self.rest_length = self.edges[keep], self.rest_length[keep]
@@ -252,7 +255,7 @@ class SkinCheck:
         if all(r in names for r in LIP_REGIONS):
             up, low = (np.flatnonzero(np.isin(r, [names.index(x)]).all(axis=1)) for x in LIP_REGIONS)
             self.lips = [(F[up], _triangle_edges(F[low])), (F[low], _triangle_edges(F[up]))]
-        self.lining = lining_pairs(face, self.visible, hidden=hidden)
+        self.lining = lining_pairs(face, self.visible, hidden=hidden_skin)
         self.front_rays = front_ray_origins(face, self.visible)
         self._query = None
 

@@ -261,7 +261,10 @@ UPPER_LID_REGIONS = ("eyelid_upper_l", "eyelid_upper_r")
 # each eye's upper and lower lid, in the order of EYE_PARTS; the upper lid's skin within
 # LID_CONTACT_BAND above its margin (metres) stays above the lower lid's margin
 # (fae.sim.folds.lid_pairs): the margin's front and lining edges alone let the skin between
-# them through
+# them through. Not within LID_CORNER_SHARE of the lower margin's width from either corner,
+# where the lids meet at rest. A margin: lid_margin_vertices (MARGIN_ENVELOPE_DX and _DY,
+# metres: how near across the face, and how much nearer the eye's opening, a vertex must
+# lie to drop another)
 LID_CONTACT_BAND = 0.003
 LID_CORNER_SHARE = 0.1
 MARGIN_ENVELOPE_DX, MARGIN_ENVELOPE_DY = 0.002, 0.0005
@@ -288,26 +291,28 @@ LINING_STANDOFF = 0.004
 LID_FRONT_OVER_LINING = 0.0012
 
 
-def lid_margin_vertices(face: FaceModel, region_name: str, eye_name: str, A: sp.spmatrix) -> np.ndarray:
+def lid_margin_vertices(face: FaceModel, region_name: str, eye_name: str,
+                        normals: np.ndarray | None = None) -> np.ndarray:
     """(M,) int: skin vertices of lid region `region_name` along its margin, sorted by x;
-    empty when the head lacks the region or eyeball part `eye_name`. A (V, V): skin
-    adjacency.
+    empty when the head lacks the region or eyeball part `eye_name`. normals (V, 3): the
+    skin's vertex normals, when at hand.
 
-    The margin is where the lid's front (skin whose normal faces away from the eyeball's
-    centre) turns into its lining (facing it): on an adapted head the lid can stand several
-    millimetres off the eyeball, so nearness to it does not tell the two apart. Of those
-    vertices, one deep in a crease (an upper lid's folds over its margin) is left out: any
-    within MARGIN_ENVELOPE_DX of another across the face that lies more than
-    MARGIN_ENVELOPE_DY farther from the eye's opening (above it, for an upper lid)."""
+    The margin is the edge of the lid's front (skin whose normal faces away from the
+    eyeball's centre) nearest the eye's opening: on an adapted head the lid can stand
+    several millimetres off the eyeball, so nearness to it does not tell front from lining.
+    Of the front's vertices those nearest the opening are kept: a vertex goes when another
+    within MARGIN_ENVELOPE_DX across the face lies more than MARGIN_ENVELOPE_DY nearer the
+    opening. That also drops vertices where the margin runs steeply near the corners (the
+    shipped head's lower margin keeps no point over its outer 6 mm): a line between the
+    points kept runs up to 1 mm inside the opening there, so a lid held to it stops early."""
     names = list(face.region_names)
     sphere = eyeball_sphere(face, eye_name)
     if region_name not in names or sphere is None:
         return np.zeros(0, dtype=np.int64)
     V = np.asarray(face.skin_vertices, dtype=np.float64)
-    F = np.asarray(face.skin_faces)
+    N = vertex_normals(V, np.asarray(face.skin_faces)) if normals is None else normals
     lid = np.asarray(face.skin_region) == names.index(region_name)
-    out = V - sphere[0]
-    rim = np.flatnonzero(lid & (np.einsum("ij,ij->i", vertex_normals(V, F), out) > 0.0))
+    rim = np.flatnonzero(lid & (np.einsum("ij,ij->i", N, V - sphere[0]) > 0.0))
     away = V[rim, 1] if "upper" in region_name else -V[rim, 1]  # from the opening
     near = np.abs(V[rim, 0][:, None] - V[rim, 0][None, :]) < MARGIN_ENVELOPE_DX
     deep = np.any(near & (away[:, None] - away[None, :] > MARGIN_ENVELOPE_DY), axis=1)
@@ -619,22 +624,25 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
         lip = np.concatenate([lip, lip_pairs(q, pid(0, np.flatnonzero(hidden & simulated)),
                                              pid(0, np.flatnonzero(rim & simulated)), particle_jaw,
                                              float(p["lip_reach"]), most_slack=LID_MARGIN_SLACK)])
-    # and each eye's lids: the upper lid's margin stays above the lower lid's
+    # and each eye's lids: the upper lid's margin stays above the lower lid's (from the whole
+    # margin, in a part too: only the pairs go whose particles the part lacks)
+    vertex_particle = np.full(nv, -1, dtype=np.int64)
+    vertex_particle[sim_vertices] = pid(0, sim_vertices)
     for (upper_name, lower_name), eye_name in zip(LID_REGION_PAIRS if lid_contact else (), EYE_PARTS):
-        upper_margin, lower_margin = (lid_margin_vertices(face, n, eye_name, A) for n in (upper_name, lower_name))
+        upper_margin, lower_margin = (lid_margin_vertices(face, n, eye_name, normals) for n in (upper_name, lower_name))
         if len(upper_margin) < 2 or len(lower_margin) < 2:
             continue
-        # the upper lid's skin within LID_CONTACT_BAND above its margin, front and lining
-        V = np.asarray(face.skin_vertices, dtype=np.float64)
+        # the upper lid's skin within LID_CONTACT_BAND above its margin, front and lining,
+        # away from the eye's corners (held there, the corner's lining came out through its
+        # front)
         over = V[:, 1] - np.interp(V[:, 0], V[upper_margin, 0], V[upper_margin, 1])
-        # (not in the eye's corners, where the lids meet at rest: held there, the corner's
-        # lining came out through its front)
-        x0, x1 = np.sort(V[lower_margin[[0, -1]], 0])
+        x0, x1 = V[lower_margin[0], 0], V[lower_margin[-1], 0]
         inward = (V[:, 0] > x0 + LID_CORNER_SHARE * (x1 - x0)) & (V[:, 0] < x1 - LID_CORNER_SHARE * (x1 - x0))
-        near = (region == names.index(upper_name)) & (over < LID_CONTACT_BAND) & inward & simulated
-        lower_margin = lower_margin[simulated[lower_margin]]
-        lip = np.concatenate([lip, lid_pairs(q, pid(0, np.flatnonzero(near)), pid(0, lower_margin), particle_jaw)])
-    lip = lip[movable[lip["upper"]] | movable[lip["lower"]]]
+        near = np.flatnonzero((region == names.index(upper_name)) & (over < LID_CONTACT_BAND) & inward & simulated)
+        lip = np.concatenate([lip, lid_pairs(vertex_particle[near], V[near], vertex_particle[lower_margin],
+                                             V[lower_margin], particle_jaw)])
+    # (a pair is kept where the particle it moves can move)
+    lip = lip[((lip["upper_share"] > 0.0) & movable[lip["upper"]]) | ((lip["upper_share"] < 1.0) & movable[lip["lower"]])]
 
     # Bone distance grids and which particles must stay outside them.
     sdf_values, sdf_origin, sdf_spacing = [], np.zeros((BONE_COUNT, 3)), np.ones(BONE_COUNT)

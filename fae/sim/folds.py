@@ -311,33 +311,37 @@ def lip_pairs(q: np.ndarray, upper: np.ndarray, lower: np.ndarray, jaw: np.ndarr
     return rec
 
 
-def lid_pairs(q: np.ndarray, upper: np.ndarray, lower_margin: np.ndarray, jaw: np.ndarray) -> np.ndarray:
-    """Structured array of `LipPair`: each particle of `upper` (ids: an upper lid's skin near
-    its margin) with the two particles of `lower_margin` (ids along the lower lid's margin,
-    sorted by x) on either side of it across the face (x) at rest q (P, 3), its least
-    height over each the lower margin's height at the particle's own x (straight between
-    the two) relative to that partner (the rest height, where less): a shut lid's margin
-    lies along the lower lid's edges, not on a staircase of their corners. The upper
-    particle takes each correction (a closing lid stops on the lower lid without pushing it
-    down).
+def lid_pairs(upper: np.ndarray, upper_rest: np.ndarray, lower: np.ndarray, lower_rest: np.ndarray,
+              jaw: np.ndarray) -> np.ndarray:
+    """Structured array of `LipPair`: each particle of `upper` (ids (k,): an upper lid's skin
+    near its margin, at rest upper_rest (k, 3) metres) with the two points of the lower lid's
+    margin (particle ids `lower` (m,), -1 where not simulated, at rest lower_rest (m, 3),
+    sorted by x) on either side of it across the face (x), its least height over each the
+    margin's height at the particle's own x (straight between the two) relative to that
+    partner (the rest height, where less): a shut lid's margin lies along the lower lid's
+    edges, not on a staircase of their corners. Pairs with a partner not simulated are left
+    out (the heights come from the whole margin all the same). The upper particle takes
+    each correction (a closing lid stops on the lower lid without pushing it down). jaw (P,):
+    the particles' jaw weights.
 
     The lids are 10 mm apart at rest, too far for `lip_pairs`' reach: a closing lid's margin
-    ran past the lower lid's by up to 2.5 mm, in front of it, and the two cut each other in a
+    ran past the lower lid's by up to 3 mm, in front of it, and the two cut each other in a
     jagged dark line across the shut eye."""
-    if len(upper) == 0 or len(lower_margin) == 0:
+    if len(upper) == 0 or len(lower) == 0:
         return np.zeros(0, dtype=LipPair.numpy_dtype())
-    x = q[lower_margin, 0]
-    at = np.searchsorted(x, q[upper, 0])
-    left, right = lower_margin[np.maximum(at - 1, 0)], lower_margin[np.minimum(at, len(x) - 1)]
-    edge_y = np.interp(q[upper, 0], x, q[lower_margin, 1])
-    pu = np.concatenate([upper, upper])
-    pl = np.concatenate([left, right])
-    gap = np.minimum(np.concatenate([edge_y, edge_y]) - q[pl, 1], q[pu, 1] - q[pl, 1])
-    pairs, first = np.unique(np.column_stack([pu, pl]), axis=0, return_index=True)
+    x = lower_rest[:, 0]
+    at = np.searchsorted(x, upper_rest[:, 0])
+    sides = np.concatenate([np.maximum(at - 1, 0), np.minimum(at, len(x) - 1)])
+    edge_y = np.tile(np.interp(upper_rest[:, 0], x, lower_rest[:, 1]), 2)
+    up_y = np.tile(upper_rest[:, 1], 2)
+    gap = np.minimum(edge_y, up_y) - lower_rest[sides, 1]
+    pu, pl = np.tile(upper, 2), lower[sides]
+    keep = pl >= 0
+    pairs, first = np.unique(np.column_stack([pu[keep], pl[keep]]), axis=0, return_index=True)
     rec = np.zeros(len(pairs), dtype=LipPair.numpy_dtype())
     rec["upper"], rec["lower"] = pairs[:, 0], pairs[:, 1]
     rec["jaw"] = 0.5 * (jaw[pairs[:, 0]] + jaw[pairs[:, 1]])
-    rec["gap"] = gap[first]
+    rec["gap"] = gap[keep][first]
     rec["most"] = np.inf
     rec["upper_share"] = 1.0
     return rec
@@ -350,9 +354,10 @@ def separate_lips(particle_q: wp.array(dtype=wp.vec3), pairs: wp.array(dtype=Lip
                   guarded_count: wp.array(dtype=int)):
     """Lips meet and press but do not pass: an upper-lip particle that has sunk below its
     lower-lip partner (along the head's up direction carried by their holds) and the partner
-    are moved apart, half the overlap each; a pair with a most height (an upper lid's lining
-    over its front's margin: fae.sim.build) is drawn together, half the excess each, when the
-    upper rises beyond it. Each moves by its share (`LipPair.upper_share`)."""
+    are moved apart by the overlap; a pair with a most height (an upper lid's lining over its
+    front's margin: fae.sim.build) is drawn together by the excess when the upper rises
+    beyond it. The upper particle moves by its share of it (`LipPair.upper_share`: half for
+    the lips, all of it for a lid on the lower lid), the lower by the rest."""
     k = wp.tid()
     if k >= pair_count:
         return

@@ -75,7 +75,8 @@ class SkinModel:
                                    moved back (fae.sim.folds.smooth_creases)
     strain_max, strain_min  an epidermis edge is kept within these x its rest length
     lip_pair_count      pairs of upper- and lower-lip particles kept in order (lip contact;
-                        and of each upper lid's lining over its front's margin)
+                        and of each upper lid's lining over its front's margin, and of each
+                        upper lid's skin over the lower lid's margin: fae.sim.folds.lid_pairs)
     lip_pair            (K,) fae.sim.folds.LipPair
     spring_indices      (S*2,) int particle pairs
     spring_rest_length  (S,) float metres
