@@ -133,19 +133,24 @@ def detect_pixels(image: np.ndarray) -> np.ndarray | None:
     return None if points is None else points[:, :2]
 
 
+def _quiet_native_logs() -> None:
+    """MediaPipe's C++ log lines are not for users (unless the environment asks for them)."""
+    import os
+
+    os.environ.setdefault("GLOG_minloglevel", "2")
+    os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
+
+
 def preload_landmark_model() -> None:
     """Start importing MediaPipe (half a second, most of it matplotlib) on a thread of its
     own, so that it is there when a caller that reads and searches a scan first needs it.
     Does nothing when MediaPipe is not installed; detect_points reports that."""
     import importlib.util
-    import os
     import threading
 
     if importlib.util.find_spec("mediapipe") is None:
         return
-    # set here, not on the thread: the environment is not safe to change beside other threads
-    os.environ.setdefault("GLOG_minloglevel", "2")  # MediaPipe's C++ log lines are not for users
-    os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
+    _quiet_native_logs()  # here, not on the thread: the environment is unsafe to change beside threads
 
     def load():
         try:
@@ -160,11 +165,9 @@ def detect_points(image: np.ndarray) -> np.ndarray | None:
     """MediaPipe Face Mesh's 468 points (468, 3) of an RGB image (H, W, 3) uint8: pixels
     (x right, y down) and the model's own depth (z away from the viewer, in pixels of the
     image's width, 0 about the face's centre), or None when it finds no face."""
-    import os
     import warnings
 
-    os.environ.setdefault("GLOG_minloglevel", "2")  # MediaPipe's C++ log lines are not for users
-    os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
+    _quiet_native_logs()
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")

@@ -625,9 +625,7 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
                                              pid(0, np.flatnonzero(rim & simulated)), particle_jaw,
                                              float(p["lip_reach"]), most_slack=LID_MARGIN_SLACK)])
     # and each eye's lids: the upper lid's margin stays above the lower lid's (from the whole
-    # margin, in a part too: only the pairs go whose particles the part lacks)
-    vertex_particle = np.full(nv, -1, dtype=np.int64)
-    vertex_particle[sim_vertices] = pid(0, sim_vertices)
+    # margin, in a part too: only the pairs go whose particles the part lacks, local -1)
     for (upper_name, lower_name), eye_name in zip(LID_REGION_PAIRS if lid_contact else (), EYE_PARTS):
         upper_margin, lower_margin = (lid_margin_vertices(face, n, eye_name, normals) for n in (upper_name, lower_name))
         if len(upper_margin) < 2 or len(lower_margin) < 2:
@@ -639,8 +637,8 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
         x0, x1 = V[lower_margin[0], 0], V[lower_margin[-1], 0]
         inward = (V[:, 0] > x0 + LID_CORNER_SHARE * (x1 - x0)) & (V[:, 0] < x1 - LID_CORNER_SHARE * (x1 - x0))
         near = np.flatnonzero((region == names.index(upper_name)) & (over < LID_CONTACT_BAND) & inward & simulated)
-        lip = np.concatenate([lip, lid_pairs(vertex_particle[near], V[near], vertex_particle[lower_margin],
-                                             V[lower_margin], particle_jaw)])
+        lip = np.concatenate([lip, lid_pairs(local[near], V[near], local[lower_margin], V[lower_margin],
+                                             particle_jaw)])
     # (a pair is kept where the particle it moves can move)
     lip = lip[((lip["upper_share"] > 0.0) & movable[lip["upper"]]) | ((lip["upper_share"] < 1.0) & movable[lip["lower"]])]
 
