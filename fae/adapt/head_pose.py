@@ -52,6 +52,11 @@ from fae.io.facemodel import FaceModel
 
 SCAN_SAMPLES = 10000  # scan vertices (at most) used by the pose search
 REFINED_STARTS = 4  # the best starts refined with every point
+# every start takes SCREEN_ITERATIONS coarse ICP steps; the best SCREEN_KEEP share of them
+# (at least SCREEN_MIN) take the rest of COARSE_ITERATIONS: a start two steps in that ranks
+# in the last five sixths does not end first (the three busts, the suite's turned scans)
+COARSE_ITERATIONS, SCREEN_ITERATIONS = 5, 2
+SCREEN_KEEP, SCREEN_MIN = 1.0 / 6.0, 12
 COARSE_SCAN, COARSE_HEAD = 3000, 400  # points (about) of scan and template that score the starts
 YAW_STEPS = 8  # starts turned about each up direction (45 degrees apart)
 HEAD_SHARES = (0.35, 0.6, 0.95)  # starting head height (chin to crown) / scan extent along up
@@ -267,8 +272,8 @@ def head_pose(head: TemplateHead, scan_V: np.ndarray) -> tuple[float, np.ndarray
     coarse_tree = cKDTree(coarse)
     coarse_A = A[:: max(1, len(A) // COARSE_HEAD)]
 
-    def coarse_fit(start):
-        s, R, t = _icp(head, coarse_A, coarse, coarse_tree, *start, iterations=5)
+    def coarse_fit(start, iterations):
+        s, R, t = _icp(head, coarse_A, coarse, coarse_tree, *start[-3:], iterations=iterations)
         return score(s, R, t, coarse, coarse_tree), s, R, t
 
     def fine_fit(start):
@@ -277,7 +282,10 @@ def head_pose(head: TemplateHead, scan_V: np.ndarray) -> tuple[float, np.ndarray
 
     # the starts are independent: on every core (the tree queries and numpy release the GIL)
     with ThreadPoolExecutor(workers(4)) as pool:
-        scored = sorted(pool.map(coarse_fit, starts), key=lambda x: x[0])
+        screened = sorted(pool.map(lambda x: coarse_fit(x, SCREEN_ITERATIONS), starts), key=lambda x: x[0])
+        kept = screened[: max(SCREEN_MIN, int(np.ceil(SCREEN_KEEP * len(screened))))]
+        scored = sorted(pool.map(lambda x: coarse_fit(x, COARSE_ITERATIONS - SCREEN_ITERATIONS), kept),
+                        key=lambda x: x[0])
         refined = list(pool.map(fine_fit, scored[:REFINED_STARTS]))
     best = (np.inf, 1.0, np.eye(3), np.zeros(3))  # (no start, or none scored: the identity)
     for fit in refined:
