@@ -8,20 +8,13 @@ integers in FAPU (or AU = 1e-5 rad), and fae reads them without warnings.
 expressions.fap    the six basic expressions (joy, sadness, anger, fear, disgust,
                    surprise) from LOW-LEVEL FAPs only, in that order: each rises for 0.5 s
                    (smoothstep), holds for 1.0 s, releases for 0.5 s, then 0.2 s of
-                   neutral: 13.2 s. The poses follow the standard's descriptions of the
-                   expressions (FAP 2 table) and the muscle actions of FACS: joy = lip
-                   corners back and up, cheeks lifted, lower lids raised, jaw open; sadness
-                   = inner brows up and together, upper lids lowered, lip corners down, chin
-                   raised, head down; anger = brows down and together, upper lids raised,
-                   lips pressed, nostrils flared; fear = brows up and together, upper lids
-                   wide, mouth stretched open; disgust = upper lip raised (more on the left:
-                   asymmetric), nose wrinkled, cheeks lifted, head turned away; surprise =
-                   brows up, upper lids wide, jaw dropped, lips rounded. Magnitudes are a
-                   fifth to a third of each FAP's I range (e.g. open_jaw 200 of 1080 x 4 MNS
-                   units, raise_i_eyebrow 250 of 900 x 2 ENS units), clearly visible yet
-                   anatomically possible. The poses give the lips relative to the jaw; the
-                   file sends them as the standard's displacements from neutral, which
-                   open_jaw does not change (fae.animate.highlevel.jaw_carried).
+                   neutral: 13.2 s. The faces are the FAP 2 table's poses
+                   (fae.animate.highlevel.EXPRESSION_POSES: what a stream sending FAP 2 at
+                   full intensity shows), each with a head motion (HEAD_MOTION: sadness
+                   and anger nod down, fear and surprise lift the head, disgust turns it
+                   away). The poses give the lips relative to the jaw; the file sends them
+                   as the standard's displacements from neutral, which open_jaw does not
+                   change (fae.animate.highlevel.jaw_carried).
 visemes.fap        "Thank you, Bob." as a FAP 1 viseme sequence (TH aa nn kk ih ou sil PP oh
                    PP sil), 4 frames per viseme, each blending in from the previous one over
                    2 frames (viseme_select2 = previous, viseme_blend 32 then 63).
@@ -47,7 +40,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
-from fae.animate.highlevel import jaw_carried  # noqa: E402
+from fae.animate.highlevel import EXPRESSION_POSES, jaw_carried  # noqa: E402
 from fae.io.fap import FapFrame, FapHeader, Viseme, write_fap  # noqa: E402
 from fae.mpeg4.faps import FAP_COUNT, FAPS  # noqa: E402
 from fae.mpeg4.highlevel import viseme_by_name  # noqa: E402
@@ -82,40 +75,9 @@ def frames_from_tracks(tracks: dict[int, np.ndarray], n_frames: int) -> list[Fap
     return frames
 
 
-def both(left: int, value: float, right_value: float | None = None) -> dict[int, float]:
-    """A left FAP and its right partner (the next number) with the same (or given) value."""
-    return {left: value, left + 1: value if right_value is None else right_value}
-
-
-EXPRESSION_POSES: dict[str, dict[int, float]] = {
-    "joy": {
-        3: 200, 4: -60, 51: -60, 5: -80, 52: -80,
-        **both(6, 150), **both(53, 150), **both(12, 120), **both(59, 120),
-        **both(41, 150), **both(21, 150), **both(19, 80), **both(33, 40),
-    },
-    "sadness": {
-        **both(31, 200), **both(33, 60), **both(35, -80), **both(37, 60), **both(19, 300),
-        **both(12, -100), **both(59, -100), 5: 60, 52: 60, 18: 120, 48: 6000,
-    },
-    "anger": {
-        **both(31, -200), **both(33, -120), **both(35, -40), **both(37, 150),
-        **both(19, -150), **both(21, 100), 4: 60, 51: 60, 5: 120, 52: 120,
-        **both(6, -40), **both(53, -40), **both(61, 60), 48: 2000,
-    },
-    "fear": {
-        **both(31, 250), **both(33, 180), **both(35, 100), **both(37, 80), **both(19, -250),
-        **both(21, -50), 3: 150, **both(6, 100), **both(53, 100), **both(12, -60), **both(59, -60),
-        5: -60, 52: -60, 48: -4000,
-    },
-    "disgust": {
-        4: -150, 51: -150, **both(8, -180, -80), **both(55, -180, -80), 12: -40, 59: -40,
-        **both(61, 120), 63: 100, **both(41, 120), **both(21, 150), **both(31, -100),
-        **both(37, 60), **both(19, 100), 49: 3000,
-    },
-    "surprise": {
-        **both(31, 250), **both(33, 300), **both(35, 250), **both(19, -300), 3: 400,
-        4: -50, 51: -50, 5: -100, 52: -100, **both(6, -60), **both(53, -60), 48: -3000,
-    },
+# each expression's head motion (FAPs 48-50, AU), added to its face (EXPRESSION_POSES)
+HEAD_MOTION: dict[str, dict[int, float]] = {
+    "sadness": {48: 6000}, "anger": {48: 2000}, "fear": {48: -4000}, "disgust": {49: 3000}, "surprise": {48: -3000},
 }
 
 
@@ -123,7 +85,7 @@ def expressions_frames() -> list[FapFrame]:
     rise, hold, release, rest = 0.5, 1.0, 0.5, 0.2
     per = int(round((rise + hold + release + rest) * FPS))
     weights = envelope(per, rise, hold, release)
-    poses = [jaw_carried(pose) for pose in EXPRESSION_POSES.values()]
+    poses = [jaw_carried({**pose, **HEAD_MOTION.get(name, {})}) for name, pose in EXPRESSION_POSES.items()]
     used = sorted({number for pose in poses for number in pose})
     n_frames = per * len(poses)
     tracks = {number: np.zeros(n_frames) for number in used}

@@ -74,23 +74,37 @@ VISEME_FAPS = _table({
     14: _sym(f3=200, f6_7=-260, f53_54=-260, f16_17=240, f4=-40, f51=-40),            # ou: small round
 }, 15, jaw_carried)
 
-# (7, 68) expression code -> low-level FAP values (FAPU units), full intensity (63), lips
-# relative to the jaw
-EXPRESSION_FAPS = _table({
-    0: {},
-    1: _sym(f3=160, f6_7=200, f53_54=200, f12_13=220, f59_60=220, f41_42=300, f21_22=120,   # joy
-            f33_34=40, f4=-60, f51=-60),
-    2: _sym(f31_32=300, f33_34=60, f35_36=-150, f19_20=250, f12_13=-160, f59_60=-160,     # sadness
-            f5=-60, f52=-60, f18=80),
-    3: _sym(f31_32=-300, f33_34=-200, f35_36=-60, f37_38=180, f19_20=-200, f21_22=100,     # anger
-            f4=60, f5=120, f51=40, f52=80, f61_62=120),
-    4: _sym(f31_32=400, f33_34=300, f35_36=200, f37_38=150, f19_20=-300, f21_22=-100,      # fear
-            f3=150, f6_7=120, f53_54=120, f12_13=-80, f59_60=-80),
-    5: _sym(f31_32=-120, f33_34=-80, f19_20=120, f21_22=120, f4=-160, f51=-200,            # disgust
-            f55=-220, f56=-160, f59=100, f12=60, f61_62=150, f63=120, f5=60, f52=60),
-    6: _sym(f31_32=450, f33_34=500, f35_36=400, f19_20=-350, f3=450, f4=-80, f51=-80,       # surprise
-            f6_7=-60, f53_54=-60),
-}, 7, jaw_carried)
+# expression -> low-level FAP values (FAPU units) at full intensity (63), lips relative to
+# the jaw, after the standard's descriptions (fae.mpeg4.highlevel) and the muscle actions of
+# FACS: joy = lip corners back and up, cheeks lifted, lower lids raised, jaw open; sadness =
+# inner brows up, upper lids lowered, lip corners down, chin raised; anger = brows down and
+# together, upper lids raised, lips pressed, nostrils flared; fear = brows up and together,
+# upper lids wide, mouth stretched open; disgust = upper lip raised (more on the left), nose
+# wrinkled, cheeks lifted; surprise = brows up, upper lids wide, jaw dropped, lips rounded.
+# Magnitudes are clearly visible yet anatomically possible: a fifth to a third of each FAP's
+# range (the brows' raise at most 300 ENS, 16 mm on the generic head, where a face lifts its
+# brows 10-15 mm; the Xface streams' fear sends 100). fap_streams/expressions.fap plays these
+# poses, with a head motion each.
+EXPRESSION_POSES: dict[str, dict[int, float]] = {
+    "joy": _sym(f3=200, f4=-60, f51=-60, f5=-80, f52=-80, f6_7=150, f53_54=150, f12_13=120, f59_60=120,
+                f41_42=150, f21_22=150, f19_20=80, f33_34=40),
+    "sadness": _sym(f31_32=200, f33_34=60, f35_36=-80, f37_38=60, f19_20=300, f12_13=-100, f59_60=-100,
+                    f5=60, f52=60, f18=120),
+    "anger": _sym(f31_32=-200, f33_34=-120, f35_36=-40, f37_38=150, f19_20=-150, f21_22=100, f4=60, f51=60,
+                  f5=120, f52=120, f6_7=-40, f53_54=-40, f61_62=60),
+    "fear": _sym(f31_32=250, f33_34=180, f35_36=100, f37_38=80, f19_20=-250, f21_22=-50, f3=150, f6_7=100,
+                 f53_54=100, f12_13=-60, f59_60=-60, f5=-60, f52=-60),
+    "disgust": _sym(f4=-150, f51=-150, f8=-180, f9=-80, f55=-180, f56=-80, f12=-40, f59=-40, f61_62=120, f63=100,
+                    f41_42=120, f21_22=150, f31_32=-100, f37_38=60, f19_20=100),
+    "surprise": _sym(f31_32=250, f33_34=300, f35_36=250, f19_20=-300, f3=400, f4=-50, f51=-50, f5=-100, f52=-100,
+                     f6_7=-60, f53_54=-60),
+}
+
+# (7, 68) expression code (fae.mpeg4.highlevel.EXPRESSIONS) -> low-level FAP values as the
+# standard's displacements from neutral (the lips where the jaw carries them added)
+EXPRESSION_FAPS = _table({code: EXPRESSION_POSES[name] for code, name in
+                          enumerate(("neutral", "joy", "sadness", "anger", "fear", "disgust", "surprise"))
+                          if name in EXPRESSION_POSES}, 7, jaw_carried)
 
 
 def _pair(record, kind: str) -> tuple[tuple[int, float], tuple[int, float]]:
