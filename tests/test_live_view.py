@@ -266,8 +266,10 @@ def test_a_browser_shows_a_textured_head_with_its_colours(model, tmp_path):
     errors: list[str] = []
     try:
         with sync_playwright() as p:
-            browser, page = open_live_page(p, server, errors, "window.faeView && window.faeView.textureLoaded")
-            page.wait_for_timeout(500)  # a frame drawn with the texture
+            # a few frames drawn with the texture (a fixed 500 ms after it loaded was too short
+            # once, with the rest of the suite running beside it: the face still untextured)
+            browser, page = open_live_page(p, server, errors,
+                                           "window.faeView && window.faeView.texturedFramesDrawn >= 3")
             shot = tmp_path / "textured.png"
             page.screenshot(path=str(shot))
             browser.close()
