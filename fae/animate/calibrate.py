@@ -147,8 +147,13 @@ LIP_MARGIN_FAPS = (4, 5, 8, 9, 10, 11, 51, 52, 55, 56, 57, 58)
 MARGIN_SAMPLES = 9  # points along each piece of a margin whose nearest skin seeds its distance
 MARGIN_MIN_GAP = 0.001  # m: a margin's point this close across the face to a neighbour has no hat
 # how many times farther a raise's pull reaches above its point than below: the corners'
-# (see pull_fields) and the brows' (brow_raise_weights)
-RAISE_REACH = {**{k: 2.0 for k in ALONE_FAPS}, **{k: 5.0 for k in LOWERING_FIELD_FAPS}}
+# (see pull_fields)
+RAISE_REACH = {k: 2.0 for k in ALONE_FAPS}
+# the brows' points across the face, right outer to left outer, and how far a brow raise's
+# lift reaches up the forehead, in radii of its field (brow_raise_weights)
+BROW_LINE = ("4.6", "4.4", "4.2", "4.1", "4.3", "4.5")
+BROW_LIFT_REACH = 9.0
+BROW_MIDLINE_RAMP = 0.5
 
 
 def edge_length_graph(face) -> sp.csr_matrix:
@@ -269,33 +274,64 @@ def _wendland(r: np.ndarray) -> np.ndarray:
 
 def brow_raise_weights(face, es0: float, graph: sp.csr_matrix) -> dict[int, np.ndarray]:
     """(V,) pull-field weights of each brow raise (LOWERING_FIELD_FAPS the head has), made
-    together.
+    together (graph: `edge_length_graph(face)`).
 
-    Below its point a raise pulls with the round bump (radius from _FIELD_RADIUS_ES); above
-    it, its lift fades with a raised cosine over RAISE_REACH times that radius, so that the
-    forehead comes along instead of buckling into a ridge where a bump's pull ended. Each
-    forehead vertex's lift is shared among the brow points by nearness (weights d^-4,
-    normalized), so six raises sent together lift it once, not six times, and a left brow
-    does not lift the right side of the forehead; between the bump and the lift the weight
-    blends over half the radius of height above the point."""
+    The brows' points (BROW_LINE, across the face) lie on one line, the brow. Along it,
+    each raise's weight is a hat in x, 1 at its own point and 0 at its neighbours' (past
+    the outer points it stays 1, fading as a Wendland function over the radius from
+    _FIELD_RADIUS_ES): the six raises sent alike lift the brow evenly, where round bumps
+    about each point lifted it in lumps with grooves between (a surprise's brows at 60 %
+    of their lift between the points) and lifted the forehead where two bumps overlapped
+    twice. Across it, the weight falls with the skin's distance (along its edges) from the
+    line: below, as a Wendland function over the radius (the brow's underside and the
+    upper lid come along); above, as a raised cosine over BROW_LIFT_REACH times the radius,
+    so that the forehead rises with the brow and is squeezed gently up to the crown
+    instead of buckling into a ridge where a shorter pull ends (a surprise's 16 mm raise
+    with a reach of 5 radii: a ridge across the top of the forehead)."""
     V = np.asarray(face.skin_vertices, dtype=np.float64)
-    found = [k for k in LOWERING_FIELD_FAPS if FAP_FEATURE_POINT[k - 1] in face.feature_points
-             and face.feature_points[FAP_FEATURE_POINT[k - 1]].part == "skin"]
+    fp = face.feature_point_positions()
+    line = [n for n in BROW_LINE if n in fp and face.feature_points[n].part == "skin"]
+    found = [k for k in LOWERING_FIELD_FAPS if FAP_FEATURE_POINT[k - 1] in line]
     if not found:
         return {}
-    bump, lift, near, height = {}, {}, {}, {}
+    P = np.array([fp[n] for n in line])
+    order = np.argsort(P[:, 0])
+    line, P = [line[i] for i in order], P[order]
+    radius = _FIELD_RADIUS_ES[found[0]] * es0
+    reach = BROW_LIFT_REACH * radius
+    # the brow: straight pieces between its points, and each skin vertex's distance from it
+    t = np.linspace(0.0, 1.0, MARGIN_SAMPLES)[:, None]
+    samples = np.vstack([P[i] + t * (P[i + 1] - P[i]) for i in range(len(P) - 1)] or [P])
+    # (seeded on the skin of the brow points' own regions: the brow's underside is not the brow)
+    region = np.asarray(face.skin_region)
+    faces = np.asarray(face.skin_faces)
+    own = np.unique(np.concatenate([region[faces[face.feature_points[n].triangle]] for n in line]))
+    candidates = np.flatnonzero(np.isin(region, own))
+    seeds = candidates[np.unique(cKDTree(V[candidates]).query(samples)[1])]
+    d = dijkstra(graph, directed=False, indices=seeds, min_only=True, limit=reach)
+    above = V[:, 1] > np.interp(V[:, 0], P[:, 0], P[:, 1])
+    across = np.where(above, 0.5 * (1.0 + np.cos(np.pi * np.minimum(d / reach, 1.0))), _wendland(d / radius))
+    across = np.where(np.isfinite(d), across, 0.0)
+    x = V[:, 0]
+    out = {}
+    def ramp(a: float, b: float) -> np.ndarray:
+        # 0 at neighbour x = a, 1 at the point's x = b; across the midline (the inner brows)
+        # over BROW_MIDLINE_RAMP of the way about the middle, so a brow raised alone leaves
+        # its mirror where it was (the ramp over the whole way took it 16 % as far)
+        if a * b < 0.0:
+            half = 0.5 * BROW_MIDLINE_RAMP * (b - a)
+            a, b = 0.5 * (a + b) - half, 0.5 * (a + b) + half
+        return (x - a) / (b - a)
+
     for k in found:
-        point = face.feature_points[FAP_FEATURE_POINT[k - 1]]
-        radius = _FIELD_RADIUS_ES[k] * es0
-        reach = radius * RAISE_REACH[k]
-        d = geodesic_distance(face, point, reach, graph)
-        bump[k] = _wendland(d / radius)
-        lift[k] = 0.5 * (1.0 + np.cos(np.pi * np.minimum(d / reach, 1.0)))
-        near[k] = np.where(np.isfinite(d), 1.0 / np.maximum(d, radius / 4.0), 0.0) ** 4
-        height[k] = np.clip((V[:, 1] - face.surface_point_position(point)[1]) / (radius / 2.0), 0.0, 1.0)
-    total = np.maximum(sum(near.values()), 1e-300)
-    return {k: (1.0 - height[k]) * bump[k] + height[k] * np.maximum(bump[k], near[k] / total * lift[k])
-            for k in found}
+        i = line.index(FAP_FEATURE_POINT[k - 1])
+        xi = P[i, 0]
+        # a hat in x, 1 at the point, 0 at the neighbours; past an outer point 1, fading
+        lo = ramp(P[i - 1, 0], xi) if i > 0 else _wendland(np.maximum(xi - x, 0.0) / radius)
+        hi = ramp(P[i + 1, 0], xi) if i < len(P) - 1 else _wendland(np.maximum(x - xi, 0.0) / radius)
+        hat = np.clip(np.where(x < xi, lo, hi), 0.0, 1.0)
+        out[k] = hat * across
+    return out
 
 
 # eyelid FAP -> (the lid's region, its eye's inner and outer corners, the eyeball part, the

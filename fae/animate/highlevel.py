@@ -83,10 +83,12 @@ VISEME_FAPS = _table({
 # wrinkled, cheeks lifted; surprise = brows up, upper lids wide, jaw dropped, lips rounded.
 # Magnitudes are clearly visible yet anatomically possible: a fifth to a third of each FAP's
 # range (the brows' raise at most 300 ENS, 16 mm on the generic head, where a face lifts its
-# brows 10-15 mm; the Xface streams' fear sends 100). fap_streams/expressions.fap plays these
-# poses, with a head motion each.
+# brows 10-15 mm; the Xface streams' fear sends 100); joy's corners rise 200 MNS over the
+# jaw, which carries them down 100 as it opens: 1.5 mm up on the generic head (at 120 they
+# stayed level, a flat open mouth). fap_streams/expressions.fap plays these poses, with a
+# head motion each.
 EXPRESSION_POSES: dict[str, dict[int, float]] = {
-    "joy": _sym(f3=200, f4=-60, f51=-60, f5=-80, f52=-80, f6_7=150, f53_54=150, f12_13=120, f59_60=120,
+    "joy": _sym(f3=200, f4=-60, f51=-60, f5=-80, f52=-80, f6_7=150, f53_54=150, f12_13=200, f59_60=200,
                 f41_42=150, f21_22=150, f19_20=80, f33_34=40),
     "sadness": _sym(f31_32=200, f33_34=60, f35_36=-80, f37_38=60, f19_20=300, f12_13=-100, f59_60=-100,
                     f5=60, f52=60, f18=120),

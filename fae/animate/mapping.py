@@ -37,8 +37,10 @@ one FAP alone, or two points far apart, are unchanged.
 
 A brow raised as far as the standard's range goes (+-900 ENS, 48 mm on the generic head;
 expressions.fap's surprise asks 13-16 mm) lifted the forehead as a slab with a folded
-ridge where its pull ended: the raise's pull now reaches far up the forehead. The same
-field, negative, pulled the whole forehead down over the eyes, so the brow FAPs
+ridge where its pull ended, and round bumps about the brow's three points lifted it in
+lumps: a raise now pulls along the brow's line, shared with its neighbours, and lifts the
+forehead up to the crown (fae.animate.calibrate.brow_raise_weights). The same field,
+negative, pulled the whole forehead down over the eyes, so the brow FAPs
 (LOWERING_FIELD_FAPS) lower with a field of their own, the round bump about the point.
 """
 
@@ -47,6 +49,8 @@ from __future__ import annotations
 from fae.animate.ears import EAR_FAPS
 from fae.animate.faptables import FAP_FEATURE_POINT, JAW_FAPS, SKIN_TRANSLATION_FAPS
 
+# 10: a brow raise pulls along the brow's line (a hat between its neighbours' points) and
+# lifts the forehead up to the crown;
 # 9: a cheek raise (41, 42) pulls the lower eyelids half as hard;
 # 8: a lip's points between two others pull with fields spanning its margin between them;
 # 7: an upper lid closes by unfolding its crease and the brow's underside, the skin's
@@ -55,7 +59,7 @@ from fae.animate.faptables import FAP_FEATURE_POINT, JAW_FAPS, SKIN_TRANSLATION_
 # 5: inner and outer lip FAPs merged where their points overlap (pair_overlap); 4: lip FAPs are displacements the jaw does not change (jaw_follow), 2.1 at the gnathion; 3: the skin solver with the fold guard, crease smoothing and lip contact (fae.sim.folds)
 # and pull fields preferred to muscles; 2: implicit anchors, blended holds and derived ear
 # tables
-FORMAT_VERSION = 9
+FORMAT_VERSION = 10
 JAW_CONTROLS = 3
 JAW_OPEN = 3
 # the inner (4-13) and outer (51-60) lip FAPs
