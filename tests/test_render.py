@@ -252,3 +252,43 @@ def test_a_textured_skin_shows_its_texture_and_wraps_around_the_seam(head, rende
     model.skin_texture = None
     with FaceRenderer(model, SIZE) as plain:
         assert np.array_equal(plain.render(), untextured)
+
+
+@pytest.mark.slow
+def test_the_teeth_darken_towards_the_back_of_the_arch_in_an_open_mouth():
+    """The shipped head's teeth are painted darker towards the back of the arch (the
+    cheeks' shade): lit like the incisors, the lower arch's sides stood at the corners of an
+    open mouth as two white fangs. expressions.fap's surprise (jaw dropped) from the front:
+    the lower teeth seen in the outer fifth of the mouth's width on each side are at most 0.8
+    as bright as the upper teeth in its middle fifth (measured 0.72; 0.97 lit alike)."""
+    import copy
+
+    from fae.animate.player import Player, playable_head
+    from fae.data import shipped_head_path
+    from fae.io.facemodel_gltf import read_facemodel
+    from fae.io.fap import read_fap
+
+    face = read_facemodel(shipped_head_path())
+    frame = next(f for f in Player(playable_head(face)).play(read_fap("fap_streams/expressions.fap")) if f.index == 300)
+    images = []
+    for left_out in ((), ("lower_teeth",), ("upper_teeth",)):
+        model = copy.copy(face)
+        model.parts = {k: p for k, p in face.parts.items() if k not in left_out}
+        with FaceRenderer(model, size=(900, 900)) as r:
+            images.append(r.render(frame.skin_vertices, frame.bone_transforms).astype(float))
+            corners = r.camera.project(np.array([face.surface_point_position(face.feature_points[n], frame.skin_vertices)
+                                                 for n in ("2.4", "2.5")]), r.size)
+    left, right = sorted(corners[:, 0])
+    width = right - left
+    brightness = images[0].mean(axis=2)
+
+    def seen(i):  # pixels where the teeth left out of image i showed
+        return np.abs(images[0] - images[i]).max(axis=2) > 30
+
+    lower_y, lower_x = np.nonzero(seen(1))
+    upper_y, upper_x = np.nonzero(seen(2))
+    outer = (lower_x < left + 0.2 * width) | (lower_x > right - 0.2 * width)
+    middle = np.abs(upper_x - 0.5 * (left + right)) < 0.1 * width
+    assert outer.sum() > 10 and middle.sum() > 50, (outer.sum(), middle.sum())
+    corner, front = brightness[lower_y[outer], lower_x[outer]].mean(), brightness[upper_y[middle], upper_x[middle]].mean()
+    assert corner < 0.8 * front, (corner, front)

@@ -200,6 +200,26 @@ def eyeball(center_mm: np.ndarray, rings: int = 40, segments: int = 48) -> tuple
     return V, F, colors
 
 
+# teeth toward the back of the arch darken to TEETH_BACK_SHADE of their colour between these
+# angles about the arch's centre (0: the front midline, 90: straight to the side): the
+# cheeks shade the premolars and molars (the buccal corridor); lit like the incisors, the
+# lower arch's sides stood at the corners of an open smile as two white fangs
+TEETH_SHADE_FROM, TEETH_SHADE_TO = 30.0, 60.0
+TEETH_BACK_SHADE = 0.12
+
+
+def teeth_colors(name: str, V: np.ndarray) -> np.ndarray:
+    """(n, 4) float32 linear RGBA of the teeth part `name` at its vertices V (n, 3) mm: its
+    colour, darker towards the back of the arch (TEETH_SHADE_FROM..TEETH_SHADE_TO)."""
+    a, b = S.UPPER_ARCH if name == "upper_teeth" else S.LOWER_ARCH
+    angle = np.degrees(np.arctan2(np.abs(V[:, 0]) / a, (V[:, 2] - S.ARCH_CENTER_Z) / b))
+    t = np.clip((angle - TEETH_SHADE_FROM) / (TEETH_SHADE_TO - TEETH_SHADE_FROM), 0.0, 1.0)
+    shade = 1.0 - (1.0 - TEETH_BACK_SHADE) * t * t * (3.0 - 2.0 * t)
+    colors = np.tile(np.array(_PART_COLORS[name], dtype=np.float32), (len(V), 1))
+    colors[:, :3] *= shade[:, None].astype(np.float32)
+    return colors
+
+
 def _part(name: str, V: np.ndarray, F: np.ndarray, vertex_colors=None) -> Part:
     return Part(vertices=np.ascontiguousarray(V, dtype=np.float64), faces=np.ascontiguousarray(F, dtype=np.int32),
                 color=np.array(_PART_COLORS[name], dtype=np.float32), bone=_BONES[name], vertex_colors=vertex_colors)
@@ -412,7 +432,8 @@ def build_template() -> FaceModel:
     muscles = template_muscles(V, F, region, parts_mm)
     thickness = skin_thickness(V, [parts_mm["cranium"], parts_mm["mandible"]], THICKNESS_CAP / MM) * MM
 
-    parts = {name: _part(name, PV * MM, PF) for name, (PV, PF) in parts_mm.items() if not name.startswith("eye")}
+    parts = {name: _part(name, PV * MM, PF, teeth_colors(name, PV) if name.endswith("_teeth") else None)
+             for name, (PV, PF) in parts_mm.items() if not name.startswith("eye")}
     parts["eye_l"] = _part("eye_l", eye_l[0], eye_l[1], eye_l[2])
     parts["eye_r"] = _part("eye_r", eye_r[0], eye_r[1], eye_r[2])
     return FaceModel(

@@ -421,7 +421,13 @@ class FaceRenderer:
                 except ValueError:
                     pupil = None  # an eye without a pupil colour: drawn, never dilated
             colors.append(pc[:, :3])
-            gloss.append(np.tile(np.asarray(GLOSS.get(name, _DEFAULT_GLOSS), dtype=np.float32), (len(pv), 1)))
+            part_gloss = np.tile(np.asarray(GLOSS.get(name, _DEFAULT_GLOSS), dtype=np.float32), (len(pv), 1))
+            if part.vertex_colors is not None and pupil is None:
+                # where a part is painted darker than its colour (the teeth towards the back
+                # of the arch, in the cheeks' shade) it shines as much less
+                base = float(np.mean(np.asarray(part.color, dtype=np.float32).reshape(-1)[:3]))
+                part_gloss[:, 0] *= np.clip(pc[:, :3].mean(axis=1) / max(base, 1e-6), 0.0, 1.0)
+            gloss.append(part_gloss)
             texcoords.append(np.zeros((len(pv), 3), dtype=np.float32))
             tris.append(pf + offset)
             self._parts.append((part.bone, slice(offset, offset + len(pv)), pv, per_vertex_normals(pv, pf), pupil))
