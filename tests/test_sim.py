@@ -435,3 +435,22 @@ def test_a_lid_is_held_above_the_lower_margin_between_its_points_not_above_the_h
     for r in part:
         assert lower_rest[r["lower"], 1] + r["gap"] == pytest.approx(floor[r["upper"]], abs=1e-9)
     assert len(lid_pairs(upper, upper_rest, lower[:0], lower_rest[:0], jaw)) == 0
+
+
+def test_each_lip_particle_is_paired_with_its_nearest_on_the_other_lip_within_reach():
+    """lip_pairs: an upper lip of three particles 4 mm apart over a lower lip of three, 1.5 mm
+    below: with the nearest alone each pairs with the one under it (a wall meshed this
+    coarsely let a lower particle rise through the upper triangle between two pairs); with
+    up to 3 neighbours within 6 mm also with the ones beside it, 4.3 mm off, but not with
+    those 8.1 mm off; each pair once, the upper above at rest (gap 0)."""
+    from fae.sim.folds import lip_pairs
+
+    x = np.array([0.0, 4.0, 8.0]) * 1e-3
+    q = np.vstack([np.column_stack([x, np.full(3, 1.5e-3), np.zeros(3)]), np.column_stack([x, np.zeros(3), np.zeros(3)])])
+    upper, lower, jaw = np.arange(3), np.arange(3, 6), np.zeros(6)
+    one = lip_pairs(q, upper, lower, jaw, 0.003)
+    assert sorted(map(tuple, np.column_stack([one["upper"], one["lower"]]).tolist())) == [(0, 3), (1, 4), (2, 5)]
+    more = lip_pairs(q, upper, lower, jaw, 0.006, neighbours=3)
+    pairs = sorted(map(tuple, np.column_stack([more["upper"], more["lower"]]).tolist()))
+    assert pairs == [(0, 3), (0, 4), (1, 3), (1, 4), (1, 5), (2, 4), (2, 5)]
+    assert np.all(more["gap"] == 0.0) and np.all(more["upper_share"] == 0.5)

@@ -43,7 +43,8 @@ layers below `fold_min_area` 0.3 of their rest area (in their rest plane) are re
 epidermis particles whose Laplacian offset strays more than `crease_tolerance` 0.25 x their
 mean edge are moved back, epidermis edges where the skin is seen are kept between
 `strain_min` 0.4 and `strain_max` 1.8 x their rest length, and lip particles facing each
-other within `lip_reach` 3 mm stay in order (so does each upper lid's lining within as much
+other within `LIP_PAIR_REACH` 6 mm stay in order (each with up to `LIP_PAIR_NEIGHBOURS` 6
+of the other lip's; so does each upper lid's lining within `lip_reach` 3 mm
 of its front's margin: it sinks no further below the margin than at rest, nor rises more
 than `LID_MARGIN_SLACK` over its rest height; and an upper lid's skin near its margin stays
 above the lower lid's margin, `LID_CONTACT_BAND`), in up to
@@ -280,6 +281,13 @@ LID_REGION_PAIRS = (("eyelid_upper_l", "eyelid_lower_l"), ("eyelid_upper_r", "ey
 # 26, but a lid opened wide stretched its margin 3.7x against it).
 EYE_UPPER_FRONT_KEEP = 0.002
 LID_MARGIN_SLACK = 0.0005
+# each lip particle is kept above (below) up to LIP_PAIR_NEIGHBOURS of the other lip's within
+# LIP_PAIR_REACH at rest: the slit's walls are meshed with vertices up to 10 mm apart, and
+# paired with the nearest within 3 mm alone, a pressed lower lip's vertex rose through the
+# upper wall's triangle between its corners (expressions.fap's anger: the lips crossed in 35
+# frames, 27 now; xface_beg 3 -> 0, xface_hate 2 -> 0)
+LIP_PAIR_REACH = 0.006
+LIP_PAIR_NEIGHBOURS = 6
 # An adapted head's upper lid can stand off its eyeball: fitted to a bust's sculpted eye, the
 # lid's margin and lining lay 5-10 mm in front of the eyeball placed in its socket. Such
 # lining (beyond LINING_STANDOFF; the generic head's lies within 3.5 mm) has no eyeball to
@@ -607,7 +615,7 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
     for name in ("lip_upper", "lip_lower"):
         v = sim_vertices[region[sim_vertices] == names.index(name)] if name in names else np.zeros(0, dtype=np.int64)
         lips.append(pid(0, v))
-    lip = lip_pairs(q, lips[0], lips[1], particle_jaw, float(p["lip_reach"]))
+    lip = lip_pairs(q, lips[0], lips[1], particle_jaw, LIP_PAIR_REACH, neighbours=LIP_PAIR_NEIGHBOURS)
     from fae.adapt.transfer import visible_skin
 
     seen_skin = shared[4] if shared else visible_skin(face)

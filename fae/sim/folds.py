@@ -38,7 +38,7 @@ neighbours before the skin looks torn. The moves are averaged with the others, s
 mends a long band of strained edges only in part: the limits hold loosely.
 
 Lip contact, in the same passes: the particles of the upper and lower lip that face each
-other at rest (within `lip_reach`) are kept in order along the head's up direction carried
+other at rest (within LIP_PAIR_REACH, fae.sim.build) are kept in order along the head's up direction carried
 by their holds: the lips meet and press, but one does not pass through the other. A
 shut upper lid rests on the lower lid's margin the same way (`lid_pairs`), taking the
 whole correction itself.
@@ -287,9 +287,10 @@ class LipPair:
 
 
 def lip_pairs(q: np.ndarray, upper: np.ndarray, lower: np.ndarray, jaw: np.ndarray, reach: float,
-              most_slack: float | None = None) -> np.ndarray:
+              most_slack: float | None = None, neighbours: int = 1) -> np.ndarray:
     """Structured array of `LipPair`: each particle of `upper` (ids) within `reach` metres of
-    one of `lower` at rest q (P, 3), with its nearest, and each of `lower` likewise; with
+    one of `lower` at rest q (P, 3), with its `neighbours` nearest within it, and each of
+    `lower` likewise; with
     `most_slack` (metres), the upper rises at most that much above its rest height over the
     lower (else without limit)."""
     from scipy.spatial import cKDTree
@@ -297,9 +298,12 @@ def lip_pairs(q: np.ndarray, upper: np.ndarray, lower: np.ndarray, jaw: np.ndarr
     out = []
     if len(upper) and len(lower):
         for a, b, flip in ((upper, lower, False), (lower, upper, True)):
-            d, j = cKDTree(q[b]).query(q[a])
+            d, j = cKDTree(q[b]).query(q[a], k=neighbours)
+            d, j = d.reshape(len(a), -1), j.reshape(len(a), -1)
             near = d < reach
-            pu, pl = (b[j[near]], a[near]) if flip else (a[near], b[j[near]])
+            ia = np.broadcast_to(a[:, None], d.shape)[near]
+            jb = b[np.minimum(j[near], len(b) - 1)]
+            pu, pl = (jb, ia) if flip else (ia, jb)
             out.append(np.column_stack([pu, pl]))
     pairs = np.unique(np.concatenate(out), axis=0) if out else np.zeros((0, 2), dtype=np.int64)
     rec = np.zeros(len(pairs), dtype=LipPair.numpy_dtype())
