@@ -285,7 +285,7 @@ LID_MARGIN_SLACK = 0.0005
 # LIP_PAIR_REACH at rest: the slit's walls are meshed with vertices up to 10 mm apart, and
 # paired with the nearest within 3 mm alone, a pressed lower lip's vertex rose through the
 # upper wall's triangle between its corners (expressions.fap's anger: the lips crossed in 35
-# frames, 27 now; xface_beg 3 -> 0, xface_hate 2 -> 0)
+# frames, 30 now; xface_beg 3 -> 0, xface_hate 2 -> 0)
 LIP_PAIR_REACH = 0.006
 LIP_PAIR_NEIGHBOURS = 6
 # An adapted head's upper lid can stand off its eyeball: fitted to a bust's sculpted eye, the

@@ -38,8 +38,9 @@ neighbours before the skin looks torn. The moves are averaged with the others, s
 mends a long band of strained edges only in part: the limits hold loosely.
 
 Lip contact, in the same passes: the particles of the upper and lower lip that face each
-other at rest (within LIP_PAIR_REACH, fae.sim.build) are kept in order along the head's up direction carried
-by their holds: the lips meet and press, but one does not pass through the other. A
+other at rest (within fae.sim.build.LIP_PAIR_REACH) are kept in order along the head's up
+direction carried by their holds: the lips meet and press, but one does not pass through
+the other (pressed hard, the slit's coarse inner walls still can, between the pairs). A
 shut upper lid rests on the lower lid's margin the same way (`lid_pairs`), taking the
 whole correction itself.
 
