@@ -273,7 +273,7 @@ def head_pose(head: TemplateHead, scan_V: np.ndarray) -> tuple[float, np.ndarray
     coarse_A = A[:: max(1, len(A) // COARSE_HEAD)]
 
     def coarse_fit(start, iterations):
-        s, R, t = _icp(head, coarse_A, coarse, coarse_tree, *start[-3:], iterations=iterations)
+        s, R, t = _icp(head, coarse_A, coarse, coarse_tree, *start, iterations=iterations)
         return score(s, R, t, coarse, coarse_tree), s, R, t
 
     def fine_fit(start):
@@ -284,7 +284,7 @@ def head_pose(head: TemplateHead, scan_V: np.ndarray) -> tuple[float, np.ndarray
     with ThreadPoolExecutor(workers(4)) as pool:
         screened = sorted(pool.map(lambda x: coarse_fit(x, SCREEN_ITERATIONS), starts), key=lambda x: x[0])
         kept = screened[: max(SCREEN_MIN, int(np.ceil(SCREEN_KEEP * len(screened))))]
-        scored = sorted(pool.map(lambda x: coarse_fit(x, COARSE_ITERATIONS - SCREEN_ITERATIONS), kept),
+        scored = sorted(pool.map(lambda x: coarse_fit(x[1:], COARSE_ITERATIONS - SCREEN_ITERATIONS), kept),
                         key=lambda x: x[0])
         refined = list(pool.map(fine_fit, scored[:REFINED_STARTS]))
     best = (np.inf, 1.0, np.eye(3), np.zeros(3))  # (no start, or none scored: the identity)

@@ -253,17 +253,27 @@ def lip_margin_weight(face, k: int, radius: float, graph: sp.csr_matrix | None =
     V = np.asarray(face.skin_vertices, dtype=np.float64)
     x = V[:, 0]
     hat = np.where(x < point[0], (x - lo[0]) / (point[0] - lo[0]), (hi[0] - x) / (hi[0] - point[0]))
-    # the margin: the skin of the point's own regions nearest to points along the two
-    # straight pieces to the neighbours
+    d = line_distance(face, np.array([lo, point, hi]), [own], radius, graph)
+    return np.clip(hat, 0.0, 1.0) * _wendland(np.minimum(d / radius, 1.0))
+
+
+def line_distance(face, P: np.ndarray, names: list[str], limit: float,
+                  graph: sp.csr_matrix | None = None) -> np.ndarray:
+    """(V,) metres along skin edges from the polyline through P (k, 3) metres (inf beyond
+    `limit`): seeded on the skin of the regions of feature points `names` nearest to
+    MARGIN_SAMPLES points along each straight piece (the line runs along those regions: a
+    lip's margin, the brow; the skin beside it is not the line). graph:
+    `edge_length_graph(face)`, when at hand."""
+    V = np.asarray(face.skin_vertices, dtype=np.float64)
     t = np.linspace(0.0, 1.0, MARGIN_SAMPLES)[:, None]
-    samples = np.vstack([lo + t * (point - lo), point + t * (hi - point)])
+    samples = np.vstack([P[i] + t * (P[i + 1] - P[i]) for i in range(len(P) - 1)] or [P])
     region = np.asarray(face.skin_region)
-    own_regions = np.unique(region[np.asarray(face.skin_faces)[face.feature_points[own].triangle]])
-    candidates = np.flatnonzero(np.isin(region, own_regions))
+    faces = np.asarray(face.skin_faces)
+    own = np.unique(np.concatenate([region[faces[face.feature_points[n].triangle]] for n in names]))
+    candidates = np.flatnonzero(np.isin(region, own))
     seeds = candidates[np.unique(cKDTree(V[candidates]).query(samples)[1])]
     G = edge_length_graph(face) if graph is None else graph
-    d = dijkstra(G, directed=False, indices=seeds, min_only=True, limit=radius)
-    return np.clip(hat, 0.0, 1.0) * _wendland(np.minimum(d / radius, 1.0))
+    return dijkstra(G, directed=False, indices=seeds, min_only=True, limit=limit)
 
 
 def _wendland(r: np.ndarray) -> np.ndarray:
@@ -299,21 +309,12 @@ def brow_raise_weights(face, es0: float, graph: sp.csr_matrix) -> dict[int, np.n
     line, P = [line[i] for i in order], P[order]
     radius = _FIELD_RADIUS_ES[found[0]] * es0
     reach = BROW_LIFT_REACH * radius
-    # the brow: straight pieces between its points, and each skin vertex's distance from it
-    t = np.linspace(0.0, 1.0, MARGIN_SAMPLES)[:, None]
-    samples = np.vstack([P[i] + t * (P[i + 1] - P[i]) for i in range(len(P) - 1)] or [P])
-    # (seeded on the skin of the brow points' own regions: the brow's underside is not the brow)
-    region = np.asarray(face.skin_region)
-    faces = np.asarray(face.skin_faces)
-    own = np.unique(np.concatenate([region[faces[face.feature_points[n].triangle]] for n in line]))
-    candidates = np.flatnonzero(np.isin(region, own))
-    seeds = candidates[np.unique(cKDTree(V[candidates]).query(samples)[1])]
-    d = dijkstra(graph, directed=False, indices=seeds, min_only=True, limit=reach)
+    d = line_distance(face, P, line, reach, graph)  # from the brow (its underside is not the brow)
     above = V[:, 1] > np.interp(V[:, 0], P[:, 0], P[:, 1])
     across = np.where(above, 0.5 * (1.0 + np.cos(np.pi * np.minimum(d / reach, 1.0))), _wendland(d / radius))
     across = np.where(np.isfinite(d), across, 0.0)
     x = V[:, 0]
-    out = {}
+
     def ramp(a: float, b: float) -> np.ndarray:
         # 0 at neighbour x = a, 1 at the point's x = b; across the midline (the inner brows)
         # over BROW_MIDLINE_RAMP of the way about the middle, so a brow raised alone leaves
@@ -323,6 +324,7 @@ def brow_raise_weights(face, es0: float, graph: sp.csr_matrix) -> dict[int, np.n
             a, b = 0.5 * (a + b) - half, 0.5 * (a + b) + half
         return (x - a) / (b - a)
 
+    out = {}
     for k in found:
         i = line.index(FAP_FEATURE_POINT[k - 1])
         xi = P[i, 0]

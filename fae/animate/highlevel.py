@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from fae.mpeg4.faps import FAP_COUNT
-from fae.mpeg4.highlevel import BLEND_MAX
+from fae.mpeg4.highlevel import BLEND_MAX, EXPRESSIONS
 
 
 def _table(rows: dict[int, dict[int, float]], count: int, convert=lambda pose: pose) -> np.ndarray:
@@ -104,9 +104,8 @@ EXPRESSION_POSES: dict[str, dict[int, float]] = {
 
 # (7, 68) expression code (fae.mpeg4.highlevel.EXPRESSIONS) -> low-level FAP values as the
 # standard's displacements from neutral (the lips where the jaw carries them added)
-EXPRESSION_FAPS = _table({code: EXPRESSION_POSES[name] for code, name in
-                          enumerate(("neutral", "joy", "sadness", "anger", "fear", "disgust", "surprise"))
-                          if name in EXPRESSION_POSES}, 7, jaw_carried)
+EXPRESSION_FAPS = _table({e.code: EXPRESSION_POSES[e.name] for e in EXPRESSIONS if e.name in EXPRESSION_POSES},
+                         len(EXPRESSIONS), jaw_carried)
 
 
 def _pair(record, kind: str) -> tuple[tuple[int, float], tuple[int, float]]:

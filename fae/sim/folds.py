@@ -291,9 +291,8 @@ def lip_pairs(q: np.ndarray, upper: np.ndarray, lower: np.ndarray, jaw: np.ndarr
               most_slack: float | None = None, neighbours: int = 1) -> np.ndarray:
     """Structured array of `LipPair`: each particle of `upper` (ids) within `reach` metres of
     one of `lower` at rest q (P, 3), with its `neighbours` nearest within it, and each of
-    `lower` likewise; with
-    `most_slack` (metres), the upper rises at most that much above its rest height over the
-    lower (else without limit)."""
+    `lower` likewise; with `most_slack` (metres), the upper rises at most that much above
+    its rest height over the lower (else without limit)."""
     from scipy.spatial import cKDTree
 
     out = []
@@ -302,8 +301,7 @@ def lip_pairs(q: np.ndarray, upper: np.ndarray, lower: np.ndarray, jaw: np.ndarr
             d, j = cKDTree(q[b]).query(q[a], k=neighbours)
             d, j = d.reshape(len(a), -1), j.reshape(len(a), -1)
             near = d < reach
-            ia = np.broadcast_to(a[:, None], d.shape)[near]
-            jb = b[np.minimum(j[near], len(b) - 1)]
+            ia, jb = np.broadcast_to(a[:, None], d.shape)[near], b[j[near]]  # (missing neighbours: d inf)
             pu, pl = (jb, ia) if flip else (ia, jb)
             out.append(np.column_stack([pu, pl]))
     pairs = np.unique(np.concatenate(out), axis=0) if out else np.zeros((0, 2), dtype=np.int64)
