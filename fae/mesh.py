@@ -50,6 +50,22 @@ def adjacency(F: np.ndarray, n: int) -> sp.csr_matrix:
     return adjacency_from_edges(n, edges(F))
 
 
+def triangle_pairs(F: np.ndarray) -> np.ndarray:
+    """(p, 2) int64 pairs of triangles of F (m, 3) that share an edge (edges used by exactly
+    two triangles), sorted by edge."""
+    F = np.asarray(F, dtype=np.int64)
+    E = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
+    face = np.tile(np.arange(len(F)), 3)
+    key, _ = _edge_keys(E)
+    order = np.argsort(key, kind="stable")
+    key, face = key[order], face[order]
+    same = np.flatnonzero(key[1:] == key[:-1])
+    alone = np.ones(len(same), dtype=bool)  # not part of a run of three or more (non-manifold)
+    alone &= np.r_[True, same[1:] != same[:-1] + 1] & np.r_[same[:-1] + 1 != same[1:], True]
+    same = same[alone]
+    return np.column_stack([face[same], face[same + 1]])
+
+
 def triangle_normals(V: np.ndarray, F: np.ndarray) -> np.ndarray:
     """(m, 3) float64 unnormalised triangle normals (length = twice the area)."""
     V = np.asarray(V, dtype=np.float64)

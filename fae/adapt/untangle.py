@@ -28,6 +28,7 @@ import numpy as np
 from fae.adapt.geometry import adjacency_matrix, per_face_normals, within
 from fae.adapt.query import MeshQuery
 from fae.mesh import edges as mesh_edges
+from fae.mesh import triangle_pairs
 
 _END_GAP = 1e-3  # of the edge length, kept off both ends (Warp works in float32)
 FOLD_ANGLE = np.pi / 2  # radians two neighbouring faces may turn further against each other than on the reference
@@ -51,22 +52,6 @@ def edge_crossings(V: np.ndarray, F: np.ndarray, edges: np.ndarray | None = None
     return E[found], face[found]
 
 
-def face_pairs(F: np.ndarray) -> np.ndarray:
-    """(p, 2) pairs of faces of F (m, 3) that share an edge (edges used by exactly two faces)."""
-    F = np.asarray(F, dtype=np.int64)
-    E = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
-    face = np.tile(np.arange(len(F)), 3)
-    n = int(F.max(initial=0)) + 1
-    key = np.minimum(E[:, 0], E[:, 1]) * n + np.maximum(E[:, 0], E[:, 1])
-    order = np.argsort(key, kind="stable")
-    key, face = key[order], face[order]
-    same = np.flatnonzero(key[1:] == key[:-1])
-    alone = np.ones(len(same), dtype=bool)  # not part of a run of three or more (non-manifold)
-    alone &= np.r_[True, same[1:] != same[:-1] + 1] & np.r_[same[:-1] + 1 != same[1:], True]
-    same = same[alone]
-    return np.column_stack([face[same], face[same + 1]])
-
-
 def dihedral_turns(V: np.ndarray, F: np.ndarray, pairs: np.ndarray) -> np.ndarray:
     """(p,) radians between the normals of the face pairs (p, 2) of mesh V (n, 3), F (m, 3):
     0 where the two faces are flat, pi where they lie folded onto each other."""
@@ -79,8 +64,8 @@ def folded_pairs(V0: np.ndarray, V: np.ndarray, F: np.ndarray, pairs: np.ndarray
     """(k, 2) face pairs of F (m, 3) whose turn on V (n, 3) exceeds their turn on the
     reference V0 (n, 3) by more than `angle` radians: a crease become a fold (which a
     self-intersection test misses until the two faces actually cut through each other).
-    pairs: face_pairs(F), when already known."""
-    P = face_pairs(F) if pairs is None else pairs
+    pairs: triangle_pairs(F), when already known."""
+    P = triangle_pairs(F) if pairs is None else pairs
     return P[dihedral_turns(V, F, P) - dihedral_turns(V0, F, P) > angle]
 
 
@@ -104,7 +89,7 @@ def untangle(F: np.ndarray, X: np.ndarray, X_safe: np.ndarray, rings: int = 2, r
     X_safe = np.asarray(X_safe, dtype=np.float64)
     n = len(X)
     E = mesh_edges(F) if edges is None else edges
-    pairs = None if reference is None else face_pairs(F)
+    pairs = None if reference is None else triangle_pairs(F)
     weight = np.ones(n)
     Y = X
     query = MeshQuery(X, F) if query is None else query

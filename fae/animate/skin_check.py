@@ -41,7 +41,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fae.mesh import triangle_normals
+from fae.mesh import triangle_normals, triangle_pairs
 from fae.sim.build import HIDDEN_REGIONS, UPPER_LID_REGIONS
 
 FOLD_COS = 0.0  # cos 90 degrees: a normal turned further than this is folded
@@ -241,13 +241,7 @@ class SkinCheck:
         keep = self.rest_length >= STRAIN_MIN_EDGE * np.median(self.rest_length)
         self.edges, self.rest_length = self.edges[keep], self.rest_length[keep]
         # neighbouring visible triangles that meet smoothly at rest (for creases)
-        te = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
-        te.sort(axis=1)
-        tid = np.tile(np.arange(len(F)), 3)
-        order = np.lexsort((te[:, 1], te[:, 0]))
-        te, tid = te[order], tid[order]
-        same = np.all(te[1:] == te[:-1], axis=1)
-        a, b = tid[:-1][same], tid[1:][same]
+        a, b = triangle_pairs(F).T
         smooth = self.visible[a] & self.visible[b] & (np.sum(self.rest_normals[a] * self.rest_normals[b], axis=1)
                                                       > CREASE_REST_COS)
         self.neighbours = np.column_stack([a[smooth], b[smooth]])
