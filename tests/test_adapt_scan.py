@@ -95,7 +95,10 @@ def test_a_bust_becomes_a_whole_head_on_its_scan(adapted_bust, bust, template):
     assert report["folded_triangles"]["all"] == 0
     e = report["errors"]
     assert e["face_to_scan_rms_rel"] < 0.001 and e["face_coverage"] > 0.95
-    assert e["scan_to_skin_rms_rel"] < 0.002 and e["scan_coverage"] > 0.9
+    # the scan beside the head part's cut where the shoulders meet the neck pulls nothing
+    # (0.25 %; 0.19 % when it pulled the neck's rim into their flare), the head part 0.07 %
+    assert e["scan_to_skin_rms_rel"] < 0.003 and e["scan_coverage"] > 0.9
+    assert e["head_to_skin_rms_rel"] < 0.001
     # against the truth, not the fitted scan: the face's skin in the truth's frame
     from fae.adapt.errors import FACE_REGIONS
     from fae.adapt.from_scan import in_regions
@@ -285,6 +288,22 @@ def test_per_face_normals_of_the_template_are_unit(template):
     assert np.allclose(np.linalg.norm(N[ok], axis=1), 1.0)
 
 
+def neck_creases(model, more_than: float = 30.0) -> int:
+    """Edges between two neck triangles of `model`'s skin bent `more_than` degrees further
+    than the template's (the shipped head shares the adapted head's triangles)."""
+    from fae.adapt.untangle import dihedral_turns
+    from fae.data import shipped_head_path
+    from fae.mesh import triangle_pairs
+
+    template = read_facemodel(shipped_head_path())
+    F = np.asarray(model.skin_faces)
+    neck = (np.asarray(model.skin_region)[F] == model.region_names.index("neck")).all(axis=1)
+    pairs = triangle_pairs(F)
+    pairs = pairs[neck[pairs].all(axis=1)]
+    turn = dihedral_turns(model.skin_vertices, F, pairs) - dihedral_turns(template.skin_vertices, F, pairs)
+    return int(np.sum(turn > np.radians(more_than)))
+
+
 @needs_mediapipe
 @pytest.mark.slow
 @pytest.mark.parametrize("name", BUSTS)
@@ -296,11 +315,17 @@ def test_a_scanned_bust_becomes_a_head(shared_data, name, tmp_path):
     assert report["folded_triangles"]["all"] == 0
     e = report["errors"]
     assert e["face_to_scan_rms_rel"] < 0.001 and e["face_coverage"] > 0.95  # 0.058-0.096 %
-    # the scan's points pull the ears, scalp and neck too: scan -> skin 0.19 / 0.28 / 0.24 %,
-    # without the neck 0.16 / 0.27 / 0.19 % (0.29 / 0.32 / 0.28 % and 0.28 / 0.33 / 0.23 % without)
-    most, most_head = {"marble_bust": (0.0022, 0.0019), "man_with_wreath": (0.0031, 0.0030),
-                       "demosthenes": (0.0027, 0.0022)}[name]
+    # the scan's points pull the ears, scalp and neck too: scan -> skin 0.21 / 0.33 / 0.28 %
+    # (the neck beside the cut where it runs into the drapery pulls nothing: 0.19 / 0.28 /
+    # 0.24 % when it did), without the neck 0.17 / 0.28 / 0.20 % (0.29 / 0.32 / 0.28 % and
+    # 0.28 / 0.33 / 0.23 % before the ears, scalp and neck were pulled)
+    most, most_head, creases = {"marble_bust": (0.0024, 0.0019, 210), "man_with_wreath": (0.0036, 0.0030, 240),
+                                "demosthenes": (0.0031, 0.0022, 300)}[name]
     assert e["scan_to_skin_rms_rel"] < most and e["head_to_skin_rms_rel"] < most_head
+    # the neck keeps a neck's smooth shape where the bust's runs into its base: edges bent
+    # 30 degrees more than the template's there 158 / 191 / 238 (270 / 201 / 381 with a
+    # ledge along the cut)
+    assert neck_creases(read_facemodel(out)) < creases
     part = report["head_part"]
     assert part["head_vertices"] < 0.9 * part["scan_vertices"]  # the plinth and shoulders are left out
     assert facemodel_problems(read_facemodel(out)) == []

@@ -26,6 +26,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from fae.adapt.calibration import apply_transform
 from fae.adapt.ears import ears_carried, found_ears
@@ -51,6 +52,16 @@ NO_RAYS_NEAR_EYE = 0.004  # m
 # beside hair and tendons (the busts' scan->skin RMS 0.28-0.32 % -> 0.19-0.29 %; ears were
 # half of it). The face is left to its own pairs: pulled too, it lay further off (0.058 -> 0.062 %)
 FILL_REGIONS = ("ear_l", "ear_r", "scalp", "neck")
+# where the head part's cut crosses a bust's neck above the template's neck end (the neck
+# runs into drapery or a plinth there, and the cut is jagged) the scan within NECK_CUT_REACH
+# of it is left out of the fit, and the neck stiffens from NECK_STIFF_FROM below the chin
+# down to its end (NECK_STIFF_END times its stiffness there), so it keeps a neck's smooth
+# shape where a bust's turns into its base (marble_bust's nape: a ledge with teeth along
+# the cut, 6 cm above the template's neck end)
+NECK_CUT_REACH = 0.01  # m
+NECK_CUT_ABOVE_END = 0.01  # m
+NECK_STIFF_FROM = 0.02  # m below the chin (2.1)
+NECK_STIFF_END = 6.0
 EYE_RIM = 0.0025  # m: skin this close to an eyeball follows its neighbours, not the scan
 MAX_FACE_RMS_REL = 0.004  # face skin -> scan RMS / head diagonal beyond which the fit failed
 MIN_FACE_COVERAGE = 0.8  # share of the face skin within reach of the scan below which it failed
@@ -60,6 +71,44 @@ def in_regions(template: FaceModel, names) -> np.ndarray:
     """(n,) bool: skin vertices in any of the regions `names`."""
     idx = [template.region_names.index(r) for r in names if r in template.region_names]
     return np.isin(np.asarray(template.skin_region), idx)
+
+
+def chin_height(template: FaceModel) -> float:
+    """The height (y, metres) of the template's chin, feature point 2.1."""
+    return float(template.feature_point_positions()["2.1"][1])
+
+
+def trimmed_along(V: np.ndarray, F: np.ndarray, edge: np.ndarray, reach: float) -> tuple[np.ndarray, np.ndarray]:
+    """The mesh V (n, 3) metres, F (m, 3) less every face with a corner within `reach`
+    metres of a vertex of `edge` (n,) bool: (V' (k, 3), F' (m', 3))."""
+    if not np.any(edge):
+        return V, F
+    near = cKDTree(V[edge]).query(V, distance_upper_bound=reach)[0] < reach
+    return kept_part(V, F, ~near)
+
+
+def neck_cut(template: FaceModel, V: np.ndarray, boundary: np.ndarray) -> np.ndarray:
+    """(n,) bool: the boundary vertices (boundary (n,) bool) of a head part V (n, 3), face
+    frame, where a bust's neck ran into something else: below the chin and more than
+    NECK_CUT_ABOVE_END above the template's neck end (a scan cut there by the template's
+    own neck end is neck to its rim)."""
+    y = np.asarray(V)[:, 1]
+    end = float(np.asarray(template.skin_vertices)[in_regions(template, ["neck"]), 1].min(initial=-np.inf))
+    return np.asarray(boundary, dtype=bool) & (y < chin_height(template)) & (y > end + NECK_CUT_ABOVE_END)
+
+
+def neck_stiffening(template: FaceModel) -> np.ndarray:
+    """(n,) multiplier of the skin's smoothness: 1, rising on the neck linearly from
+    NECK_STIFF_FROM below the chin to NECK_STIFF_END at the neck's lowest skin."""
+    out = np.ones(len(template.skin_vertices))
+    neck = in_regions(template, ["neck"])
+    if not neck.any():
+        return out
+    y = np.asarray(template.skin_vertices)[:, 1]
+    top = chin_height(template) - NECK_STIFF_FROM
+    t = np.clip((top - y[neck]) / max(top - y[neck].min(), 1e-6), 0.0, 1.0)
+    out[neck] = 1.0 + (NECK_STIFF_END - 1.0) * t
+    return out
 
 
 def near_eyeballs(template: FaceModel, reach: float) -> np.ndarray:
@@ -86,6 +135,8 @@ def adapt_to_scan(template: FaceModel, scan_V: np.ndarray, scan_F: np.ndarray, h
     if len(part_F) < 100:
         raise ValueError(f"the head part of the scan has {len(part_F)} triangles: too few to fit")
     scan = surface(part_V, part_F)
+    # the fit leaves out the scan beside the head part's lower cut (errors still count it)
+    fit_scan = surface(*trimmed_along(part_V, part_F, neck_cut(template, part_V, scan.boundary), NECK_CUT_REACH))
     P, F = template.skin_vertices, np.asarray(template.skin_faces, dtype=np.int64)
     # skin a scanner sees, less the lids' rims over the eyeballs: a scan shows the eye
     # itself there (sculpted, or shut), and pulling the rims onto it closes the socket
@@ -124,7 +175,8 @@ def adapt_to_scan(template: FaceModel, scan_V: np.ndarray, scan_F: np.ndarray, h
     stiffness = np.ones(len(P))
     for region, k in REGION_STIFFNESS.items():
         stiffness[in_regions(template, [region])] = k
-    fit = fit_to_scan(P, F, scan, seen, landmarks=lm, stiffness=stiffness,
+    stiffness *= neck_stiffening(template)
+    fit = fit_to_scan(P, F, fit_scan, seen, landmarks=lm, stiffness=stiffness,
                       rays=~in_regions(template, NO_RAYS) & ~near_eyeballs(template, NO_RAYS_NEAR_EYE), start=start,
                       placed=placed,
                       carry=(lambda X: ears_carried(P, X, ears)) if ears else None,
