@@ -11,6 +11,8 @@ also runs the three scanned busts of ../shared/data when they are there.
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -604,3 +606,26 @@ def test_a_real_bust_blinks_without_showing_its_lids_lining(demosthenes, shared_
         if frame.index > 38:
             break
     assert len(seen) == 11 and max(seen) <= 20e-6, seen
+
+
+@needs_mediapipe
+def test_the_landmark_model_loads_without_matplotlib_and_leaves_it_loadable(tmp_path):
+    """MediaPipe's drawing helpers import matplotlib.pyplot; fae loads MediaPipe without it
+    (0.4 s of `fae adapt`) and a later import of matplotlib still gets the real one."""
+    script = (
+        "import sys, threading\n"
+        "from fae.render.landmarks import preload_landmark_model, detect_points\n"
+        "preload_landmark_model()\n"
+        "[t.join() for t in threading.enumerate() if t.name == 'mediapipe-import']\n"
+        "assert 'mediapipe' in sys.modules and 'matplotlib' not in sys.modules\n"
+        "import numpy as np\n"
+        "assert detect_points(np.full((64, 64, 3), 200, np.uint8)) is None\n"
+        "import matplotlib\n"
+        "matplotlib.use('Agg')\n"
+        "import matplotlib.pyplot as plt\n"
+        "plt.plot([0, 1]); plt.savefig(sys.argv[1])\n"
+    )
+    out = tmp_path / "plot.png"
+    r = subprocess.run([sys.executable, "-c", script, str(out)], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert out.stat().st_size > 1000

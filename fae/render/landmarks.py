@@ -142,21 +142,33 @@ def _quiet_native_logs() -> None:
 
 
 def preload_landmark_model() -> None:
-    """Start importing MediaPipe (half a second, most of it matplotlib) on a thread of its
+    """Start importing MediaPipe (half a second, most of it matplotlib, left out) on a thread of its
     own, so that it is there when a caller that reads and searches a scan first needs it.
     Does nothing when MediaPipe is not installed; detect_points reports that."""
     import importlib.util
+    import sys
     import threading
+    import types
 
     if importlib.util.find_spec("mediapipe") is None:
         return
     _quiet_native_logs()  # here, not on the thread: the environment is unsafe to change beside threads
 
     def load():
+        # MediaPipe's drawing helpers import matplotlib.pyplot (0.4 s), which fae never uses
+        # through them: placeholders stand in while MediaPipe loads and are taken out after,
+        # so that a later `import matplotlib.pyplot` (fae adapt --plot) loads the real one
+        placeholders = {name: types.ModuleType(name) for name in ("matplotlib", "matplotlib.pyplot")
+                        if name not in sys.modules}
+        sys.modules.update(placeholders)
         try:
             import mediapipe  # noqa: F401
         except Exception:  # noqa: BLE001 - detect_points imports it again and says what is wrong
             pass
+        finally:
+            for name, placeholder in placeholders.items():
+                if sys.modules.get(name) is placeholder:
+                    del sys.modules[name]
 
     threading.Thread(target=load, name="mediapipe-import", daemon=True).start()
 
