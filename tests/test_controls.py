@@ -1,4 +1,4 @@
-"""FAP values -> clamped values -> simulation controls (fae.animate.faptables.clamp_values,
+"""FAP values -> clamped values -> simulation controls (fae.mpeg4.faptables.clamp_values,
 fae.animate.controls.FapControls) on the synthetic head, calibrated without correction
 passes: what the standard's ranges and the face's left/right symmetry require."""
 
@@ -12,7 +12,7 @@ from hypothesis.extra.numpy import arrays
 
 from fae.animate.calibrate import calibrate
 from fae.animate.controls import ACTIVATION_LIMIT, JAW_ANGLE_LIMIT, FapControls
-from fae.animate.faptables import FAP_LIMITS, clamp_values
+from fae.mpeg4.faptables import FAP_LIMITS, clamp_values
 from fae.animate.mapping import field_faps
 from fae.mpeg4.faps import FAP_COUNT, FAPS, MIRROR_FAP
 from fae.mpeg4.fdps import FEATURE_POINTS
@@ -183,7 +183,7 @@ def test_a_lips_middle_fields_add_up_to_one_along_its_margin(mirrored):
     import copy
 
     from fae.animate.calibrate import MARGIN_SAMPLES, lip_margin_weight
-    from fae.animate.faptables import fapu_of
+    from fae.mpeg4.faptables import fapu_of
     from fae.data import shipped_head_path
     from fae.io.facemodel_gltf import read_facemodel
 
@@ -209,7 +209,7 @@ def test_a_cheek_raise_pulls_the_lower_lid_half_as_hard_as_the_cheek():
     the way, and pulled as hard their margin rolled off the eyeball."""
     from fae.animate.calibrate import (CHEEK_LID_SHARE, _FIELD_RADIUS_ES, _wendland, field_faps,
                                        geodesic_distance, pull_fields)
-    from fae.animate.faptables import FAP_FEATURE_POINT, fapu_of
+    from fae.mpeg4.faptables import FAP_FEATURE_POINT, fapu_of
     from fae.data import shipped_head_path
     from fae.io.facemodel_gltf import read_facemodel
 

@@ -127,7 +127,7 @@ def test_dense_frames_can_be_stepped_with_next_or_looped_again(repo_root):
 
 
 def test_the_clamp_warning_names_the_range_the_face_plays():
-    from fae.animate.faptables import FAP_LIMITS
+    from fae.mpeg4.faptables import FAP_LIMITS
 
     state = FrameState(source_name="s.fap")
     state.update(frame(4, {3: 5000}))

@@ -8,7 +8,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from fae.animate.faptables import FAP_LIMITS
+from fae.mpeg4.faptables import FAP_LIMITS
 from fae.animate.highlevel import EXPRESSION_FAPS, VISEME_FAPS, highlevel_values
 from fae.mpeg4.faps import MIRROR_FAP
 from fae.mpeg4.highlevel import (BLEND_MAX, EXPRESSION_SELECT_MAX, EXPRESSIONS, VISEME_SELECT_MAX, VISEMES,

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from fae.animate.calibrate import calibrate
-from fae.animate.faptables import FAP_LIMITS
+from fae.mpeg4.faptables import FAP_LIMITS
 from fae.animate.player import Player, playable_head
 from synthetic_head import synthetic_head
 

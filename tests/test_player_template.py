@@ -11,7 +11,7 @@ import pytest
 
 from fae.data import shipped_head_path
 from fae.animate.calibrate import calibrate
-from fae.animate.faptables import FAP_LIMITS, fapu_of
+from fae.mpeg4.faptables import FAP_LIMITS, fapu_of
 from fae.animate.player import Player, playable_head
 from fae.animate.verify import passed_fraction, verify_faps
 from fae.cli import main

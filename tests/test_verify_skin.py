@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fae.animate.faptables import FAP_LIMITS
+from fae.mpeg4.faptables import FAP_LIMITS
 from fae.animate.skin_check import SkinCheck, check_stream, expression_sweep, fap_sweep
 from fae.data import shipped_head_path
 from fae.io.facemodel_gltf import read_facemodel

@@ -52,7 +52,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
 
     from fae.animate.bake import settled_skin
-    from fae.animate.faptables import FAP_LIMITS, FAP_NAME
+    from fae.mpeg4.faptables import FAP_LIMITS, FAP_NAME
     from fae.animate.player import Player, playable_head
     from fae.data import shipped_head_path
     from fae.io.facemodel_gltf import read_facemodel

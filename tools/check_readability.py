@@ -63,7 +63,7 @@ def measure(points: np.ndarray, rest: np.ndarray, what: str, side: str) -> float
 
 def readability(face, faps=None, steps: int = 6, size: int = 640) -> dict[int, dict]:
     """Per FAP: {"what", "values", "measures", "r"} (see module docstring)."""
-    from fae.animate.faptables import FAP_LIMITS
+    from fae.mpeg4.faptables import FAP_LIMITS
     from fae.animate.player import Player, playable_head
     from fae.render.landmarks import detect_pixels
     from fae.render.renderer import FaceRenderer
@@ -104,7 +104,7 @@ def main(argv=None) -> int:
     ap.add_argument("--min-r", type=float, default=0.8)
     args = ap.parse_args(argv)
 
-    from fae.animate.faptables import FAP_NAME
+    from fae.mpeg4.faptables import FAP_NAME
     from fae.data import shipped_head_path
     from fae.io.facemodel_gltf import read_facemodel
 

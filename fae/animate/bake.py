@@ -24,7 +24,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from fae.animate.faptables import FAP_LIMITS, SKIN_TRANSLATION_FAPS
+from fae.mpeg4.faptables import FAP_LIMITS, SKIN_TRANSLATION_FAPS
 from fae.animate.verify import settled_skin  # the settled pose, as verify-faps holds a FAP
 from fae.io.facemodel import FaceDefTable
 from fae.mpeg4.faps import FAP_COUNT

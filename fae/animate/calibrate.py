@@ -80,7 +80,7 @@ from scipy.spatial import cKDTree
 from fae.animate.controls import FapControls
 from fae.animate.mapping import (FORMAT_VERSION, JAW_CONTROLS, JAW_OPEN, LIP_FAPS, LIP_PAIRS,
                                  LOWERING_FIELD_FAPS, field_faps)
-from fae.animate.faptables import (FAP_DIRECTION, FAP_FEATURE_POINT, FAP_LIMITS, JAW_FAPS,
+from fae.mpeg4.faptables import (FAP_DIRECTION, FAP_FEATURE_POINT, FAP_LIMITS, JAW_FAPS,
                                    SKIN_TRANSLATION_FAPS, fap_unit_scale, fapu_of)
 from fae.mpeg4.faps import FAP_COUNT
 from fae.mpeg4.fdps import mirror_point

@@ -31,7 +31,7 @@ import numpy as np
 import potpourri3d
 from scipy.sparse.csgraph import connected_components
 
-from fae.animate.faptables import FAP_DIRECTION, FAP_FEATURE_POINT, FAP_LIMITS, fap_unit_scale
+from fae.mpeg4.faptables import FAP_DIRECTION, FAP_FEATURE_POINT, FAP_LIMITS, fap_unit_scale
 from fae.io.facemodel import FaceDefTable
 from fae.mesh import adjacency
 

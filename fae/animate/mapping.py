@@ -47,7 +47,7 @@ negative, pulled the whole forehead down over the eyes, so the brow FAPs
 from __future__ import annotations
 
 from fae.animate.ears import EAR_FAPS
-from fae.animate.faptables import FAP_FEATURE_POINT, JAW_FAPS, SKIN_TRANSLATION_FAPS
+from fae.mpeg4.faptables import FAP_FEATURE_POINT, JAW_FAPS, SKIN_TRANSLATION_FAPS
 
 # 10: a brow raise pulls along the brow's line (a hat between its neighbours' points) and
 # lifts the forehead up to the crown;

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fae.animate.faptables import FAP_NAME
+from fae.mpeg4.faptables import FAP_NAME
 from fae.mpeg4.faps import FAP_COUNT
 
 

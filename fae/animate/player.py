@@ -1,7 +1,7 @@
 """The Player: FAP frames in, skin positions and bone poses out, one frame at a time.
 
 Per frame (only precomputed arrays are used): FAP 1/2 records -> low-level values, added to
-the frame's own; clamp (fae.animate.faptables); one matmul to muscle/field activations and
+the frame's own; clamp (fae.mpeg4.faptables); one matmul to muscle/field activations and
 the jaw pose (fae.animate.controls); one solver step of the skin in the head's frame
 (fae.sim); FaceDefTable offsets added (a frame that repeats the previous one on skin that has
 settled skips the solver); then the head pose (rotation about 7.1) carries
@@ -34,7 +34,7 @@ from fae.animate.calibrate import calibrate, pull_fields
 from fae.animate.ears import ear_tables
 from fae.animate.controls import FapControls, MappingMismatch, merge_lip_pairs
 from fae.animate.facedef import FaceDefOffsets
-from fae.animate.faptables import FAP_COUNT, clamp_values, fapu_of
+from fae.mpeg4.faptables import FAP_COUNT, clamp_values, fapu_of
 from fae.animate.highlevel import highlevel_values
 from fae.animate.rigid import RigidRig
 from fae.sim.build import skin_model

@@ -254,7 +254,7 @@ def fapu_gain_field(model: FaceModel, carried: Callable[[np.ndarray], np.ndarray
     (softly: fae.adapt.binding.pinned_to_points, along the skin, never across the mouth's
     slit), fading to 1 beyond `reach` metres of every point, and kept between the smallest
     and largest factor met and 1."""
-    from fae.animate.faptables import FAP_DIRECTION, FAP_FEATURE_POINT, FAP_UNIT_NAME, SKIN_TRANSLATION_FAPS
+    from fae.mpeg4.faptables import FAP_DIRECTION, FAP_FEATURE_POINT, FAP_UNIT_NAME, SKIN_TRANSLATION_FAPS
 
     V = np.asarray(model.skin_vertices, dtype=np.float64)
     F = np.asarray(model.skin_faces, dtype=np.int64)
@@ -302,7 +302,7 @@ def _template_fap_motion(template: FaceModel, used: np.ndarray) -> dict[int, tup
     short on a target that binds there); how far it moves the template's own feature point
     of k along k's direction) for the lids', lips' and nose wings' FAPs (MOTION_GAIN_FAPS), empty for
     a template without a mapping."""
-    from fae.animate.faptables import FAP_DIRECTION, FAP_FEATURE_POINT, FAP_LIMITS
+    from fae.mpeg4.faptables import FAP_DIRECTION, FAP_FEATURE_POINT, FAP_LIMITS
     from fae.animate.player import Player, needs_calibration, playable_head
     from fae.animate.verify import settled_skin
 
@@ -485,7 +485,7 @@ def retarget(template: FaceModel, target: TargetMesh, say: Callable[[str], None]
     from fae.adapt.calibration import apply_transform
     from fae.adapt.query import MeshQuery
     from fae.adapt.workflow import AdaptRefused, FacePairsUnavailable, adapt_scan
-    from fae.animate.faptables import fapu_of
+    from fae.mpeg4.faptables import fapu_of
     from fae.mpeg4.fapu import fapu0_from_positions, fapu_from_fapu0
 
     say = say or (lambda msg: None)

@@ -385,7 +385,7 @@ def fap_sweep() -> list[np.ndarray]:
     """(68,) frames, FAPU units: every low-level FAP 3..68 alone, 0 -> its upper limit (held)
     -> 0 -> its lower limit (held) -> 0, the limits the Player clamps to (`FAP_LIMITS`, the
     standard's ranges)."""
-    from fae.animate.faptables import FAP_LIMITS
+    from fae.mpeg4.faptables import FAP_LIMITS
     from fae.mpeg4.faps import FAP_COUNT
 
     ramp = np.linspace(0.0, 1.0, SWEEP_RAMP + 1)[1:]

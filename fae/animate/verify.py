@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from fae.animate.faptables import (FAP_DIRECTION, FAP_FEATURE_POINT, FAP_LIMITS, FAP_NAME, SKIN_TRANSLATION_FAPS,
+from fae.mpeg4.faptables import (FAP_DIRECTION, FAP_FEATURE_POINT, FAP_LIMITS, FAP_NAME, SKIN_TRANSLATION_FAPS,
                                    fap_unit_scale)
 from fae.mpeg4.faps import FAP_COUNT
 

@@ -34,7 +34,7 @@ def register(subparsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from fae.animate.bake import INTERVALS_PER_SIDE
-    from fae.animate.faptables import SKIN_TRANSLATION_FAPS
+    from fae.mpeg4.faptables import SKIN_TRANSLATION_FAPS
     from fae.commands.verify_faps import parse_fap_list
     from fae.io.facemodel_gltf import FaceModelError, write_facemodel
 

@@ -17,7 +17,7 @@ so fae applies the standard's "bit mask follows" semantics):
   its range bounds values; the P range bounds frame-to-frame differences and would clamp
   legitimate poses (e.g. a head turn of 8500 AU is within 1860 x 170 but a P range reading
   of 600 would cut it). FAPs 1 and 2 (codes) are not clamped. The face plays a narrower
-  range still (fae.animate.faptables.FAP_LIMITS, e.g. open_jaw 0..1080 MNS): one warning
+  range still (fae.mpeg4.faptables.FAP_LIMITS, e.g. open_jaw 0..1080 MNS): one warning
   per FAP names that range, the one a viewer sees the value cut to (a unidirectional FAP
   slightly below 0, as real streams send, is cut to 0 without a warning).
 - time: the first frame of a stream is at t = 0 whatever its number (0 or 1); frame
@@ -40,7 +40,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fae.animate.faptables import FAP_LIMITS
+from fae.mpeg4.faptables import FAP_LIMITS
 from fae.io.fap import FapFrame
 from fae.mpeg4.faps import FAP_COUNT, FAPS, LIP_PARTNER_FAP, MIRROR_FAP
 from fae.mpeg4.highlevel import Expression, Viseme
