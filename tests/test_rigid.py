@@ -10,7 +10,8 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from fae.mpeg4.faptables import FAP_LIMITS, clamp_values, fapu_of
-from fae.animate.rigid import RigidRig, axis_angle
+from fae.animate.rigid import RigidRig
+from fae.linalg import axis_angle
 from fae.mpeg4.faps import AU, FAP_COUNT, FAPS
 from synthetic_head import synthetic_head
 

@@ -46,6 +46,7 @@ from scipy.spatial import cKDTree
 
 from fae.adapt.calibration import scan_unit, similarity_icp, similarity_transform
 from fae.cores import workers
+from fae.linalg import axis_angle
 from fae.mesh import coincident_groups
 from fae.anatomy.surface_points import markup_positions
 from fae.io.facemodel import FaceModel
@@ -172,12 +173,6 @@ def _rotation_to(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.eye(3) + K + K @ K / (1.0 + c)
 
 
-def _axis_angle(axis: np.ndarray, angle: float) -> np.ndarray:
-    axis = axis / np.linalg.norm(axis)
-    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    return np.eye(3) + np.sin(angle) * K + (1.0 - np.cos(angle)) * K @ K
-
-
 def _up_candidates(S: np.ndarray) -> list[np.ndarray]:
     """Unit directions the head's up may take in the scan: its axes and principal axes,
     both signs, without near-duplicates (within 15 degrees)."""
@@ -262,7 +257,7 @@ def head_pose(head: TemplateHead, scan_V: np.ndarray) -> tuple[float, np.ndarray
         for share in HEAD_SHARES:
             s = share * extent / height
             for k in range(YAW_STEPS):
-                R = _axis_angle(up, 2 * np.pi * k / YAW_STEPS) @ R_up
+                R = axis_angle(up, 2 * np.pi * k / YAW_STEPS) @ R_up
                 # the template's crown at the scan's top, its centre over the top part's centre
                 t = top_point - s * R @ top
                 delta = high.mean(axis=0) - (s * R @ centre + t)

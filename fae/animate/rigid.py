@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from fae.linalg import axis_angle
 from fae.mpeg4.faps import AU
 
 CONDYLE_GLIDE = 0.025  # metres of condylar translation per radian of opening
@@ -40,14 +41,6 @@ def rotation_y(a: float) -> np.ndarray:
 def rotation_z(a: float) -> np.ndarray:
     c, s = np.cos(a), np.sin(a)
     return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
-
-
-def axis_angle(axis: np.ndarray, a: float) -> np.ndarray:
-    """(3, 3) rotation by a radians about unit `axis` (Rodrigues)."""
-    k = np.asarray(axis, dtype=np.float64)
-    k = k / np.linalg.norm(k)
-    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + np.sin(a) * K + (1 - np.cos(a)) * (K @ K)
 
 
 def about(R: np.ndarray, center: np.ndarray, translation: np.ndarray | None = None) -> np.ndarray:
