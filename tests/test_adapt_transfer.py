@@ -336,3 +336,22 @@ def test_hidden_skin_the_fit_pressed_to_the_visible_skin_is_moved_back_behind_it
     want = np.minimum(gap[pressed], LINING_CLEARANCE)
     # (a few are held where moving them would fold a triangle the pressing left tilted)
     assert np.mean(after >= 0.9 * want) > 0.8, np.sort(after / want)
+
+
+def test_an_eye_above_its_opening_turns_its_gaze_down_through_the_middle(template):
+    """The template's own eyes need no turn; an eye centre 1.5 mm above its opening's middle
+    (11 mm in front of it) turns the rest gaze down by atan(1.5 / 11), 7.7 degrees, about
+    the horizontal axis, and a far larger miss is capped at EYE_MAX_GAZE_TURN."""
+    from fae.adapt.transfer import EYE_MAX_GAZE_TURN, gaze_turn, opening_middle
+
+    c = np.asarray(template.eye_centers["eye_l"], dtype=np.float64)
+    assert np.allclose(gaze_turn(template, template, "eye_l", c), np.eye(3), atol=1e-9)
+    gaze = opening_middle(template.feature_point_positions(), "eye_l") - c
+    R = gaze_turn(template, template, "eye_l", c + [0.0, 0.0015, 0.0])
+    turned = R @ gaze
+    expected = np.arctan2(0.0015, np.linalg.norm(gaze))
+    angle = np.arccos(np.clip(turned @ gaze / np.linalg.norm(gaze) ** 2, -1.0, 1.0))
+    assert turned[1] < 0.0 and abs(turned[0] - gaze[0]) < 1e-4  # down, not sideways (0.1 mm)
+    assert abs(angle - expected) < np.radians(0.5)
+    R = gaze_turn(template, template, "eye_l", c + [0.0, 0.01, 0.0])
+    assert np.isclose(np.arccos((np.trace(R) - 1.0) / 2.0), EYE_MAX_GAZE_TURN)

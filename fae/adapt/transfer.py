@@ -59,6 +59,7 @@ from fae.adapt.rbf import RBF, rbf_interpolant, rbf_weights
 from fae.adapt.untangle import mesh_edges, untangle
 from fae.anatomy.surface_points import markup_positions
 from fae.io.facemodel import FaceModel
+from fae.linalg import axis_angle
 
 MIN_BONE_DEPTH = 0.002  # metres of soft tissue kept between skin and bone
 MAX_PUSH = 0.002  # metres a bone vertex may be pushed inwards per round
@@ -448,6 +449,50 @@ def orbit_yields(template: FaceModel, model: FaceModel, name: str, c: np.ndarray
     return moved
 
 
+# each eye's opening: its lids' (upper, lower) and corners' (inner, outer) feature points.
+# The eye looks through the opening's middle, as the template's does; a turn of its rest
+# gaze by up to EYE_MAX_GAZE_TURN gets it there
+EYE_OPENINGS = {"eye_l": ("3.1", "3.3", "3.11", "3.7"), "eye_r": ("3.2", "3.4", "3.12", "3.8")}
+EYE_MAX_GAZE_TURN = np.radians(10.0)
+
+
+def opening_middle(fp: dict, name: str) -> np.ndarray | None:
+    """(3,) metres: the middle of eye `name`'s opening from feature point positions `fp`:
+    across the face between its corners, up and down and in depth between its lids' middles
+    (a fit can leave the lids' points a few millimetres apart across the face), or None
+    without them."""
+    points = EYE_OPENINGS.get(name)
+    if points is None or not all(p in fp for p in points):
+        return None
+    upper, lower, inner, outer = (np.asarray(fp[p], dtype=np.float64) for p in points)
+    lids = 0.5 * (upper + lower)
+    return np.array([0.5 * (inner[0] + outer[0]), lids[1], lids[2]])
+
+
+def gaze_turn(template: FaceModel, model: FaceModel, name: str, c: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation about eyeball `name`'s centre c (3,) metres on the adapted `model`
+    that turns the template's rest gaze (from its eye centre through its opening's middle)
+    through the middle of the adapted opening, by at most EYE_MAX_GAZE_TURN.
+
+    The socket fit places the eyeball in the orbit; a scan's lids open where the person's
+    do, which need not be where the template's sit on the eyeball (the busts' openings are
+    narrower and their middles lay 1.4-1.9 mm below their eyes' centres: the irises showed
+    high, half under the upper lids). Turned, the eye looks out of the opening's middle;
+    its centre and the socket's fit stay."""
+    before = opening_middle(template.feature_point_positions(), name)
+    after = opening_middle(model.feature_point_positions(), name)
+    if before is None or after is None:
+        return np.eye(3)
+    a = before - np.asarray(template.eye_centers[name], dtype=np.float64)
+    b = after - np.asarray(c, dtype=np.float64)
+    a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
+    axis = np.cross(a, b)
+    sin, cos = float(np.linalg.norm(axis)), float(np.dot(a, b))
+    if sin < 1e-9:
+        return np.eye(3)
+    return axis_angle(axis, min(np.arctan2(sin, cos), EYE_MAX_GAZE_TURN))
+
+
 ORBIT_PUSH_RADIUS = 0.004  # m over which a push deepening an orbit takes the skin around along
 EYE_MIN_SHARE = 0.9  # of the ratio of the outer eye corners' distance: no eyeball is scaled below this
 EYE_SINK_STEP = 0.0005  # m: an eyeball that crosses the skin moves away from it by this much at a time
@@ -614,6 +659,7 @@ def personalize(template: FaceModel, skin: np.ndarray, T: np.ndarray, unit: str,
             # at least EYE_MIN_SHARE of the eye's width ratio and moves instead, away from the
             # tissue it crosses (back from the lids, or forward from a shallow orbit)
             s = max(s, EYE_MIN_SHARE * (_ratio(fdp_old, fdp_new, "3.7", "3.8") or rigid_scale[name]))
+            rel = rel @ gaze_turn(template, model, name, c).T
             direction = rel / np.linalg.norm(rel, axis=1, keepdims=True)
             # the front of the eye clears the lids the scan gave (its back may cross the orbit's
             # skin, which no one sees: that yields below)
