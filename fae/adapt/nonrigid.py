@@ -55,6 +55,7 @@ follows its neighbours; `detail` limits which skin follows the scan in the soft 
 from __future__ import annotations
 
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -465,20 +466,25 @@ def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray
     # matrix once; a vertex without a compatible scan point this round is asked to stay
     blended_total = 0
     quiet = np.zeros(n, dtype=bool)  # skin whose scan pull folded it: it follows its neighbours
+    # a stage's matrix is factored on a thread of its own while its first round looks for
+    # the scan's points (SuperLU lets go of the GIL)
+    factoring = ThreadPoolExecutor(1)
     for a, reach in zip(STIFFNESS, reaches):
         matched = movable if a >= DETAIL_STIFFNESS else detail
         if placed is not None and a >= DETAIL_STIFFNESS:
             matched = matched & ~placed
         fade = (a / STIFFNESS[0]) ** LANDMARK_FADE  # feature points place the parts; the scan gives the detail
+        # once a stage: skin let go in a round stays put until the next stage
+        M = a * a * LtL + sp.diags((matched & ~quiet).astype(np.float64))
+        if B is not None:
+            M = M + fade * BtB
+        factors = factoring.submit(symmetric_splu, M)
         solve = None
         for _ in range(ROUNDS):
             NX = per_vertex_normals(X, F)
             idx_all, Q_all = scan_pairs(X, NX, scan, reach, matched, along_normal=True, rays=rays)
-            if solve is None:  # once a stage: skin let go in a round stays put until the next stage
-                M = a * a * LtL + sp.diags((matched & ~quiet).astype(np.float64))
-                if B is not None:
-                    M = M + fade * BtB
-                solve = symmetric_splu(M).solve
+            if solve is None:
+                solve = factors.result().solve
             keep = ~quiet[idx_all]
             idx, Q = idx_all[keep], Q_all[keep]
             rhs = np.zeros((n, 3))
@@ -509,6 +515,7 @@ def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray
                        "folded": int(folded_triangles(P, X, F, reference=fold_ref).sum()), "quiet_vertices": int(quiet.sum()),
                        "blended_vertices": blended_total,
                        "untangled_vertices": untangled, "seconds": time.perf_counter() - t0})
+    factoring.shutdown()
     # skin the scan does not reach (a neck below its cut, a crown above a face scan) takes
     # the harmonic extension of the displacement around it: what the stages left there is
     # the blends' patchwork
