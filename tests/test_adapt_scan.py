@@ -97,9 +97,9 @@ def test_a_bust_becomes_a_whole_head_on_its_scan(adapted_bust, bust, template):
     assert report["folded_triangles"]["all"] == 0
     e = report["errors"]
     assert e["face_to_scan_rms_rel"] < 0.001 and e["face_coverage"] > 0.95
-    # the scan beside the head part's cut where the shoulders meet the neck pulls nothing
-    # (0.25 %; 0.19 % when it pulled the neck's rim into their flare), the head part 0.07 %
-    assert e["scan_to_skin_rms_rel"] < 0.003 and e["scan_coverage"] > 0.9
+    # the neck stiffens towards its end, so its base no longer follows the shoulders' flare
+    # (0.18 %; 0.12 % when it did); the head without the neck 0.07 %
+    assert e["scan_to_skin_rms_rel"] < 0.002 and e["scan_coverage"] > 0.9
     assert e["head_to_skin_rms_rel"] < 0.001
     # against the truth, not the fitted scan: the face's skin in the truth's frame
     from fae.adapt.errors import FACE_REGIONS
@@ -327,7 +327,7 @@ def test_a_scanned_bust_becomes_a_head(shared_data, name, tmp_path):
     assert report["folded_triangles"]["all"] == 0
     e = report["errors"]
     assert e["face_to_scan_rms_rel"] < 0.001 and e["face_coverage"] > 0.95  # 0.058-0.096 %
-    # the scan's points pull the ears, scalp and neck too: scan -> skin 0.21 / 0.33 / 0.28 %
+    # the scan's points pull the ears, scalp and neck too: scan -> skin 0.20 / 0.33 / 0.28 %
     # (the neck beside the cut where it runs into the drapery pulls nothing: 0.19 / 0.28 /
     # 0.24 % when it did), without the neck 0.17 / 0.28 / 0.20 % (0.29 / 0.32 / 0.28 % and
     # 0.28 / 0.33 / 0.23 % before the ears, scalp and neck were pulled)
@@ -335,8 +335,8 @@ def test_a_scanned_bust_becomes_a_head(shared_data, name, tmp_path):
                                 "demosthenes": (0.0031, 0.0022, 300)}[name]
     assert e["scan_to_skin_rms_rel"] < most and e["head_to_skin_rms_rel"] < most_head
     # the neck keeps a neck's smooth shape where the bust's runs into its base: edges bent
-    # 30 degrees more than the template's there 158 / 191 / 238 (270 / 201 / 381 with a
-    # ledge along the cut)
+    # 30 degrees more than the template's there 178 / 191 / 238 (270 / 201 / 381 with a
+    # ledge along the cut; the wreath's neck had none, so its bound only guards)
     assert neck_creases(read_facemodel(out)) < creases
     part = report["head_part"]
     assert part["head_vertices"] < 0.9 * part["scan_vertices"]  # the plinth and shoulders are left out

@@ -92,8 +92,11 @@ def neck_cut(template: FaceModel, V: np.ndarray, boundary: np.ndarray) -> np.nda
     frame, where a bust's neck ran into something else: below the chin and more than
     NECK_CUT_ABOVE_END above the template's neck end (a scan cut there by the template's
     own neck end is neck to its rim)."""
+    neck = in_regions(template, ["neck"])
+    if not neck.any():
+        return np.zeros(len(V), dtype=bool)
     y = np.asarray(V)[:, 1]
-    end = float(np.asarray(template.skin_vertices)[in_regions(template, ["neck"]), 1].min(initial=-np.inf))
+    end = float(np.asarray(template.skin_vertices)[neck, 1].min())
     return np.asarray(boundary, dtype=bool) & (y < chin_height(template)) & (y > end + NECK_CUT_ABOVE_END)
 
 

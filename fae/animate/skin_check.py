@@ -241,7 +241,7 @@ class SkinCheck:
         keep = self.rest_length >= STRAIN_MIN_EDGE * np.median(self.rest_length)
         self.edges, self.rest_length = self.edges[keep], self.rest_length[keep]
         # neighbouring visible triangles that meet smoothly at rest (for creases)
-        a, b = triangle_pairs(F).T
+        a, b = triangle_pairs(F).T  # (an edge of three triangles or more has no crease check)
         smooth = self.visible[a] & self.visible[b] & (np.sum(self.rest_normals[a] * self.rest_normals[b], axis=1)
                                                       > CREASE_REST_COS)
         self.neighbours = np.column_stack([a[smooth], b[smooth]])

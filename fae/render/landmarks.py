@@ -141,6 +141,9 @@ def _quiet_native_logs() -> None:
     os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
 
 
+DRAWING_HELPERS = ("mediapipe.python.solutions.drawing_styles", "mediapipe.python.solutions.drawing_utils")
+
+
 def preload_landmark_model() -> None:
     """Start importing MediaPipe (half a second, most of it matplotlib, left out) on a thread of its
     own, so that it is there when a caller that reads and searches a scan first needs it.
@@ -155,11 +158,10 @@ def preload_landmark_model() -> None:
     _quiet_native_logs()  # here, not on the thread: the environment is unsafe to change beside threads
 
     def load():
-        # MediaPipe's drawing helpers import matplotlib.pyplot (0.4 s), which fae never uses
-        # through them: placeholders stand in while MediaPipe loads and are taken out after,
-        # so that a later `import matplotlib.pyplot` (fae adapt --plot) loads the real one
-        placeholders = {name: types.ModuleType(name) for name in ("matplotlib", "matplotlib.pyplot")
-                        if name not in sys.modules}
+        # MediaPipe's drawing helpers, which its solutions package imports and fae never
+        # uses, import matplotlib.pyplot (0.4 s): placeholders stand in for the two helper
+        # modules (nothing else imports them) while MediaPipe loads, and are taken out after
+        placeholders = {name: types.ModuleType(name) for name in DRAWING_HELPERS if name not in sys.modules}
         sys.modules.update(placeholders)
         try:
             import mediapipe  # noqa: F401
