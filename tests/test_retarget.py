@@ -290,7 +290,7 @@ def test_bust(template, shared_data, tmp_path, template_folds):
     # smoothed over: its lids' creases), the template none at all: 4x the template's does
     # not bound it, an absolute floor of 0.4 % does. The share follows the feature points
     # `fae adapt` gives: the lower lip's rim folds on 4 or 18 triangles as the mouth's
-    # corners (2.4, 2.5) move by 1.4 mm between two fits of the bust
+    # corners (2.4, 2.5) move by 1.4 mm between two versions of the fit
     _, frames = check_target(template, rt, template_folds, fold_factor=FOLD_FACTOR_SCANNED, fold_floor=0.004)
     # the plinth and shoulders (below the chin by more than the head's height / 2) stay still
     V = rt.model.skin_vertices
