@@ -350,14 +350,14 @@ def test_a_scanned_bust_becomes_a_head(shared_data, name, tmp_path):
     if name == "marble_bust":
         # calibrated as `fae adapt` does (from the template's mapping), the lower lip corners'
         # raises, probed on part of the skin where the lips press on each other, are checked
-        # on the whole skin: they land 1.06 / 1.19x their value (1.80 / 1.58x when the part
+        # on the whole skin: they land 1.06 / 1.02x their value (1.80 / 1.58x when the part
         # probes raised their scales from 5.6 to 8.6 / 7.2)
         from fae.animate.calibrate import calibrate
         from fae.animate.player import Player, PlayableHead
 
         head = calibrate(read_facemodel(out), start=read_facemodel(shipped_head_path()).fap_mapping)
         corners = verify_faps(Player(PlayableHead(head)), faps=[10, 11])
-        assert all(r["ratio"] < 1.3 for r in corners), [(r["fap"], round(r["ratio"], 2)) for r in corners]
+        assert all(r["ratio"] < 1.15 for r in corners), [(r["fap"], round(r["ratio"], 2)) for r in corners]
 
 
 @needs_mediapipe

@@ -129,10 +129,11 @@ FULL_RANGE_FAPS = (19, 20)
 SETTLE_THREADS = 4  # at most; Warp's CPU kernels release the GIL
 PART_RINGS = 3  # edge rings of free skin around a batch's footprint in its probes
 # a warm-started lip FAP whose table scale ended this far (as a share) from its start's is
-# measured again on the whole skin, at both scales, and keeps the nearer: a probe on part of
-# the skin holds the rest, and the lips press on each other (marble_bust's lower lip
+# measured again on the whole skin, at both scales (and, where neither lands within
+# REFINE_TOLERANCE, at the next scale they suggest), and keeps the nearest: a probe on part
+# of the skin holds the rest, and the lips press on each other (marble_bust's lower lip
 # corners' raises: measured short there and raised from 5.6 to 8.6 / 7.2, 1.80 / 1.58x
-# their value on the whole skin; 1.06 / 1.19x at the start's scale)
+# their value on the whole skin; 1.06 / 1.19x at the start's scale, 1.02x at 4.7)
 WHOLE_CHECK_SHIFT = 0.2
 # a probe's settle ends once the points it measures move less than SETTLE_TOLERANCE of their
 # motion in each of two frames running, from SETTLE_MIN_FRAMES on (at most `settle_frames`;
@@ -771,30 +772,42 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
             table_scale[k - 1, _scale_columns(k, side)] = best
     if warm_start_usable(start):
         start_scale = np.asarray(start["table_scale"], dtype=np.float64)
+
+        def whole_skin_ratios(tries: list[tuple[int, float, float]]) -> list[float]:
+            # measured / expected motion of each (FAP, side) held alone on the whole skin
+            # with its table scale set to the given one
+            nonlocal ctl
+            trial = table_scale.copy()
+            for k, side, scale in tries:
+                trial[k - 1, _scale_columns(k, side)] = scale
+            controls_face.fap_mapping = {**mapping, "table_scale": trial}
+            ctl = FapControls(controls_face, model)
+            jobs = []
+            for k, side, _ in tries:
+                values = np.zeros(FAP_COUNT)
+                values[k - 1] = side * half[k - 1]
+                jobs.append((side, [k], values, "whole"))
+            with ThreadPoolExecutor(threads) as pool:
+                skins = list(pool.map(settled, jobs))
+            return [moved_along(FAP_FEATURE_POINT[k - 1], k, skin) * np.sign(side) / expected_motion(k, side)
+                    for (k, side, _), skin in zip(tries, skins)]
+
         moved = [(k, side) for (k, side) in measured if k in LIP_MARGIN_FAPS
                  and abs(table_scale[k - 1, _scale_columns(k, side)[0]]
                          / start_scale[k - 1, _scale_columns(k, side)[0]] - 1.0) > WHOLE_CHECK_SHIFT]
-        if moved:
-            trials = {}  # (k, side) -> [(scale, measured / expected on the whole skin)]
-            for scales in (table_scale, start_scale):
-                trial = table_scale.copy()
-                for k, side in moved:
-                    trial[k - 1, _scale_columns(k, side)] = scales[k - 1, _scale_columns(k, side)[0]]
-                controls_face.fap_mapping = {**mapping, "table_scale": trial}
-                ctl = FapControls(controls_face, model)
-                jobs = []
-                for k, side in moved:
-                    values = np.zeros(FAP_COUNT)
-                    values[k - 1] = side * half[k - 1]
-                    jobs.append((side, [k], values, "whole"))
-                with ThreadPoolExecutor(threads) as pool:
-                    skins = list(pool.map(settled, jobs))
-                for (k, side), skin in zip(moved, skins):
-                    along = moved_along(FAP_FEATURE_POINT[k - 1], k, skin) * np.sign(side)
-                    trials.setdefault((k, side), []).append((float(trial[k - 1, _scale_columns(k, side)[0]]),
-                                                             along / expected_motion(k, side)))
-            for (k, side), seen in trials.items():
-                table_scale[k - 1, _scale_columns(k, side)] = min(seen, key=lambda sr: _miss(sr[1]))[0]
+        seen = {key: [] for key in moved}  # (k, side) -> [(scale, ratio on the whole skin)]
+        for scales in (table_scale, start_scale):
+            tries = [(k, side, float(scales[k - 1, _scale_columns(k, side)[0]])) for k, side in moved]
+            for (k, side, scale), ratio in zip(tries, whole_skin_ratios(tries) if tries else []):
+                seen[(k, side)].append((scale, ratio))
+        # one more try where neither was near: the next scale from those two
+        tries = [(k, side, _next_scale(sorted(s_r, key=lambda sr: _miss(sr[1]), reverse=True)))
+                 for (k, side), s_r in seen.items() if min(_miss(r) for _, r in s_r) > REFINE_TOLERANCE]
+        tries = [(k, side, scale) for k, side, scale in tries if scale is not None]
+        for (k, side, scale), ratio in zip(tries, whole_skin_ratios(tries) if tries else []):
+            seen[(k, side)].append((scale, ratio))
+        for (k, side), s_r in seen.items():
+            table_scale[k - 1, _scale_columns(k, side)] = min(s_r, key=lambda sr: _miss(sr[1]))[0]
     mapping["table_scale"] = table_scale
     mapping["pair_overlap"] = pair_overlap_of(overlap)
     out = copy.copy(face)
