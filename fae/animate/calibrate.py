@@ -773,10 +773,12 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
     if warm_start_usable(start):
         start_scale = np.asarray(start["table_scale"], dtype=np.float64)
 
-        def whole_skin_ratios(tries: list[tuple[int, float, float]]) -> list[float]:
-            # measured / expected motion of each (FAP, side) held alone on the whole skin
-            # with its table scale set to the given one
+        def measure_whole(tries: list[tuple[int, float, float]]) -> None:
+            # each (FAP, side, scale) held alone on the whole skin with that table scale: its
+            # measured / expected motion joins seen[(FAP, side)]
             nonlocal ctl
+            if not tries:
+                return
             trial = table_scale.copy()
             for k, side, scale in tries:
                 trial[k - 1, _scale_columns(k, side)] = scale
@@ -789,23 +791,20 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
                 jobs.append((side, [k], values, "whole"))
             with ThreadPoolExecutor(threads) as pool:
                 skins = list(pool.map(settled, jobs))
-            return [moved_along(FAP_FEATURE_POINT[k - 1], k, skin) * np.sign(side) / expected_motion(k, side)
-                    for (k, side, _), skin in zip(tries, skins)]
+            for (k, side, scale), skin in zip(tries, skins):
+                along = moved_along(FAP_FEATURE_POINT[k - 1], k, skin) * np.sign(side)
+                seen[(k, side)].append((scale, along / expected_motion(k, side)))
 
         moved = [(k, side) for (k, side) in measured if k in LIP_MARGIN_FAPS
                  and abs(table_scale[k - 1, _scale_columns(k, side)[0]]
                          / start_scale[k - 1, _scale_columns(k, side)[0]] - 1.0) > WHOLE_CHECK_SHIFT]
         seen = {key: [] for key in moved}  # (k, side) -> [(scale, ratio on the whole skin)]
         for scales in (table_scale, start_scale):
-            tries = [(k, side, float(scales[k - 1, _scale_columns(k, side)[0]])) for k, side in moved]
-            for (k, side, scale), ratio in zip(tries, whole_skin_ratios(tries) if tries else []):
-                seen[(k, side)].append((scale, ratio))
-        # one more try where neither was near: the next scale from those two
-        tries = [(k, side, _next_scale(sorted(s_r, key=lambda sr: _miss(sr[1]), reverse=True)))
-                 for (k, side), s_r in seen.items() if min(_miss(r) for _, r in s_r) > REFINE_TOLERANCE]
-        tries = [(k, side, scale) for k, side, scale in tries if scale is not None]
-        for (k, side, scale), ratio in zip(tries, whole_skin_ratios(tries) if tries else []):
-            seen[(k, side)].append((scale, ratio))
+            measure_whole([(k, side, float(scales[k - 1, _scale_columns(k, side)[0]])) for k, side in moved])
+        # one more try where neither was near: the next scale those two suggest (nearest last)
+        nearest_last = {key: sorted(s_r, key=lambda sr: _miss(sr[1]), reverse=True) for key, s_r in seen.items()}
+        measure_whole([(k, side, scale) for (k, side), s_r in nearest_last.items()
+                       if _miss(s_r[-1][1]) > REFINE_TOLERANCE and (scale := _next_scale(s_r)) is not None])
         for (k, side), s_r in seen.items():
             table_scale[k - 1, _scale_columns(k, side)] = min(s_r, key=lambda sr: _miss(sr[1]))[0]
     mapping["table_scale"] = table_scale
