@@ -1,5 +1,3 @@
-import sys
+from fae.cli import run
 
-from fae.cli import main
-
-sys.exit(main())
+run()

@@ -55,3 +55,21 @@ def test_installed_console_script(repo_root):
     assert result.returncode == 0, result.stderr
     summary = json.loads(result.stdout)
     assert summary["faps_used"] == [19, 20, 23, 24, 25, 26, 48, 49, 50] and summary["frame_count"] == 250
+
+
+def test_the_command_exits_quickly_with_its_status_and_all_its_output(repo_root, tmp_path):
+    # `fae` leaves out Python's teardown (fae.cli.run): what it printed still arrives whole,
+    # piped, with the command's own exit status, a failure's message included
+    script = Path(sys.executable).with_name("fae")
+    for command in ([str(script)] if script.exists() else [], [sys.executable, "-m", "fae"]):
+        if not command:
+            continue
+        env = {**os.environ, "PYTHONWARNINGS": "ignore"}
+        done = subprocess.run(command + ["inspect", "--json", str(repo_root / "fap_streams" / "all_faps_sweep.fap")],
+                              capture_output=True, text=True, timeout=60, env=env)
+        assert done.returncode == 0, done.stderr
+        assert json.loads(done.stdout)["frame_count"] > 1000
+        bad = tmp_path / "bad.fap"
+        bad.write_text("2.1 bad 25 1\n" + " ".join(["0", "0", "1"] + ["0"] * 65) + "\n0 NaN\n")
+        done = subprocess.run(command + ["inspect", str(bad)], capture_output=True, text=True, timeout=60, env=env)
+        assert done.returncode == 2 and f"{bad}:3: token 'NaN'" in done.stderr

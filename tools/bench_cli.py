@@ -1,0 +1,85 @@
+"""Wall time of `fae` commands as a user runs them: one process each, start to exit.
+
+Each command runs --repeat times two ways, alternated so that a drift of the machine
+touches both alike: as the `fae` command does (fae.cli.run: main, then the exit handlers
+and an exit without Python's teardown) and, as the baseline, main followed by the usual
+interpreter teardown (freeing Warp's modules, MediaPipe's graph, OSMesa's context).
+Prints the median seconds of each and their ratio. Commands: `fae inspect` of a shipped
+stream, `fae render` of the shipped head, and `fae adapt` of the bust the tests make
+(fae.adapt.synthetic.bust_scan, seed 3; with its FAP calibration) and, with --real, of
+the scanned busts in shared/data/heads/busts when that folder is there.
+
+    .venv/bin/python tools/bench_cli.py [--repeat 3] [--real]
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+REAL_BUSTS = ("marble_bust", "man_with_wreath", "demosthenes")
+# the same main() with the interpreter's usual teardown after it
+TEARDOWN = "import sys; from fae.cli import main; sys.exit(main(sys.argv[1:]))"
+
+
+def wall(argv: list[str]) -> float:
+    t = time.perf_counter()
+    done = subprocess.run(argv, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    seconds = time.perf_counter() - t
+    if done.returncode != 0:
+        raise SystemExit(f"bench_cli: {' '.join(argv)} exited {done.returncode}: {done.stderr.strip()[-400:]}")
+    return seconds
+
+
+def synthetic_bust(folder: Path) -> Path:
+    import numpy as np
+    import trimesh
+
+    from fae.adapt.synthetic import bust_scan
+    from fae.data import shipped_head_path
+    from fae.io.facemodel_gltf import read_facemodel
+
+    template = read_facemodel(shipped_head_path())
+    fdp = {n: p for n, p in template.feature_point_positions().items() if template.feature_points[n].part == "skin"}
+    F = np.asarray(template.skin_faces)
+    lining = np.asarray(template.skin_region)[F[:, 0]] == template.region_names.index("mouth_cavity")
+    bust = bust_scan(template.skin_vertices, F, fdp, seed=3, drop_faces=lining)
+    path = folder / "bust.obj"
+    trimesh.Trimesh(bust.vertices, bust.faces, process=False).export(path)
+    return path
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--repeat", type=int, default=3, help="runs of each command each way; the median counts")
+    ap.add_argument("--real", action="store_true", help="also `fae adapt` the scanned busts of shared/data")
+    args = ap.parse_args()
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp)
+        commands = [("inspect a stream", ["inspect", "fap_streams/expressions.fap"]),
+                    ("render the shipped head", ["render", "-o", str(folder / "r.png")]),
+                    ("adapt the synthetic bust", ["adapt", str(synthetic_bust(folder)), "-o", str(folder / "h.glb")])]
+        busts = ROOT.parent / "shared" / "data" / "heads" / "busts"
+        if args.real and busts.is_dir():
+            commands += [(f"adapt {name}", ["adapt", str(busts / name / f"{name}.obj"), "-o", str(folder / "h.glb")])
+                         for name in REAL_BUSTS]
+        elif args.real:
+            print(f"note: {busts} not found; the scanned busts are left out")
+        print(f"{'command':28s} {'fae (s)':>8s} {'with teardown (s)':>18s} {'ratio':>6s}")
+        for name, argv in commands:
+            quick, full = [], []
+            for _ in range(args.repeat):
+                quick.append(wall([sys.executable, "-m", "fae", *argv]))
+                full.append(wall([sys.executable, "-c", TEARDOWN, *argv]))
+            q, f = statistics.median(quick), statistics.median(full)
+            print(f"{name:28s} {q:8.2f} {f:18.2f} {f / q:6.2f}x")
+
+
+if __name__ == "__main__":
+    main()
