@@ -30,3 +30,18 @@ def axis_angle(axis: np.ndarray, a: float) -> np.ndarray:
     k = k / np.linalg.norm(k)
     K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
     return np.eye(3) + np.sin(a) * K + (1 - np.cos(a)) * (K @ K)
+
+
+def turn_between(a: np.ndarray, b: np.ndarray, max_angle: float = np.pi) -> np.ndarray:
+    """(3, 3) rotation turning direction a (3,) towards direction b (3,) about their common
+    normal (the shortest turn), by their angle or at most `max_angle` radians; opposite
+    directions turn about an axis square to a. Any lengths but zero."""
+    a = np.asarray(a, dtype=np.float64) / np.linalg.norm(a)
+    b = np.asarray(b, dtype=np.float64) / np.linalg.norm(b)
+    axis = np.cross(a, b)
+    sin, cos = float(np.linalg.norm(axis)), float(np.dot(a, b))
+    if sin < 1e-12:
+        if cos > 0.0:
+            return np.eye(3)
+        axis = np.cross(a, [1.0, 0.0, 0.0] if abs(a[0]) < 0.9 else [0.0, 1.0, 0.0])
+    return axis_angle(axis, min(float(np.arctan2(sin, cos)), max_angle))

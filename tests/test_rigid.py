@@ -110,3 +110,23 @@ def test_pupil_dilation_grows_the_pupil_and_never_inverts_it(rig):
     sizes = [rig.pupil_scale(one_fap(29, v))["eye_l"] for v in np.linspace(*FAP_LIMITS[28], 41)]
     assert np.all(np.diff(sizes) >= 0.0) and min(sizes) >= 0.05
     assert rig.pupil_scale(one_fap(29, 100.0))["eye_r"] == 1.0  # the left FAP leaves the right pupil
+
+
+def test_the_shortest_turn_between_two_directions_is_capped_and_handles_opposites():
+    from fae.linalg import turn_between
+
+    rng = np.random.default_rng(1)
+    for _ in range(20):
+        a, b = rng.normal(size=3), rng.normal(size=3)
+        R = turn_between(a, b)
+        assert np.allclose(R @ R.T, np.eye(3), atol=1e-12) and np.isclose(np.linalg.det(R), 1.0)
+        assert np.allclose(R @ (a / np.linalg.norm(a)), b / np.linalg.norm(b), atol=1e-12)
+        # about the common normal: that normal stays put
+        n = np.cross(a, b)
+        assert np.allclose(R @ n, n, atol=1e-12)
+    up = np.array([0.0, 1.0, 0.0])
+    assert np.allclose(turn_between(up, -up) @ up, -up, atol=1e-12)
+    assert np.allclose(turn_between(up, 3 * up), np.eye(3))
+    tilted = np.array([0.0, np.cos(0.5), np.sin(0.5)])  # 28.6 degrees from up
+    capped = turn_between(up, tilted, np.radians(10.0))
+    assert np.isclose(np.degrees(np.arccos(capped[:, 1] @ up)), 10.0)

@@ -46,7 +46,7 @@ from scipy.spatial import cKDTree
 
 from fae.adapt.calibration import scan_unit, similarity_icp, similarity_transform
 from fae.cores import workers
-from fae.linalg import axis_angle
+from fae.linalg import axis_angle, turn_between
 from fae.mesh import coincident_groups
 from fae.anatomy.surface_points import markup_positions
 from fae.io.facemodel import FaceModel
@@ -159,20 +159,6 @@ def template_head(template: FaceModel) -> TemplateHead:
                         chin_y=chin_y, neck_bottom=neck_bottom, neck_axis=axis, neck_radius=radius)
 
 
-def _rotation_to(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(3, 3) rotation taking unit vector a to unit vector b (the shortest turn)."""
-    v = np.cross(a, b)
-    c = float(np.dot(a, b))
-    if np.linalg.norm(v) < 1e-12:
-        if c > 0:
-            return np.eye(3)
-        axis = np.cross(a, [1.0, 0.0, 0.0] if abs(a[0]) < 0.9 else [0.0, 1.0, 0.0])
-        axis /= np.linalg.norm(axis)
-        return 2.0 * np.outer(axis, axis) - np.eye(3)
-    K = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
-    return np.eye(3) + K + K @ K / (1.0 + c)
-
-
 def _up_candidates(S: np.ndarray) -> list[np.ndarray]:
     """Unit directions the head's up may take in the scan: its axes and principal axes,
     both signs, without near-duplicates (within 15 degrees)."""
@@ -251,7 +237,7 @@ def head_pose(head: TemplateHead, scan_V: np.ndarray) -> tuple[float, np.ndarray
         extent = float(np.ptp(along))
         if extent <= 1e-9 * max(float(np.ptp(S, axis=0).max()), 1e-300):
             continue  # a flat scan has no extent along its normal
-        R_up = _rotation_to(np.array([0.0, 1.0, 0.0]), up)
+        R_up = turn_between(np.array([0.0, 1.0, 0.0]), up)
         top_point = S[np.argmax(along)]
         high = S[along >= along.max() - 0.3 * extent]
         for share in HEAD_SHARES:

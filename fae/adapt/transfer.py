@@ -59,7 +59,7 @@ from fae.adapt.rbf import RBF, rbf_interpolant, rbf_weights
 from fae.adapt.untangle import mesh_edges, untangle
 from fae.anatomy.surface_points import markup_positions
 from fae.io.facemodel import FaceModel
-from fae.linalg import axis_angle
+from fae.linalg import turn_between
 
 MIN_BONE_DEPTH = 0.002  # metres of soft tissue kept between skin and bone
 MAX_PUSH = 0.002  # metres a bone vertex may be pushed inwards per round
@@ -483,14 +483,8 @@ def gaze_turn(template: FaceModel, model: FaceModel, name: str, c: np.ndarray) -
     after = opening_middle(model.feature_point_positions(), name)
     if before is None or after is None:
         return np.eye(3)
-    a = before - np.asarray(template.eye_centers[name], dtype=np.float64)
-    b = after - np.asarray(c, dtype=np.float64)
-    a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
-    axis = np.cross(a, b)
-    sin, cos = float(np.linalg.norm(axis)), float(np.dot(a, b))
-    if sin < 1e-9:
-        return np.eye(3)
-    return axis_angle(axis, min(np.arctan2(sin, cos), EYE_MAX_GAZE_TURN))
+    return turn_between(before - np.asarray(template.eye_centers[name], dtype=np.float64),
+                        after - np.asarray(c, dtype=np.float64), EYE_MAX_GAZE_TURN)
 
 
 ORBIT_PUSH_RADIUS = 0.004  # m over which a push deepening an orbit takes the skin around along
