@@ -15,6 +15,8 @@ counter-clockwise seen from outside. Functions are pure: inputs are never modifi
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import scipy.sparse as sp
 
@@ -50,9 +52,10 @@ def adjacency(F: np.ndarray, n: int) -> sp.csr_matrix:
     return adjacency_from_edges(n, edges(F))
 
 
-def triangle_pairs(F: np.ndarray) -> np.ndarray:
-    """(p, 2) int64 pairs of triangles of F (m, 3) that share an edge (edges used by exactly
-    two triangles), sorted by edge."""
+def triangle_pairs(F: np.ndarray, fans: bool = False) -> np.ndarray:
+    """(p, 2) int64 pairs of triangles of F (m, 3) that share an edge used by exactly two
+    triangles, sorted by edge; with `fans`, also every two of the triangles around an edge
+    of three or more (a non-manifold fan), after those."""
     F = np.asarray(F, dtype=np.int64)
     E = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
     face = np.tile(np.arange(len(F)), 3)
@@ -62,8 +65,14 @@ def triangle_pairs(F: np.ndarray) -> np.ndarray:
     same = np.flatnonzero(key[1:] == key[:-1])
     alone = np.ones(len(same), dtype=bool)  # not part of a run of three or more (non-manifold)
     alone &= np.r_[True, same[1:] != same[:-1] + 1] & np.r_[same[:-1] + 1 != same[1:], True]
-    same = same[alone]
-    return np.column_stack([face[same], face[same + 1]])
+    pairs = np.column_stack([face[same[alone]], face[same[alone] + 1]])
+    if not fans or alone.all():
+        return pairs
+    starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
+    ends = np.r_[starts[1:], len(key)]
+    fan = [face[s:e] for s, e in zip(starts, ends) if e - s > 2]
+    extra = [np.array(list(itertools.combinations(f, 2)), dtype=np.int64) for f in fan]
+    return np.concatenate([pairs, *extra])
 
 
 def triangle_normals(V: np.ndarray, F: np.ndarray) -> np.ndarray:

@@ -366,3 +366,37 @@ def test_a_lid_standing_off_its_eyeball_blinks_without_showing_its_lining(face):
     assert max(seen) <= 3e-6, seen
     assert min(opening) < 0.3 * opening[0], opening  # closed
     assert opening[-1] > 0.8 * opening[0], opening  # and open again
+
+
+def test_a_crease_along_an_edge_of_three_triangles_is_caught(face):
+    """A user's head may have an edge shared by three triangles or more (a fin, a doubled
+    triangle): the two smooth neighbours across it still fold into a crease that shows."""
+    import copy
+
+    from fae.linalg import axis_angle
+
+    F = np.asarray(face.skin_faces)
+    V = np.asarray(face.skin_vertices, dtype=np.float64).copy()
+    v = _region_vertex(face, "cheek_l", x=0.045)
+    t = int(np.flatnonzero(np.any(F == v, axis=1))[0])
+    doubled = copy.copy(face)
+    doubled.skin_faces = np.vstack([F, F[t]])  # every edge of t now has three triangles
+    a, b = F[t][0], F[t][1]
+    u = int(next(s for s in np.flatnonzero(np.isin(F, [a, b]).sum(axis=1) == 2) if s != t))
+
+    def normals_dot(X):
+        n = np.cross(X[F[[t, u], 1]] - X[F[[t, u], 0]], X[F[[t, u], 2]] - X[F[[t, u], 0]])
+        n /= np.linalg.norm(n, axis=1, keepdims=True)
+        return float(n[0] @ n[1])
+
+    # each side's far corner turned 55 degrees about the shared edge, the way that bends the
+    # two apart: neither triangle has turned over, the two are 110 degrees apart
+    for apex in (F[t][2], next(c for c in F[u] if c not in (a, b))):
+        turned = [V.copy(), V.copy()]
+        for X, angle in zip(turned, (55.0, -55.0)):
+            X[apex] = V[a] + axis_angle(V[b] - V[a], np.radians(angle)) @ (V[apex] - V[a])
+        V = min(turned, key=normals_dot)
+    assert normals_dot(V) < np.cos(np.radians(100.0))
+    r = SkinCheck(doubled).frame(V)
+    assert not r.turned[[t, u]].any()
+    assert r.folded[t] and r.folded[u]

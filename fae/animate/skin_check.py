@@ -4,8 +4,9 @@ A visible skin triangle (none of its corners in the mouth's lining, which is see
 through the lips, and not a needle thinner than `SLIVER_HEIGHT` of the median edge) is
 **folded** when its normal, in the head's own frame (head rotation removed), has turned
 more than 90 degrees from its rest normal, or when it sits on a **crease**: an edge whose
-two triangles, at most 45 degrees apart at rest, are now more than 90 degrees apart (a
-hinge fold shows as a dark line before either side has turned 90 degrees). Edge
+two triangles (any two, around an edge of three or more on a user's head), at most 45
+degrees apart at rest, are now more than 90 degrees apart (a hinge fold shows as a dark
+line before either side has turned 90 degrees). Edge
 **strain** is an edge's length over its rest length, over the edges of visible triangles
 (not shorter than `STRAIN_MIN_EDGE` of the median edge, and not within an upper lid's
 lining, both ends hidden at rest: it stretches over the eyeball unseen behind the lid's
@@ -241,7 +242,7 @@ class SkinCheck:
         keep = self.rest_length >= STRAIN_MIN_EDGE * np.median(self.rest_length)
         self.edges, self.rest_length = self.edges[keep], self.rest_length[keep]
         # neighbouring visible triangles that meet smoothly at rest (for creases)
-        a, b = triangle_pairs(F).T  # (an edge of three triangles or more has no crease check)
+        a, b = triangle_pairs(F, fans=True).T  # (around an edge of three triangles or more: each two)
         smooth = self.visible[a] & self.visible[b] & (np.sum(self.rest_normals[a] * self.rest_normals[b], axis=1)
                                                       > CREASE_REST_COS)
         self.neighbours = np.column_stack([a[smooth], b[smooth]])
