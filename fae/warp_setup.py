@@ -16,9 +16,16 @@ thread.
 
 import warp as wp
 
+from fae.native_stderr import native_stderr_filtered
+
 wp.config.enable_tiles_in_stack_memory = None
 # Warp reports every module load on stdout at its default level; a player's output is the
 # user's, so keep to warnings and errors.
 wp.config.log_level = 30
+# Its native core says on stderr, on every machine without an NVIDIA driver, that the GPU
+# will not be available: fae runs on the CPU by default and refuses `--device cuda` without
+# one in its own words, so that line is left out (anything else it says is kept)
+with native_stderr_filtered(keep=lambda line: "NVIDIA CUDA driver" not in line):
+    wp.init()
 
 __all__ = ["wp"]

@@ -23,12 +23,12 @@ median) are dropped.
 
 from __future__ import annotations
 
-from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
 
 from fae.io.facemodel import FaceModel
+from fae.native_stderr import native_stderr_filtered
 from fae.render.framing import CameraView
 
 DETECTION_SIZE = (640, 640)
@@ -104,28 +104,6 @@ def pixel_rays(camera: CameraView, pixels: np.ndarray, size: tuple[int, int]) ->
     return np.tile(camera.pose[:3, 3], (len(px), 1)), d
 
 
-@contextmanager
-def _native_stderr_silenced():
-    """File descriptor 2 sent to /dev/null meanwhile: MediaPipe's C++ core (absl, TFLite)
-    logs there whatever Python asks, and fae's own messages on stderr must stay readable."""
-    import os
-    import sys
-
-    try:
-        sys.stderr.flush()
-        saved = os.dup(2)
-    except (OSError, ValueError):  # no real descriptor 2 (an embedding host): nothing to silence
-        yield
-        return
-    try:
-        with open(os.devnull, "w") as null:
-            os.dup2(null.fileno(), 2)
-            yield
-    finally:
-        os.dup2(saved, 2)
-        os.close(saved)
-
-
 def detect_pixels(image: np.ndarray) -> np.ndarray | None:
     """MediaPipe Face Mesh's 468 points (468, 2) in pixels of an RGB image (H, W, 3)
     uint8, or None when it finds no face."""
@@ -190,7 +168,7 @@ def detect_points(image: np.ndarray) -> np.ndarray | None:
         raise LandmarkModelMissing("finding feature points on a scan needs MediaPipe: "
                                    "pip install 'fae[landmarks]' (or give --landmarks)") from exc
     h, w = image.shape[:2]
-    with _native_stderr_silenced(), warnings.catch_warnings(), \
+    with native_stderr_filtered(), warnings.catch_warnings(), \
             mp.solutions.face_mesh.FaceMesh(static_image_mode=True, max_num_faces=1, refine_landmarks=False,
                                             min_detection_confidence=MIN_DETECTION_CONFIDENCE) as mesh:
         warnings.simplefilter("ignore")  # protobuf deprecation notices from inside MediaPipe
