@@ -400,3 +400,22 @@ def test_a_crease_along_an_edge_of_three_triangles_is_caught(face):
     r = SkinCheck(doubled).frame(V)
     assert not r.turned[[t, u]].any()
     assert r.folded[t] and r.folded[u]
+
+
+def test_the_section_tool_cuts_the_same_triangles_at_rest_and_posed(tmp_path):
+    """tools/section_view.py: a unit cube cut at x = 0.3 is a square (perimeter 4) on the
+    plane; posed (moved), the same triangles are cut where they now lie."""
+    sys.path.insert(0, str(ROOT / "tools"))
+    from section_view import section_segments
+
+    import trimesh
+
+    cube = trimesh.creation.box(extents=(1.0, 1.0, 1.0))
+    V, F = np.asarray(cube.vertices) + 0.5, np.asarray(cube.faces)
+    cut = section_segments(V, F, V, 0.3)
+    assert len(cut) == 8 and all(np.allclose(seg[:, 0], 0.3) for _, seg in cut)
+    assert np.isclose(sum(np.linalg.norm(seg[1] - seg[0]) for _, seg in cut), 4.0)
+    moved = V + [0.0, 2.0, 0.0]
+    assert [t for t, _ in section_segments(moved, F, V, 0.3)] == [t for t, _ in cut]
+    assert all(np.allclose(seg[:, 1] - 2.0, rest[:, 1])
+               for (_, seg), (_, rest) in zip(section_segments(moved, F, V, 0.3), cut))
