@@ -99,9 +99,18 @@ def run() -> None:
     atexit._run_exitfuncs()
     for stream in (sys.stdout, sys.stderr):
         try:
-            stream.flush()
-        except (OSError, ValueError):  # a closed pipe or stream: nothing more to say
+            if stream is not None:
+                stream.flush()
+        except BrokenPipeError:  # the reader left: nothing more to say (as main treats it)
             pass
+        except (OSError, ValueError) as exc:
+            # what was printed did not all arrive (a full disk): as Python's own exit, 120
+            if stream is sys.stdout and sys.stderr is not None:
+                try:
+                    print(f"fae: could not write the output: {exc}", file=sys.stderr, flush=True)
+                except (OSError, ValueError):
+                    pass
+            code = code or 120
     os._exit(code)
 
 

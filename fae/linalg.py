@@ -40,6 +40,7 @@ def turn_between(a: np.ndarray, b: np.ndarray, max_angle: float = np.pi) -> np.n
     b = np.asarray(b, dtype=np.float64) / np.linalg.norm(b)
     axis = np.cross(a, b)
     sin, cos = float(np.linalg.norm(axis)), float(np.dot(a, b))
+    axis -= a * np.dot(axis, a)  # square to a to the last digit, for nearly parallel a and b too
     if sin < 1e-12:
         if cos > 0.0:
             return np.eye(3)

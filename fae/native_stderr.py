@@ -21,15 +21,23 @@ from contextlib import contextmanager
 @contextmanager
 def native_stderr_filtered(keep: Callable[[str], bool] = lambda line: False) -> Iterator[None]:
     """Meanwhile, descriptor 2 goes to a temporary file; after, its lines that `keep`
-    accepts are written back to stderr (by default none). Without a real descriptor 2
-    (an embedding host) nothing is redirected."""
+    accepts are written back to stderr (by default none). Without a descriptor 2 (closed,
+    or an embedding host) or a temporary file, nothing is redirected. Keep the block
+    short: should the process die inside it, what it printed there is lost."""
     try:
-        sys.stderr.flush()
-        saved = os.dup(2)
-    except (OSError, ValueError):
+        if sys.stderr is not None:
+            sys.stderr.flush()
+        caught = tempfile.TemporaryFile(mode="w+b")
+    except (OSError, ValueError):  # no temporary file to be had: nothing is filtered
         yield
         return
-    with tempfile.TemporaryFile(mode="w+b") as caught:
+    try:
+        saved = os.dup(2)
+    except OSError:  # no descriptor 2 (closed, or an embedding host): nothing to filter
+        caught.close()
+        yield
+        return
+    with caught:
         try:
             os.dup2(caught.fileno(), 2)
             yield
@@ -37,7 +45,8 @@ def native_stderr_filtered(keep: Callable[[str], bool] = lambda line: False) -> 
             os.dup2(saved, 2)
             os.close(saved)
             caught.seek(0)
-            for line in caught.read().decode("utf-8", "replace").splitlines(keepends=True):
-                if keep(line):
-                    sys.stderr.write(line)
-            sys.stderr.flush()
+            kept = [line for line in caught.read().decode("utf-8", "replace").splitlines(keepends=True)
+                    if keep(line)]
+            if kept and sys.stderr is not None:
+                sys.stderr.write("".join(kept))
+                sys.stderr.flush()

@@ -8,6 +8,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from fae.cli import main
 
 
@@ -64,7 +66,8 @@ def test_the_command_exits_quickly_with_its_status_and_all_its_output(repo_root,
     for command in ([str(script)] if script.exists() else [], [sys.executable, "-m", "fae"]):
         if not command:
             continue
-        env = {**os.environ, "PYTHONWARNINGS": "ignore"}
+        # (buffered as a user's shell has it, so that the final flush counts)
+        env = {k: v for k, v in os.environ.items() if k != "PYTHONUNBUFFERED"} | {"PYTHONWARNINGS": "ignore"}
         done = subprocess.run(command + ["inspect", "--json", str(repo_root / "fap_streams" / "all_faps_sweep.fap")],
                               capture_output=True, text=True, timeout=60, env=env)
         assert done.returncode == 0, done.stderr
@@ -73,3 +76,26 @@ def test_the_command_exits_quickly_with_its_status_and_all_its_output(repo_root,
         bad.write_text("2.1 bad 25 1\n" + " ".join(["0", "0", "1"] + ["0"] * 65) + "\n0 NaN\n")
         done = subprocess.run(command + ["inspect", str(bad)], capture_output=True, text=True, timeout=60, env=env)
         assert done.returncode == 2 and f"{bad}:3: token 'NaN'" in done.stderr
+
+
+@pytest.mark.skipif(os.name != "posix", reason="file size limits and closing descriptors in the child are POSIX")
+def test_output_that_cannot_be_written_fails_the_command_and_a_closed_stderr_does_not(repo_root, tmp_path):
+    import resource
+    import signal
+
+    command = [sys.executable, "-m", "fae", "inspect", "--json", str(repo_root / "fap_streams" / "all_faps_sweep.fap")]
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONUNBUFFERED"}
+
+    def small_files():  # a disk that fills after 100 bytes
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (100, 100))
+
+    with open(tmp_path / "out.json", "w") as out:
+        done = subprocess.run(command, stdout=out, stderr=subprocess.PIPE, text=True, timeout=60, env=env,
+                              preexec_fn=small_files)
+    assert done.returncode != 0 and "could not write the output" in done.stderr
+    # with stderr closed (`2>&-`) a command that starts Warp (whose native line on a missing
+    # GPU driver is filtered from stderr) still runs and says what it has to on stdout
+    done = subprocess.run([sys.executable, "-m", "fae", "verify-faps", "--faps", "19", "--json"],
+                          stdout=subprocess.PIPE, text=True, timeout=120, env=env, preexec_fn=lambda: os.close(2))
+    assert done.returncode == 0 and "passed_fraction" in json.loads(done.stdout)

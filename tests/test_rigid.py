@@ -124,6 +124,11 @@ def test_the_shortest_turn_between_two_directions_is_capped_and_handles_opposite
         # about the common normal: that normal stays put
         n = np.cross(a, b)
         assert np.allclose(R @ n, n, atol=1e-12)
+    for gap in (1e-11, 1e-9, 1e-7):  # nearly parallel: still onto b to the last digits
+        a = rng.normal(size=3)
+        a /= np.linalg.norm(a)
+        b = a + gap * np.cross(a, rng.normal(size=3))
+        assert np.allclose(turn_between(a, b) @ a, b / np.linalg.norm(b), atol=1e-11)
     up = np.array([0.0, 1.0, 0.0])
     assert np.allclose(turn_between(up, -up) @ up, -up, atol=1e-12)
     assert np.allclose(turn_between(up, 3 * up), np.eye(3))
