@@ -5,7 +5,8 @@ touches both alike: as the `fae` command does (fae.cli.run: main, then the exit 
 and an exit without Python's teardown) and, as the baseline, main followed by the usual
 interpreter teardown (freeing Warp's modules, MediaPipe's graph, OSMesa's context).
 Prints the median seconds of each and their ratio. Commands: `fae inspect` of a shipped
-stream, `fae render` of the shipped head, and `fae adapt` of the bust the tests make
+stream, `fae render` of the shipped head, `fae play` of the shipped visemes stream (48
+frames, 640x480 mp4), and `fae adapt` of the bust the tests make
 (fae.adapt.synthetic.bust_scan, seed 3; with its FAP calibration) and, with --real, of
 the scanned busts in shared/data/heads/busts when that folder is there.
 
@@ -64,6 +65,7 @@ def main() -> None:
         folder = Path(tmp)
         commands = [("inspect a stream", ["inspect", "fap_streams/expressions.fap"]),
                     ("render the shipped head", ["render", "-o", str(folder / "r.png")]),
+                    ("play visemes.fap to mp4", ["play", "fap_streams/visemes.fap", "-o", str(folder / "v.mp4")]),
                     ("adapt the synthetic bust", ["adapt", str(synthetic_bust(folder)), "-o", str(folder / "h.glb")])]
         busts = ROOT.parent / "shared" / "data" / "heads" / "busts"
         if args.real and busts.is_dir():
