@@ -25,7 +25,7 @@ from fae.adapt.head_pose import find_head, kept_part
 from fae.adapt.errors import surface
 from fae.adapt.nonrigid import (PROJECT_TURN, blend_away_folds, fit_to_scan, folded_triangles, projected_part_way,
                                 scan_pairs)
-from fae.adapt.synthetic import bust_scan
+from fae.adapt.synthetic import template_bust
 from fae.anatomy.checks import facemodel_problems
 from fae.animate.verify import passed_fraction, verify_faps
 from fae.data import shipped_head_path
@@ -45,15 +45,9 @@ def template():
     return read_facemodel(shipped_head_path())
 
 
-def mouth_lining(template):
-    F = np.asarray(template.skin_faces)
-    return np.asarray(template.skin_region)[F[:, 0]] == template.region_names.index("mouth_cavity")
-
-
 @pytest.fixture(scope="module")
 def bust(template):
-    fdp = {n: p for n, p in template.feature_point_positions().items() if template.feature_points[n].part == "skin"}
-    return bust_scan(template.skin_vertices, template.skin_faces, fdp, seed=3, drop_faces=mouth_lining(template))
+    return template_bust(template)
 
 
 @pytest.fixture(scope="module")
@@ -523,11 +517,9 @@ def test_a_bust_whose_ears_sit_low_gets_its_ears_where_the_scan_has_them(templat
     """The suite's bust with its left ear 4.5 cm lower than the template's (a marble bust's
     ears sit so): the adapted head's left ear lies on the scan's, not on the scalp above."""
     V = np.asarray(template.skin_vertices, float).copy()
-    F = np.asarray(template.skin_faces, np.int64)
     ear = np.asarray(template.skin_region) == template.region_names.index("ear_l")
     V[ear] += [0.0, -0.045, 0.0]
-    fdp = {n: p for n, p in template.feature_point_positions().items() if template.feature_points[n].part == "skin"}
-    scan = bust_scan(V, F, fdp, seed=3, drop_faces=mouth_lining(template))
+    scan = template_bust(template, V=V)
     path, out, rep = tmp_path / "bust.obj", tmp_path / "head.glb", tmp_path / "report.json"
     trimesh.Trimesh(scan.vertices, scan.faces, process=False).export(path)
     assert main(["adapt", str(path), "-o", str(out), "--report", str(rep), "--no-calibrate"]) == 0

@@ -97,14 +97,10 @@ def real_scans(template) -> list[tuple[str, np.ndarray, np.ndarray]]:
     the scanned busts of shared/data when present."""
     from pathlib import Path
 
-    from fae.adapt.synthetic import bust_scan
+    from fae.adapt.synthetic import template_bust
     from fae.io.scan import read_scan
 
-    fdp = {n: p for n, p in template.feature_point_positions().items() if template.feature_points[n].part == "skin"}
-    # the mouth's lining: no scanner sees it, so the synthetic bust leaves it out
-    lining = (np.asarray(template.skin_region)[np.asarray(template.skin_faces)[:, 0]]
-              == template.region_names.index("mouth_cavity"))
-    bust = bust_scan(template.skin_vertices, template.skin_faces, fdp, seed=3, drop_faces=lining)
+    bust = template_bust(template)
     scans = [("synthetic bust", bust.vertices, bust.faces)]
     data = Path(__file__).resolve().parents[1].parent / "shared" / "data"
     if not data.is_dir():

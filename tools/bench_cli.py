@@ -39,18 +39,13 @@ def wall(argv: list[str]) -> float:
 
 
 def synthetic_bust(folder: Path) -> Path:
-    import numpy as np
     import trimesh
 
-    from fae.adapt.synthetic import bust_scan
+    from fae.adapt.synthetic import template_bust
     from fae.data import shipped_head_path
     from fae.io.facemodel_gltf import read_facemodel
 
-    template = read_facemodel(shipped_head_path())
-    fdp = {n: p for n, p in template.feature_point_positions().items() if template.feature_points[n].part == "skin"}
-    F = np.asarray(template.skin_faces)
-    lining = np.asarray(template.skin_region)[F[:, 0]] == template.region_names.index("mouth_cavity")
-    bust = bust_scan(template.skin_vertices, F, fdp, seed=3, drop_faces=lining)
+    bust = template_bust(read_facemodel(shipped_head_path()))
     path = folder / "bust.obj"
     trimesh.Trimesh(bust.vertices, bust.faces, process=False).export(path)
     return path

@@ -52,16 +52,13 @@ def adapt_picture(model) -> np.ndarray:
     from fae.adapt.calibration import apply_transform
     from fae.adapt.from_scan import adapt_to_scan
     from fae.adapt.head_pose import find_head, kept_part
-    from fae.adapt.synthetic import bust_scan
+    from fae.adapt.synthetic import template_bust
     from fae.adapt.transfer import visible_skin
     from fae.render.compare import comparison_image
     from fae.render.framing import camera_view
     from fae.render.landmarks import landmark_pairs
 
-    F = np.asarray(model.skin_faces)
-    lining = np.asarray(model.skin_region)[F[:, 0]] == model.region_names.index("mouth_cavity")
-    fdp = {n: p for n, p in model.feature_point_positions().items() if model.feature_points[n].part == "skin"}
-    bust = bust_scan(model.skin_vertices, F, fdp, seed=3, drop_faces=lining)
+    bust = template_bust(model)
     head = find_head(model, bust.vertices, bust.faces)
     part = kept_part(apply_transform(head.transform, bust.vertices), bust.faces, head.keep)
     found = landmark_pairs(model, *part, camera_view(model, "front", aspect=1.0), seen=visible_skin(model))

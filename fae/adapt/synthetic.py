@@ -323,3 +323,13 @@ def bust_scan(V: np.ndarray, F: np.ndarray, landmarks: dict[str, np.ndarray], se
     WL = warp(np.array([landmarks[n] for n in names]))
     scan = _scan_of_truth(allV, allF, WL, names, warp, rng, 0.0, max_angle, unit)
     return SyntheticScan(scan.vertices, scan.faces, scan.landmarks, W, HF.astype(np.int32), warp, scan.to_scan)
+
+
+def template_bust(template, seed: int = 3, V: np.ndarray | None = None) -> SyntheticScan:
+    """The bust the suite and the benchmarks make of FaceModel `template`: bust_scan of its
+    skin with its skin's feature points, without the mouth's lining (no scanner sees it).
+    V (n, 3) metres: the skin to make it of, when not the template's own (an ear moved)."""
+    F = np.asarray(template.skin_faces, dtype=np.int64)
+    lining = np.asarray(template.skin_region)[F[:, 0]] == template.region_names.index("mouth_cavity")
+    fdp = {n: p for n, p in template.feature_point_positions().items() if template.feature_points[n].part == "skin"}
+    return bust_scan(template.skin_vertices if V is None else V, F, fdp, seed=seed, drop_faces=lining)
