@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from fae.io.scan import IBUG68_TO_FDP, LandmarkError, read_landmarks, read_scan
+from fae.io.scan import IBUG68_TO_FDP, LandmarkError, indexed_vertices, read_landmarks, read_scan
 
 SHARED = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "heads"
 
@@ -85,3 +85,83 @@ def test_menpo_ljson_gives_mirror_consistent_fdps():
     assert lm["3.7"][0] > lm["3.11"][0] > lm["3.8"][0] > lm["3.12"][0]
     assert lm["8.3"][0] > lm["8.4"][0]
     assert lm["9.3"][1] > lm["8.1"][1] > lm["2.1"][1]
+
+
+def _textured_obj(path) -> np.ndarray:
+    """An OBJ as photogrammetry tools write it: one texture coordinate per face corner (so
+    every vertex is split along seams when read as a mesh) and an unused first vertex.
+    Returns the file's own vertices (its `v` lines, in order)."""
+    sphere = trimesh.creation.icosphere(1)
+    V = np.vstack([[[9.0, 9.0, 9.0]], sphere.vertices])  # vertex 0: in the file, in no face
+    lines = [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in V]
+    for k, (a, b, c) in enumerate(sphere.faces):
+        lines += [f"vt {0.01 * k:.4f} 0.1", f"vt {0.01 * k:.4f} 0.2", f"vt {0.01 * k:.4f} 0.3"]
+        lines.append(f"f {a + 2}/{3 * k + 1} {b + 2}/{3 * k + 2} {c + 2}/{3 * k + 3}")
+    path.write_text("\n".join(lines) + "\n")
+    return V
+
+
+def test_vertex_indices_count_the_scan_files_own_vertices(tmp_path):
+    """`{"9.3": 5}` is the file's sixth `v` line, however the mesh reader splits the
+    vertices along texture seams or drops unused ones (it pointed elsewhere: a textured
+    OBJ's landmarks bent the fit)."""
+    obj = tmp_path / "textured.obj"
+    V_file = _textured_obj(obj)
+    V, F = read_scan(obj)
+    assert len(V) != len(V_file)  # the reader's vertices are not the file's
+    lm = tmp_path / "lm.json"
+    lm.write_text(json.dumps({"9.3": 5, "2.1": 0}))
+    got = read_landmarks(lm, lambda: indexed_vertices(obj, V))
+    assert np.allclose(got["9.3"], V_file[5]) and np.allclose(got["2.1"], V_file[0])
+    calls = []
+    read_landmarks(tmp_path / "lm.json", lambda: calls.append(1) or V_file)
+    assert calls == [1]  # the scan is read again once, and only for indices
+    coords = tmp_path / "xyz.json"
+    coords.write_text(json.dumps({"9.3": [1, 2, 3]}))
+    read_landmarks(coords, lambda: calls.append(1) or V_file)
+    assert calls == [1]
+
+
+def test_a_face_naming_a_missing_vertex_is_refused_by_the_reader(tmp_path):
+    """(`fae play --head` crashed on it with a traceback; `fae adapt` alone checked.)"""
+    path = tmp_path / "holey.ply"
+    path.write_text("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+                    "element face 2\nproperty list uchar int vertex_indices\nend_header\n"
+                    "0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n3 0 1 6\n")
+    with pytest.raises(ValueError, match=r"holey.ply: a face names vertex 6; the file has 3"):
+        read_scan(path)
+
+
+@pytest.mark.parametrize("name, text, expected", [
+    ("bom.csv", "\ufeff9.3,1,2,3\n3.7,4,5,6\n", None),
+    ("bom.json", "\ufeff" + json.dumps({"9.3": [1, 2, 3]}), None),
+    ("comments.csv", "# my points\n\n# more\n9.3,1,2,x\n", r"comments.csv: line 4: x, y, z must be numbers"),
+    ("dup.csv", "9.3,1,2,3\n3.7,4,5,6\n9.3,7,8,9\n", r"dup.csv: line 3: feature point 9.3 is given twice \(first on line 1\)"),
+    ("dup.json", '{"9.3": [1, 2, 3], "9.3": [4, 5, 6]}', r"dup.json: field '9.3' is given twice"),
+    ("zero.json", '{"9.3": [1, 2, 3], "09.3": [4, 5, 6]}', r"zero.json: feature point 9.3 is given twice"),
+    ("bogus.csv", "9.3,1,2,3\n9.99,4,5,6\n", r"bogus.csv: line 2: '9.99' is not one of the standard's 84"),
+    ("groups.ljson", json.dumps({"groups": [{"label": "face", "landmarks": {"points": [[0, 0]]}}]}), r"groups.ljson: ljson"),
+    ("huge.json", '{"9.3": [1' + "0" * 400 + ', 2, 3]}', r"huge.json"),
+])
+def test_landmark_files_as_people_write_them(tmp_path, name, text, expected):
+    """A byte-order mark (spreadsheets, Windows editors) is read; a bad line is named by its
+    line in the file; a point given twice, a name the standard does not have and a
+    malformed ljson are refused, naming the file: never a traceback, never the last value."""
+    path = tmp_path / name
+    path.write_text(text, encoding="utf-8")
+    if expected is None:
+        assert np.allclose(read_landmarks(path)["9.3"], [1, 2, 3])
+    else:
+        with pytest.raises(LandmarkError, match=expected):
+            read_landmarks(path)
+
+
+def test_ibug_files_with_a_header_or_several_groups(tmp_path):
+    pts = np.random.default_rng(1).normal(size=(68, 3))
+    csv_path = tmp_path / "ibug.csv"
+    csv_path.write_text("x,y,z\n" + "\n".join(",".join(f"{v:.9f}" for v in r) for r in pts))
+    assert np.allclose(read_landmarks(csv_path)["9.3"], pts[30], atol=1e-8)
+    ljson = tmp_path / "two.ljson"
+    ljson.write_text(json.dumps({"groups": {"brows": {"landmarks": {"points": [[0, 0, 0]] * 10}},
+                                            "face": {"landmarks": {"points": pts.tolist()}}}}))
+    assert np.allclose(read_landmarks(ljson)["9.3"], pts[30])  # the 68-point group, not the first

@@ -133,7 +133,7 @@ def read_target(mesh_path: str | os.PathLike, landmarks_path: str | os.PathLike)
     """The mesh (any format fae.io.scan.read_scan reads) and its feature points (any format
     fae.io.scan.read_landmarks reads: FDP JSON or CSV, menpo .ljson / CSV with iBUG-68).
     Raises RetargetError naming the file and what was expected."""
-    from fae.io.scan import LandmarkError, read_landmarks, read_scan
+    from fae.io.scan import LandmarkError, indexed_vertices, read_landmarks, read_scan
 
     mesh_path, landmarks_path = os.fspath(mesh_path), os.fspath(landmarks_path)
     try:
@@ -141,7 +141,7 @@ def read_target(mesh_path: str | os.PathLike, landmarks_path: str | os.PathLike)
     except (OSError, ValueError) as exc:
         raise RetargetError(str(exc)) from None
     try:
-        landmarks = read_landmarks(landmarks_path, V)
+        landmarks = read_landmarks(landmarks_path, lambda: indexed_vertices(mesh_path, V))
     except (OSError, LandmarkError, ValueError) as exc:
         raise RetargetError(str(exc)) from None
     return TargetMesh(mesh_path, V, F, _read_uv(mesh_path, len(V)), landmarks, landmarks_path)

@@ -91,7 +91,7 @@ def run(args) -> int:
     from fae.commands.adapt_checks import landmark_problem, overwritten_input, scan_problem
     from fae.commands.common import output_problem
     from fae.io.facemodel_gltf import read_facemodel
-    from fae.io.scan import LandmarkError, read_landmarks, read_scan
+    from fae.io.scan import LandmarkError, indexed_vertices, read_landmarks, read_scan
 
     if (args.scan is None) == (args.photo is None):
         print("fae adapt: give either a scan (SCAN) or --photo FACE.jpg", file=sys.stderr)
@@ -115,7 +115,8 @@ def run(args) -> int:
             preload_landmark_model()
         V, F = read_scan(args.scan)
         problem = scan_problem(V, F, args.scan)
-        landmarks = read_landmarks(args.landmarks, V) if args.landmarks and not problem else None
+        landmarks = read_landmarks(args.landmarks, lambda: indexed_vertices(args.scan, V)) \
+            if args.landmarks and not problem else None
         if landmarks is not None:
             problem = landmark_problem(V, landmarks, args.landmarks, args.scan)
         if problem:

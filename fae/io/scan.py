@@ -5,11 +5,16 @@ components are merged into one triangle mesh, units and orientation are left as 
 (calibration handles them).
 
 read_landmarks: MPEG-4 feature point name -> scan coordinates, from
-- JSON `{"9.3": [x, y, z], ...}` or `{"9.3": 1234, ...}` (vertex index into the scan), also
-  under a top-level "landmarks" key;
-- menpo `.ljson` with 68 iBUG points (groups -> LJSON -> landmarks -> points);
-- CSV: rows `name,x,y,z` (MPEG-4 names), or 68 rows `x,y,z` in iBUG order.
-iBUG-68 points are turned into FDPs by IBUG68_TO_FDP (below).
+- JSON `{"9.3": [x, y, z], ...}` or `{"9.3": 1234, ...}` (0-based index into the scan
+  file's own vertex list: an OBJ's `v` lines in order, unused ones too), also under a
+  top-level "landmarks" key;
+- menpo `.ljson` with 68 iBUG points (groups -> <name> -> landmarks -> points; the group
+  with 68 points when there are several);
+- CSV: rows `name,x,y,z` (MPEG-4 names), or 68 rows `x,y,z` in iBUG order; an optional
+  header row, `#` comments and blank lines.
+Names are the standard's 84 feature points, each given once. Text files may start with a
+UTF-8 byte-order mark (spreadsheets and Windows editors write one). iBUG-68 points are
+turned into FDPs by IBUG68_TO_FDP (below).
 """
 
 from __future__ import annotations
@@ -19,7 +24,11 @@ import json
 import os
 import re
 
+from typing import Callable
+
 import numpy as np
+
+from fae.mpeg4 import FEATURE_POINTS
 
 # iBUG 300-W 68-point markup (0-based) -> MPEG-4 FDP. Values are the iBUG indices whose
 # mean is the FDP. iBUG's "right" is the subject's right; MPEG-4 "left" is the face's own
@@ -72,6 +81,8 @@ IBUG68_TO_FDP: dict[str, tuple[int, ...]] = {
 }
 
 _FDP_NAME = re.compile(r"^(\d{1,2})\.(\d{1,2})$")
+_FDP_NAMES = frozenset(p.name for p in FEATURE_POINTS)
+_CSV_HEADERS = ("name", "fdp", "point", "x")
 
 
 class LandmarkError(ValueError):
@@ -99,7 +110,27 @@ def read_scan(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
         raise ValueError(f"{path}: the file holds no triangles (point clouds are not supported)")
     if not np.all(np.isfinite(V)):
         raise ValueError(f"{path}: vertex coordinates contain NaN or infinity")
+    if F.min() < 0 or F.max() >= len(V):
+        bad = int(F.max() if F.max() >= len(V) else F.min())
+        raise ValueError(f"{path}: a face names vertex {bad}; the file has {len(V)} (expected 0..{len(V) - 1})")
     return V, F
+
+
+def indexed_vertices(path: str | os.PathLike, V: np.ndarray) -> np.ndarray:
+    """(k, 3) the vertices a landmark file's vertex indices count, in the scan file's own
+    order: an OBJ's `v` lines, unused ones too (read_scan's V has a vertex per texture
+    seam copy and none unused, so its indices are not the file's); V for other formats,
+    which read_scan keeps in the file's order."""
+    path = os.fspath(path)
+    if os.path.splitext(path)[1].lower() != ".obj":
+        return V
+    import trimesh
+
+    try:
+        loaded = trimesh.load(path, force="mesh", process=False, maintain_order=True)
+        return np.asarray(loaded.vertices, dtype=np.float64)
+    except Exception:  # read_scan read it; the same bytes read in order can only fail as oddly
+        return V
 
 
 def ibug68_to_fdp(points: np.ndarray, source: str = "landmarks") -> dict[str, np.ndarray]:
@@ -124,11 +155,16 @@ def _check_name(name: str, source: str) -> str:
     m = _FDP_NAME.match(name)
     if not m or not 2 <= int(m.group(1)) <= 11:
         raise LandmarkError(f"{source}: {name!r} is not an MPEG-4 feature point name (expected group.index, e.g. \"9.3\")")
-    return f"{int(m.group(1))}.{int(m.group(2))}"
+    name = f"{int(m.group(1))}.{int(m.group(2))}"
+    if name not in _FDP_NAMES:
+        raise LandmarkError(f"{source}: {name!r} is not one of the standard's 84 feature points (groups 2-11: 2.1..2.14, "
+                            "3.1..3.14, 4.1..4.6, 5.1..5.4, 6.1..6.4, 7.1, 8.1..8.10, 9.1..9.15, 10.1..10.10, 11.1..11.6)")
+    return name
 
 
-def _point(value, name: str, source: str, vertices: np.ndarray | None) -> np.ndarray:
+def _point(value, name: str, source: str, vertices: Callable[[], np.ndarray | None]) -> np.ndarray:
     if isinstance(value, (int, np.integer)) and not isinstance(value, bool):
+        vertices = vertices()
         if vertices is None:
             raise LandmarkError(f"{source}: field {name!r} is a vertex index but no scan vertices were given")
         if not 0 <= value < len(vertices):
@@ -140,58 +176,107 @@ def _point(value, name: str, source: str, vertices: np.ndarray | None) -> np.nda
     return arr
 
 
-def read_landmarks(path: str | os.PathLike, vertices: np.ndarray | None = None) -> dict[str, np.ndarray]:
+def read_landmarks(path: str | os.PathLike,
+                   vertices: np.ndarray | Callable[[], np.ndarray] | None = None) -> dict[str, np.ndarray]:
     """FDP name -> (3,) float64 in the scan's frame and unit (see module docstring).
 
-    vertices (n, 3): the scan's vertices, needed when the file gives vertex indices.
+    vertices: the scan file's own vertices (k, 3) (indexed_vertices), or a function giving
+    them (called only when the file gives a vertex index); needed for vertex indices.
     Raises LandmarkError naming the file (and line or field) for any content it cannot use.
     """
     path = os.fspath(path)
     if not os.path.isfile(path):
         raise FileNotFoundError(f"{path}: landmark file not found")
+    cache: list = []
+
+    def scan_vertices():
+        if not cache:
+            cache.append(vertices() if callable(vertices) else vertices)
+        return cache[0]
+
     try:
-        return _read_landmarks(path, vertices)
+        return _read_landmarks(path, scan_vertices)
     except UnicodeDecodeError as exc:
         raise LandmarkError(f"{path}: byte {exc.start}: expected UTF-8 text") from None
     except RecursionError:
         raise LandmarkError(f"{path}: nested too deeply; expected a JSON object of feature points") from None
 
 
-def _read_landmarks(path: str, vertices: np.ndarray | None) -> dict[str, np.ndarray]:
+def _unique_keys(pairs: list[tuple[str, object]]) -> dict:
+    """A JSON object that names a key twice is an error, not its last value (json's way)."""
+    out: dict = {}
+    for key, value in pairs:
+        if key in out:
+            raise LandmarkError(f"field {key!r} is given twice")
+        out[key] = value
+    return out
+
+
+def _ljson_points(path: str, groups) -> np.ndarray:
+    """(p, 3) the points of the menpo ljson `groups` (an object of groups, or a list of
+    them): the group with 68 points when there are several, else the first."""
+    found = list(groups.values()) if isinstance(groups, dict) else groups if isinstance(groups, list) else None
+    if not found:
+        raise LandmarkError(f"{path}: ljson field groups: expected an object of landmark groups")
+    sets = []
+    for group in found:
+        try:
+            points = group["landmarks"]["points"]
+            sets.append(np.array([[np.nan if c is None else c for c in p] for p in points], dtype=np.float64))
+        except (KeyError, TypeError, ValueError, OverflowError):
+            sets.append(None)
+    usable = [p for p in sets if p is not None and p.ndim == 2 and p.shape[1] == 3]
+    if not usable:
+        raise LandmarkError(f"{path}: ljson field groups.<name>.landmarks.points missing or malformed")
+    return next((p for p in usable if len(p) == 68), usable[0])
+
+
+def _read_landmarks(path: str, vertices: Callable[[], np.ndarray | None]) -> dict[str, np.ndarray]:
     ext = os.path.splitext(path)[1].lower()
     if ext in (".json", ".ljson"):
         try:
-            with open(path, encoding="utf-8") as fh:
-                data = json.load(fh)
+            with open(path, encoding="utf-8-sig") as fh:
+                data = json.load(fh, object_pairs_hook=_unique_keys)
         except json.JSONDecodeError as exc:
             raise LandmarkError(f"{path}: line {exc.lineno}: not valid JSON ({exc.msg})") from exc
+        except LandmarkError as exc:
+            raise LandmarkError(f"{path}: {exc}") from None
+        except (ValueError, OverflowError) as exc:  # a number too long or too large for a float
+            raise LandmarkError(f"{path}: not usable JSON ({exc})") from None
         if isinstance(data, dict) and "groups" in data:  # menpo ljson
-            try:
-                group = next(iter(data["groups"].values()))
-                pts = np.array([[np.nan if c is None else c for c in p] for p in group["landmarks"]["points"]], dtype=np.float64)
-            except (KeyError, TypeError, StopIteration, ValueError) as exc:
-                raise LandmarkError(f"{path}: ljson field groups.<name>.landmarks.points missing or malformed") from exc
-            return ibug68_to_fdp(pts, path)
+            return ibug68_to_fdp(_ljson_points(path, data["groups"]), path)
         if isinstance(data, dict) and isinstance(data.get("landmarks"), dict):
             data = data["landmarks"]
         if not isinstance(data, dict) or not data:
             raise LandmarkError(f"{path}: expected a JSON object mapping feature point names to [x, y, z] or vertex indices")
-        return {_check_name(k, path): _point(v, k, path, vertices) for k, v in data.items()}
-    if ext in (".csv", ".txt"):
-        with open(path, encoding="utf-8", newline="") as fh:
-            rows = [r for r in csv.reader(fh) if r and not r[0].lstrip().startswith("#")]
-        if rows and all(len(r) == 3 for r in rows):
+        out = {}
+        for key, value in data.items():
+            name = _check_name(key, path)
+            if name in out:  # "9.3" and "09.3" are one point
+                raise LandmarkError(f"{path}: feature point {name} is given twice")
             try:
-                pts = np.array(rows, dtype=np.float64)
+                out[name] = _point(value, key, path, vertices)
+            except OverflowError:
+                raise LandmarkError(f"{path}: field {key!r}: expected [x, y, z] (3 finite numbers) or a vertex index, "
+                                    f"got a number too large") from None
+        return out
+    if ext in (".csv", ".txt"):
+        with open(path, encoding="utf-8-sig", newline="") as fh:
+            reader = csv.reader(fh)
+            rows = [(reader.line_num, r) for r in reader if r and any(c.strip() for c in r)
+                    and not r[0].lstrip().startswith("#")]
+        if rows and rows[0][1][0].strip().lower() in _CSV_HEADERS:  # a header row
+            rows = rows[1:]
+        if rows and all(len(r) == 3 for _, r in rows):
+            try:
+                pts = np.array([r for _, r in rows], dtype=np.float64)
             except ValueError as exc:
                 raise LandmarkError(f"{path}: expected numbers in every x, y, z row ({exc})") from exc
             if len(pts) != 68:
                 raise LandmarkError(f"{path}: {len(pts)} unnamed x, y, z rows; unnamed rows must be the 68 iBUG points (use name,x,y,z rows for MPEG-4 names)")
             return ibug68_to_fdp(pts, path)
-        out = {}
-        for line, r in enumerate(rows, start=1):
-            if line == 1 and r[0].strip().lower() in ("name", "fdp", "point"):
-                continue
+        out, first_line = {}, {}
+        for line, r in rows:
             if len(r) != 4:
                 raise LandmarkError(f"{path}: line {line}: expected name,x,y,z, got {len(r)} fields")
             try:
@@ -200,6 +285,10 @@ def _read_landmarks(path: str, vertices: np.ndarray | None) -> dict[str, np.ndar
                 raise LandmarkError(f"{path}: line {line}: x, y, z must be numbers") from exc
             if not np.all(np.isfinite(point)):
                 raise LandmarkError(f"{path}: line {line}: x, y, z must be finite numbers, got {', '.join(r[1:])}")
-            out[_check_name(r[0], f"{path}: line {line}")] = point
+            name = _check_name(r[0], f"{path}: line {line}")
+            if name in out:
+                raise LandmarkError(f"{path}: line {line}: feature point {name} is given twice (first on line "
+                                    f"{first_line[name]})")
+            out[name], first_line[name] = point, line
         return out
     raise LandmarkError(f"{path}: unknown landmark format {ext!r} (expected .json, .ljson or .csv)")
