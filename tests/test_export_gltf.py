@@ -188,12 +188,15 @@ def test_without_a_stream_the_scene_has_no_animation(baked_file, tmp_path):
     (["{head}", "-o", "{head}"], "input file"),
     (["{head}", "-o", "{tmp}/scene.gltf"], "expected a .glb"),
     (["{head}", "{bad}", "-o", "{out}", "--fps", "0"], "--fps"),
+    (["{head}", "{empty}", "-o", "{out}"], "empty.fap: no frames to animate"),  # was: a scene without animation, exit 0
 ])
 def test_fae_export_explains_bad_input_in_one_line(tmp_path, baked_file, capsys, argv, expected):
     bad = tmp_path / "bad.fap"
     bad.write_text("not a fap file\n")
+    empty = tmp_path / "empty.fap"
+    empty.write_text("2.1 empty 25 0\n")
     names = {"missing": tmp_path / "none.glb", "out": tmp_path / "o.glb", "head": baked_file, "tmp": tmp_path,
-             "bad": bad}
+             "bad": bad, "empty": empty}
     before = baked_file.read_bytes()
     assert run_command("export", [a.format(**names) for a in argv]) == 2
     err = capsys.readouterr().err.strip()

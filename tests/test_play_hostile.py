@@ -113,3 +113,71 @@ def test_an_output_folder_that_takes_no_files_is_one_line_naming_it(capsys):
     assert err.count("\n") == 1 and err.startswith("fae play: /proc/x.mp4: output folder /proc ")
     assert "Traceback" not in err
 
+
+
+def test_a_stream_without_frames_is_refused_and_leaves_nothing(tmp_path):
+    """A header and no frame line gave a ValueError traceback (exit 1)."""
+    stream = tmp_path / "empty.fap"
+    stream.write_text("2.1 empty 25 0\n")
+    proc = fae_play(str(stream), "-o", str(tmp_path / "e.mp4"), "--frames-dir", str(tmp_path / "frames"))
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 2, err
+    assert "empty.fap: no frames to play" in err and "Traceback" not in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["empty.fap"]  # no video, no frames folder
+
+
+def test_frames_dir_keeps_its_frames_when_a_run_fails_and_takes_a_good_runs_whole(tmp_path):
+    """A stream broken part-way left the frames rendered before the break beside the
+    error; a shorter stream played into a folder used before left the old run's last
+    frames mixed in."""
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    (frames / "frame_00099.png").write_bytes(b"an earlier run's")
+    broken = tmp_path / "broken.fap"
+    broken.write_text("".join(SHORT_STREAM.read_text().splitlines(keepends=True)[:60]) + "junk\n")
+    proc = fae_play(str(broken), "-o", str(tmp_path / "b.mp4"), "--frames-dir", str(frames))
+    _, err = proc.communicate(timeout=300)
+    assert proc.returncode == 2 and "no video written" in err, err
+    assert [p.name for p in frames.iterdir()] == ["frame_00099.png"]  # as it was: nothing added, nothing hidden
+    proc = fae_play(str(SHORT_STREAM), "-o", str(tmp_path / "v.mp4"), "--frames-dir", str(frames))
+    _, err = proc.communicate(timeout=300)
+    assert proc.returncode == 0, err
+    names = sorted(p.name for p in frames.iterdir())
+    count = int(err.strip().splitlines()[-1].split(": ")[1].split()[0])  # "<out>: 48 frames at ..."
+    assert names == [f"frame_{i:05d}.png" for i in range(count)]
+
+
+def test_the_readers_warnings_are_shown(tmp_path):
+    """A frame dropped at the end of the file, and a header that declares more frames than
+    the body holds, were said by `fae inspect` only."""
+    stream = tmp_path / "short.fap"
+    stream.write_text("2.1 short 25 2\n" + jaw_frame(0, 100) + " ".join(["0"] * 68) + "\n")
+    proc = fae_play(str(stream), "-o", str(tmp_path / "s.mp4"))
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 0, err
+    assert "warning: " in err and "mask line without a values line" in err and "declares 2 frames" in err
+
+
+@pytest.mark.parametrize("args, expected", [
+    (["render", "-o", "x.png", "--size", "5800x5800", "--supersample", "4"], "too large"),
+    (["play", str(SHORT_STREAM), "-o", "x.mp4", "--fps", "0.0001"], "--fps 0.0001: expected a frame rate in"),
+    (["bake", "-o", "x.glb", "--faps", "3-300000000"], "expected FAP numbers (1-68)"),
+])
+def test_settings_out_of_reach_are_one_line_naming_them(tmp_path, capsys, monkeypatch, args, expected):
+    """A 23200x23200 render killed the process (SIGSEGV); a rate of 0.0001 frames/s reached
+    ffmpeg as 0/1 (exit 1); a typo'd range of FAPs built a list of 300 million."""
+    monkeypatch.chdir(tmp_path)
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert expected in err and err.count("\n") == 1
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_fap_list_names_each_fap_once():
+    """`--faps 3,3` baked two tables for FAP 3, which then moved the jaw twice as far."""
+    from fae.commands.verify_faps import parse_fap_list
+
+    assert parse_fap_list("3,3-5,4,19") == [3, 4, 5, 19]
+    for bad in ("0", "69", "5-3", "x"):
+        with pytest.raises(ValueError, match="--faps"):
+            parse_fap_list(bad)

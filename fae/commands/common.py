@@ -70,10 +70,25 @@ def output_problem(path: str, suffix: str | None = None) -> str | None:
 
 def timing_problem(fps: float | None, max_hold: float | None = None) -> str | None:
     """Why --fps (frames/s, None: the stream's own) or --max-hold (seconds) cannot be used."""
-    if fps is not None and not (0 < fps <= 1000):
-        return f"--fps {fps:g}: expected a frame rate in (0, 1000]"
+    if fps is not None and not (MIN_FPS <= fps <= 1000):
+        return f"--fps {fps:g}: expected a frame rate in [{MIN_FPS:g}, 1000]"
     if max_hold is not None and not 0 <= max_hold <= 1e6:
         return f"--max-hold {max_hold:g}: expected seconds in [0, 1e6]"
+    return None
+
+
+MIN_FPS = 0.001  # frames/s: a video's rate is a fraction with a denominator up to 1001
+
+
+def render_size_problem(size: tuple[int, int], supersample: int) -> str | None:
+    """Why an image of `size` rendered at `supersample` x that size cannot be drawn: its
+    buffer (4 bytes a pixel) must stay under 2 GiB (OpenGL's limit: past it, the process
+    died)."""
+    width, height = size
+    if width * supersample * height * supersample * 4 >= 2**31:
+        return (f"--size {width}x{height} with --supersample {supersample}: the image rendered "
+                f"({width * supersample}x{height * supersample}) is too large; expected at most 2 GiB of pixels "
+                "(a smaller --size or --supersample)")
     return None
 
 

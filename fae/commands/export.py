@@ -72,6 +72,9 @@ def run(args: argparse.Namespace) -> int:
                 fps = float(args.fps) if args.fps else float(stream.header.fps)
                 frames = dense_frames(stream, fps=args.fps, max_hold=args.max_hold)
                 animation = keyframes(player, targets, frames, fps)
+                if len(animation.times) == 0:
+                    return fail("export", f"{args.stream}: no frames to animate; expected at least one frame after "
+                                "the header (nothing written)")
             else:
                 animation = None
         except FapFormatError as exc:
@@ -82,7 +85,7 @@ def run(args: argparse.Namespace) -> int:
     except OSError as exc:
         return fail("export", str(exc) if exc.filename is None else f"{exc.filename}: {exc.strerror}")
     if frames is not None:
-        for warning in frames.warnings:
+        for warning in stream.warnings + frames.warnings:
             print(f"fae export: warning: {warning}", file=sys.stderr)
     what = f"{len(animation.times)} frames at {fps:g} fps" if animation is not None else "no animation"
     print(f"{args.output}: glTF scene of {head.name}, {len(targets)} morph targets, {what}", file=sys.stderr)

@@ -18,8 +18,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from fae.commands.common import (add_device_argument, add_view_arguments, fail, load_head, output_problem,
-                                 timing_problem, video_size_problem, warp_device)
+from fae.commands.common import (MIN_FPS, add_device_argument, add_view_arguments, fail, load_head, output_problem,
+                                 render_size_problem, timing_problem, video_size_problem, warp_device)
 from fae.io.frames import MAX_HOLD_SECONDS
 
 
@@ -55,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
     from fae.io.fap import FapFormatError, read_fap
 
     width, height = args.size
-    problem = video_size_problem(args.size)
+    problem = video_size_problem(args.size) or render_size_problem(args.size, args.supersample)
     if problem:
         return fail("play", problem)
     problem = timing_problem(args.fps, args.max_hold)
@@ -68,13 +68,9 @@ def run(args: argparse.Namespace) -> int:
         device = warp_device(args.device)
     except ValueError as exc:
         return fail("play", str(exc))
-    frames_dir = None
-    if args.frames_dir:
-        frames_dir = Path(args.frames_dir)
-        try:
-            frames_dir.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            return fail("play", f"{frames_dir}: cannot create the frames folder ({exc.strerror or exc})")
+    frames_dir = Path(args.frames_dir) if args.frames_dir else None
+    if frames_dir is not None and frames_dir.exists() and not frames_dir.is_dir():
+        return fail("play", f"{frames_dir}: not a folder; expected a folder for the frames")
     retargeted = None
     normal_groups = None
     try:
@@ -107,11 +103,20 @@ def run(args: argparse.Namespace) -> int:
 
     from fae.animate.player import Player, playable_head
     from fae.io.frames import dense_frames
-    from fae.render.play import render_video
+    from fae.render.play import EmptyStreamError, render_video
     from fae.render.renderer import FaceRenderer
     from fae.render.video import VideoError
 
     fps = float(args.fps) if args.fps else float(stream.header.fps)
+    if fps < MIN_FPS:
+        return fail("play", f"{args.stream}: {fps:g} frames/s in its header; expected at least {MIN_FPS:g} "
+                    "(--fps N plays it at another rate)")
+    made_frames_dir = frames_dir is not None and not frames_dir.exists()
+    if frames_dir is not None:  # made once the inputs are known to be good
+        try:
+            frames_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            return fail("play", f"{frames_dir}: cannot create the frames folder ({exc.strerror or exc})")
     expected = round(stream.header.declared_frame_count * fps / stream.header.fps)
     progress = None
     if sys.stderr.isatty():
@@ -140,6 +145,9 @@ def run(args: argparse.Namespace) -> int:
                                    on_frame=(lambda n: progress.update(1)) if progress else None)
     except FapFormatError as exc:
         return fail("play", f"{exc} (no video written)")
+    except EmptyStreamError:
+        return fail("play", f"{args.stream}: no frames to play; expected at least one frame after the header "
+                    "(no video written)")
     except VideoError as exc:
         return fail("play", str(exc), status=1)
     except OSError as exc:  # the output folder refused the file (OutputError names it)
@@ -147,7 +155,9 @@ def run(args: argparse.Namespace) -> int:
     finally:
         if progress is not None:
             progress.close()
-    for warning in frames.warnings:
+        if made_frames_dir and not any(frames_dir.iterdir()):  # a failed run leaves no empty folder
+            frames_dir.rmdir()
+    for warning in stream.warnings + frames.warnings:
         print(f"fae play: warning: {warning}", file=sys.stderr)
     print(f"{args.output}: {timings.frames} frames at {fps:g} fps, {width}x{height} "
           f"({timings.fps:.1f} frames/s)", file=sys.stderr)

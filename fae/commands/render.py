@@ -8,7 +8,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from fae.commands.common import add_view_arguments, fail, load_head, output_problem
+from fae.commands.common import add_view_arguments, fail, load_head, output_problem, render_size_problem
 
 
 def register(subparsers) -> None:
@@ -25,7 +25,7 @@ def register(subparsers) -> None:
 def run(args: argparse.Namespace) -> int:
     from fae.io.facemodel_gltf import FaceModelError
 
-    problem = output_problem(args.output, ".png")
+    problem = output_problem(args.output, ".png") or render_size_problem(args.size, args.supersample)
     if problem:
         return fail("render", problem)
     try:

@@ -15,7 +15,7 @@ import sys
 from pathlib import Path
 
 from fae.commands.common import (add_device_argument, add_view_arguments, drawn_skin_colors, fail, load_head,
-                                 output_problem, video_size_problem, warp_device)
+                                 output_problem, render_size_problem, video_size_problem, warp_device)
 from fae.net.server import DEFAULT_HOST, DEFAULT_PORT, FapServer, ServerLimits
 
 
@@ -113,7 +113,7 @@ def run(args) -> int:
         problem = output_problem(args.record, ".mp4")
         if problem:
             return fail("serve", f"--record {problem}")
-        problem = video_size_problem(args.size)
+        problem = video_size_problem(args.size) or render_size_problem(args.size, args.supersample)
         if problem:
             return fail("serve", problem)
     if not args.idle_timeout > 0:

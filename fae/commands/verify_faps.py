@@ -28,21 +28,22 @@ def register(subparsers) -> None:
 
 
 def parse_fap_list(text: str) -> list[int]:
-    """FAP numbers from '3,19-22,51' (ValueError naming the bad item)."""
-    out: list[int] = []
+    """FAP numbers from '3,19-22,51', each once and in order (ValueError naming the bad
+    item: a number outside 1..68, a range backwards)."""
+    from fae.mpeg4.faps import FAP_COUNT
+
+    out: set[int] = set()
     for item in text.split(","):
         item = item.strip()
         try:
-            if "-" in item:
-                a, b = (int(x) for x in item.split("-", 1))
-                if b < a:
-                    raise ValueError
-                out.extend(range(a, b + 1))
-            else:
-                out.append(int(item))
+            a, b = (int(x) for x in item.split("-", 1)) if "-" in item else (int(item),) * 2
+            if not 1 <= a <= b <= FAP_COUNT:
+                raise ValueError
         except ValueError:
-            raise ValueError(f"--faps: expected numbers or ranges like 3,19-22, got {item!r}") from None
-    return out
+            raise ValueError(f"--faps: expected FAP numbers (1-{FAP_COUNT}) or ranges like 3,19-22, "
+                             f"got {item!r}") from None
+        out.update(range(a, b + 1))
+    return sorted(out)
 
 
 def run(args) -> int:

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import os
 import queue
+import shutil
+import tempfile
 import threading
 import time
 from dataclasses import dataclass
@@ -24,6 +26,10 @@ from fae.render.renderer import FaceRenderer
 from fae.render.video import VideoWriter
 
 _DONE = object()
+
+
+class EmptyStreamError(ValueError):
+    """The frames to render were none (a stream without a frame line)."""
 
 
 @dataclass
@@ -150,6 +156,7 @@ def render_video(source: Iterable, renderer: FaceRenderer, path: str | os.PathLi
                 {bone: (4, 4)} and optionally `pupil_scale` {eye: float}
                 (fae.animate.player.PlayedFrame)
     frames_dir  also write each frame as `frame_00000.png`, ... into this existing folder
+                (its earlier frame_*.png replaced, and only when the video is written)
     overlap     run the source in a producer thread (False: one thread, for comparison)
     on_frame    called with the number of frames done after each frame (progress bars)
 
@@ -163,6 +170,9 @@ def render_video(source: Iterable, renderer: FaceRenderer, path: str | os.PathLi
     render_s = 0.0
     count = 0
     t0 = time.perf_counter()
+    # the frames go to a hidden folder beside frames_dir and replace its frame_*.png only
+    # when the video is written: a failed run leaves the folder as it was
+    staging = None if frames_dir is None else Path(tempfile.mkdtemp(prefix=".frames-", dir=frames_dir))
     frames = _frames_overlapped(source, timings, queue_size) if overlap else _frames_serial(source, timings)
     try:
         with VideoWriter(path, renderer.size, fps, crf=crf, preset=preset, channels=4) as video:
@@ -171,14 +181,21 @@ def render_video(source: Iterable, renderer: FaceRenderer, path: str | os.PathLi
                 image = renderer.render_rgba(skin, bones, pupils)
                 render_s += time.perf_counter() - t
                 video.write(image)
-                if frames_dir is not None:
-                    write_png(Path(frames_dir) / f"frame_{count:05d}.png", image[:, :, :3], compress_level=1)
+                if staging is not None:
+                    write_png(staging / f"frame_{count:05d}.png", image[:, :, :3], compress_level=1)
                 count += 1
                 if on_frame is not None:
                     on_frame(count)
             if count == 0:
-                raise ValueError("the stream produced no frames")
+                raise EmptyStreamError("the stream produced no frames")
+        if staging is not None:
+            for old in Path(frames_dir).glob("frame_*.png"):  # an earlier, longer run's
+                old.unlink()
+            for new in sorted(staging.iterdir()):
+                new.replace(Path(frames_dir) / new.name)
     finally:
         frames.close()
+        if staging is not None:
+            shutil.rmtree(staging, ignore_errors=True)
     return PlayTimings(frames=count, wall=time.perf_counter() - t0, simulate=timings["simulate"],
                        render=render_s, encode=video.encode_seconds)
