@@ -148,3 +148,34 @@ def test_xface_frames_fall_on_the_wall_clock_and_a_following_stream_starts_one_f
     assert times == pytest.approx([4.12, 4.16, 5.16])
     # Back to Xface after a native stream: it starts one frame later, not at its wall time.
     assert clock.place(event("xface", 0, 900.0), starts_stream=True) == pytest.approx(5.2)
+
+
+def test_a_gap_of_a_trillion_frames_is_held_for_max_hold_seconds(tmp_path):
+    """Frame 0 then frame 10^12 (legal: numbers may skip): the recorder wrote the first pose
+    10^12 times (the server never stopped, the file never appeared). The hold is cut to
+    MAX_HOLD_SECONDS and the frames after it keep their spacing."""
+    from fae.io.frames import MAX_HOLD_SECONDS
+
+    out = tmp_path / "gap.mp4"
+
+    async def main():
+        server = FapServer(LinearFace, port=0)
+        await server.start()
+        recorder = StreamRecorder(server.subscribe(maxsize=4, lossless=True), out, GreyRenderer, (64, 64), fps=1.0)
+        recorder.start()
+        header, *lines = numbered_stream([0, 10**12, 10**12 + 25], fps=25).splitlines()
+        reader, writer = await asyncio.open_connection("127.0.0.1", server.port)
+        writer.write(f"{header}\n".encode())
+        assert (await reader.readline()).startswith(b"ok header")
+        for mask, values in zip(lines[::2], lines[1::2]):
+            writer.write(f"{mask}\n{values}\n".encode())
+            assert (await reader.readline()).startswith(f"ok {values.split()[0]} ".encode())
+        writer.close()
+        await server.close()
+        await recorder.close()
+        return recorder
+
+    recorder = run_main(main())
+    assert recorder.gaps_cut == 1
+    # at 1 frame/s: the first pose for MAX_HOLD_SECONDS, the second for the second between them, the last once
+    assert recorder.frames_written == MAX_HOLD_SECONDS + 1 + 1 and out.is_file()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import time
 from pathlib import Path
 
 import numpy as np
@@ -780,3 +781,95 @@ def test_an_uploaded_stream_keeps_only_the_frames_it_sent():
     assert [f.index for f in frames[10 ** 12 - 1:]] == [10 ** 12 - 1, 10 ** 12]
     with pytest.raises(IndexError):
         frames[10 ** 12 + 1]
+
+
+class SlowFace(LinearFace):
+    """A face taking 20 ms a step: playback falls behind and skips frames."""
+
+    def step(self, frame, dt: float) -> Pose:
+        time.sleep(0.02)
+        return super().step(frame, dt)
+
+
+def test_xface_stream_uploaded_while_one_plays_fast_plays_from_its_first_frame():
+    """A 1000 fps stream playing (frames skipped while the face steps) and a 2-frame stream
+    uploaded: the playback task died (IndexError: the old stream's skipped frames looked up
+    in the new one), silently; RESUME never finished and the stream never ended."""
+    mask = " ".join("1" if k == 2 else "0" for k in range(68))
+
+    def fap(count: int, fps: int, name: str) -> str:
+        return f"2.1 {name} {fps} {count}\n" + "".join(f"{mask}\n{i} {i % 200}\n" for i in range(count))
+
+    async def main():
+        server = await started(SlowFace, limits=ServerLimits(greeting_delay=0.05))
+        sub = server.subscribe(maxsize=100000)
+        reader, writer, me = await xface_connect(server.port)
+        writer.write(task("UPLOAD_FAP", me, 1, fap(2000, 1000, "long")) + task("RESUME_PLAYBACK", me, 2))
+        await expect(reader, 5)
+        await asyncio.sleep(0.5)
+        writer.write(task("UPLOAD_FAP", me, 3, fap(2, 25, "short")))
+        got = await expect(reader, 4)
+        assert n("RESUME_PLAYBACK", me, 2, 3) in got  # the playback went on, into the new stream, and finished
+        events = []
+        while not sub._queue.empty():
+            events.append(await sub.get())
+        playback = server.stage.playback
+        writer.close()
+        await server.close()
+        return events, playback
+
+    events, playback = run(main())
+    assert playback is None or playback.exception() is None
+    assert isinstance(events[-1], StreamEnd)
+    assert [e.index for e in events if isinstance(e, FrameEvent)][-2:] == [0, 1]  # the new stream, from its start
+
+
+def test_an_xface_task_declaring_entities_is_refused_before_it_is_parsed():
+    """A 7.7 MiB task whose <param> named a declared entity 2.7 million times expanded to
+    gigabytes on the server's event loop and stalled every client."""
+    from fae.net.xface import TaskFormatError, parse_task
+
+    doc = f'<!DOCTYPE task [<!ENTITY a "{"x" * 250}">]><task name="UPLOAD_FAP" ownerId="0" taskId="1"><param>' \
+          + "&a;" * 1000 + "</param></task>"
+    with pytest.raises(TaskFormatError, match="DOCTYPE"):
+        parse_task(doc.encode())
+
+
+def test_fae_send_gives_up_on_a_server_that_stops_reading():
+    """A server that accepts and never reads: `fae send` waited for ever (and through
+    Ctrl-C) on the bytes it could not send; now it stops after --timeout."""
+    from fae.net.client import send_fap
+
+    mask = " ".join("1" if k == 2 else "0" for k in range(68))
+    text = "2.1 big 25 200000\n" + "".join(f"{mask}\n{i} {i % 300}\n" for i in range(200000))  # 28 MB
+
+    async def main():
+        held = []
+
+        async def never_read(reader, writer):
+            held.append(writer)
+            await asyncio.sleep(3600)
+
+        server = await asyncio.start_server(never_read, "127.0.0.1", 0)
+        port = server.sockets[0].getsockname()[1]
+        loop = asyncio.get_running_loop()
+        t0 = loop.time()
+        with pytest.raises(asyncio.TimeoutError, match="for 1 s"):
+            await send_fap(text, "127.0.0.1", port, timeout=1.0)
+        took = loop.time() - t0
+        for w in held:
+            w.transport.abort()
+        server.close()
+        return took
+
+    assert run(main()) < 10.0
+
+
+@pytest.mark.parametrize("command", ["send", "serve"])
+def test_a_port_out_of_range_is_one_line(command, capsys):
+    """--port 70000 gave an OverflowError traceback (fae serve after loading its head)."""
+    from fae.cli import main
+
+    args = [command, "fap_streams/visemes.fap"] if command == "send" else [command]
+    assert main([*args, "--port", "70000"]) == 2
+    assert capsys.readouterr().err.strip() == f"fae {command}: --port 70000: expected 0..65535"

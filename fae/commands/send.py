@@ -30,6 +30,10 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
+    if not 0 <= args.port <= 65535:
+        return fail("send", f"--port {args.port}: expected 0..65535")
+    if not args.timeout > 0:
+        return fail("send", f"--timeout {args.timeout:g}: expected a positive number of seconds")
     try:
         with open(args.path, encoding="utf-8", errors="replace") as handle:
             text = handle.read()

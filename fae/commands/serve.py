@@ -16,6 +16,7 @@ from pathlib import Path
 
 from fae.commands.common import (add_device_argument, add_view_arguments, drawn_skin_colors, fail, load_head,
                                  output_problem, render_size_problem, video_size_problem, warp_device)
+from fae.io.frames import MAX_HOLD_SECONDS
 from fae.net.server import DEFAULT_HOST, DEFAULT_PORT, FapServer, ServerLimits
 
 
@@ -102,7 +103,8 @@ async def _serve(args, head) -> int:
     if recorder is not None:
         await recorder.close()
         print(f"fae serve: wrote {recorder.frames_written} frames to {args.record}"
-              + (f" ({recorder.skipped} frames of concurrent streams not recorded)" if recorder.skipped else ""),
+              + (f" ({recorder.skipped} frames of concurrent streams not recorded)" if recorder.skipped else "")
+              + (f" ({recorder.gaps_cut} gaps between frames cut to {MAX_HOLD_SECONDS:g} s)" if recorder.gaps_cut else ""),
               file=sys.stderr)
     return 0
 
@@ -118,8 +120,9 @@ def run(args) -> int:
             return fail("serve", problem)
     if not args.idle_timeout > 0:
         return fail("serve", f"--idle-timeout {args.idle_timeout:g}: expected a positive number of seconds")
-    if not 0 <= args.http_port <= 65535:
-        return fail("serve", f"--http-port {args.http_port}: expected 0..65535")
+    for flag, port in (("--port", args.port), ("--http-port", args.http_port)):
+        if not 0 <= port <= 65535:
+            return fail("serve", f"{flag} {port}: expected 0..65535")
     for flag, value in (("--max-clients", args.max_clients), ("--max-per-address", args.max_per_address)):
         if value < 1:
             return fail("serve", f"{flag} {value}: expected at least 1")

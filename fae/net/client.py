@@ -10,6 +10,9 @@ import numpy as np
 
 from fae.net.connection import READ_CHUNK
 
+MIN_REPLY_FPS, MAX_REPLY_FPS = 1e-3, 1e4  # frames/s a server's header reply may name (the reader's range)
+CLOSE_SECONDS = 1.0  # the longest a finished connection is waited on to close
+
 
 @dataclass
 class SendReport:
@@ -95,7 +98,10 @@ async def send_fap(text: str, host: str = "127.0.0.1", port: int = 50011, *, rat
     async def receive() -> None:
         buf = b""
         while True:  # until the server closes, after answering everything sent
-            chunk = await asyncio.wait_for(reader.read(READ_CHUNK), timeout)
+            try:
+                chunk = await asyncio.wait_for(reader.read(READ_CHUNK), timeout)
+            except asyncio.TimeoutError:
+                raise asyncio.TimeoutError(f"no reply for {timeout:g} s") from None
             if not chunk:
                 break
             buf += chunk
@@ -129,13 +135,21 @@ async def send_fap(text: str, host: str = "127.0.0.1", port: int = 50011, *, rat
                         return
             report.elapsed = now - start[0]
 
+    async def sent() -> None:  # a server that stops reading is given `timeout` seconds, as one that stops answering
+        try:
+            await asyncio.wait_for(writer.drain(), timeout)
+        except asyncio.TimeoutError:
+            raise asyncio.TimeoutError(f"the server took nothing for {timeout:g} s") from None
+
     receiver = asyncio.create_task(receive())
+    finished = False
     try:
         writer.write(header.encode("utf-8") + b"\n")
-        await writer.drain()
+        await sent()
         await asyncio.wait([receiver, asyncio.create_task(header_seen.wait())], timeout=timeout,
                            return_when=asyncio.FIRST_COMPLETED)
-        fps = report.fps if report.fps > 0 else 25.0
+        # the server's rate paces "realtime"; one beyond any stream's (a reply of 1e-300) is not taken
+        fps = report.fps if MIN_REPLY_FPS <= report.fps <= MAX_REPLY_FPS else 25.0
         start[0] = report.started = time.perf_counter()
         for k, (mask, values) in enumerate(frames):
             if receiver.done():
@@ -148,17 +162,20 @@ async def send_fap(text: str, host: str = "127.0.0.1", port: int = 50011, *, rat
             sent_at.setdefault(number, []).append(time.perf_counter())
             writer.write(f"{mask}\n{values}\n".encode("utf-8"))
             report.frames_sent += 1
-            await writer.drain()
+            await sent()
         if writer.can_write_eof():
             writer.write_eof()
         await asyncio.wait_for(receiver, timeout)
+        finished = True
     finally:
         if not receiver.done():
             receiver.cancel()
+        if not finished:  # what is still unsent is dropped: a close would wait for it (for ever)
+            writer.transport.abort()
         writer.close()
         try:
-            await writer.wait_closed()
-        except ConnectionError:
+            await asyncio.wait_for(writer.wait_closed(), CLOSE_SECONDS)
+        except (ConnectionError, asyncio.TimeoutError):
             pass
     report.latencies = np.asarray(latencies, dtype=np.float64)
     report.frame_steps = np.asarray(frame_steps, dtype=np.int64)

@@ -12,7 +12,10 @@ when). A native stream's frames fall at their own times (frame number / the stre
 fps), so coalesced frames repeat their step's image and the video lasts as long as the
 stream. Xface frames fall when they were played, by the wall clock: a client that
 uploads the latest pose once a second gets a video in which each pose lasts a second.
-A pose that falls in the same video frame as the next one is not shown.
+A pose that falls in the same video frame as the next one is not shown. No pose is held
+longer than MAX_HOLD_SECONDS (`fae play`'s default --max-hold): a longer gap (a stream that
+jumps from frame 0 to frame 10^12, which the protocol allows) is cut to it, and counted in
+`gaps_cut`.
 """
 
 from __future__ import annotations
@@ -25,6 +28,7 @@ from typing import Callable, Protocol
 
 import numpy as np
 
+from fae.io.frames import MAX_HOLD_SECONDS
 from fae.net.faces import Pose
 from fae.net.hub import FrameEvent, StreamEnd, Subscription
 from fae.net.stage import STREAM as XFACE_STREAM
@@ -76,6 +80,7 @@ class StreamRecorder:
 
     frames_written    video frames so far; frames_rendered: poses rendered for them;
     skipped           frames of streams played while another one was being recorded
+    gaps_cut          holds cut to MAX_HOLD_SECONDS
     """
 
     def __init__(self, subscription: Subscription, path: str | Path, renderer_factory: Callable[[], FrameRenderer],
@@ -90,6 +95,8 @@ class StreamRecorder:
         self.frames_written = 0
         self.frames_rendered = 0
         self.skipped = 0
+        self.gaps_cut = 0
+        self._cut = 0  # video frames the cut gaps took out of the clock's time
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="fae-record")
         self._renderer: FrameRenderer | None = None
         self._writer = None
@@ -151,10 +158,16 @@ class StreamRecorder:
             if self._clock is None:
                 self.fps = self.fps or event.fps
                 self._clock = RecordingClock(1.0 / self.fps)
-            slot = math.floor(self._clock.place(event, starts_stream) * self.fps + 0.5)
+            slot = math.floor(self._clock.place(event, starts_stream) * self.fps + 0.5) - self._cut
             held, self._held = self._held, event.pose
-            if held is not None and slot > self.frames_written:  # hold the previous pose until now
-                await loop.run_in_executor(self._executor, self._show, held, slot - self.frames_written)
+            gap = slot - self.frames_written
+            longest = max(1, math.ceil(MAX_HOLD_SECONDS * self.fps))
+            if gap > longest:
+                self._cut += gap - longest
+                self.gaps_cut += 1
+                gap = longest
+            if held is not None and gap > 0:  # hold the previous pose until now
+                await loop.run_in_executor(self._executor, self._show, held, gap)
 
     async def close(self, ok: bool = True) -> None:
         """After the server has closed (its subscriptions ended): finish the file.

@@ -28,6 +28,12 @@ from fae.net.hub import FrameEvent, FrameHub, StreamEnd
 
 log = logging.getLogger("fae.net")
 
+
+def _log_failure(task: asyncio.Task) -> None:
+    """A playback that died says so (it failed without a word)."""
+    if not task.cancelled() and task.exception() is not None:
+        log.error("xface playback failed", exc_info=task.exception())
+
 STREAM = "xface"
 
 # Tasks fae carries out; any other name (audio, scripts, KILL_APP, ...) gets ERROR 7.
@@ -221,6 +227,7 @@ class XfaceStage:
             return
         self._cancel_playback()
         self.playback = asyncio.create_task(self._play(task))
+        self.playback.add_done_callback(_log_failure)
 
     async def _task_stop_playback(self, task: xface.XfaceTask) -> None:
         self._cancel_playback()
@@ -259,11 +266,11 @@ class XfaceStage:
         """One step of one frame period towards `frame`; publish it and the frames at the
         `skipped` positions before it (their held values are in `frame`'s) with the
         resulting pose."""
+        frames = self.frames  # `skipped` counts this stream's frames: another may be uploaded during the step
         pose = await self._face().submit(frame, 1.0 / self.fps)
         self.steps += 1
         self.frames_applied += len(skipped) + 1
         self.last_pose, self.last_index = pose, frame.index
-        frames = self.frames
         for i in skipped:
             f = frames[i]
             await self.hub.publish(FrameEvent(STREAM, f.index, f.time, self.fps, pose, self.steps))

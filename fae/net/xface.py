@@ -64,6 +64,8 @@ def parse_task(message: bytes) -> XfaceTask:
         text = message.decode("utf-8")
     except UnicodeDecodeError as exc:
         raise TaskFormatError(f"byte {exc.start}: expected UTF-8 text") from None
+    if "<!DOCTYPE" in text:  # entities are declared there: a few MiB could expand to gigabytes
+        raise TaskFormatError("expected a <task> element without a <!DOCTYPE> (no tasks declare entities)")
     try:
         root = ET.fromstring(text)
     except ET.ParseError as exc:
