@@ -103,21 +103,21 @@ def numbered_stream(numbers: list[int], fps: int = 25) -> str:
     return f"2.1 gaps {fps} {len(numbers)}\n{body}"
 
 
-def test_a_native_stream_that_skips_frame_numbers_keeps_its_own_clock(tmp_path):
-    """One frame a second on a 25 fps stream (numbers 0, 25, 50, 75): each pose is held
-    for a second of video, however fast the frames were sent."""
-    out = tmp_path / "gaps.mp4"
+def recorded(numbers: list[int], out, fps: float | None = None) -> StreamRecorder:
+    """The recorder of a server to which one native client sent frames numbered `numbers`
+    (a 25 fps stream), each after the previous one's ack (one pose each); video at `fps`
+    (None: the stream's)."""
 
     async def main():
         server = FapServer(LinearFace, port=0)
         await server.start()
-        recorder = StreamRecorder(server.subscribe(maxsize=4, lossless=True), out, GreyRenderer, (64, 64))
+        recorder = StreamRecorder(server.subscribe(maxsize=4, lossless=True), out, GreyRenderer, (64, 64), fps=fps)
         recorder.start()
-        header, *lines = numbered_stream([0, 25, 50, 75]).splitlines()
+        header, *lines = numbered_stream(numbers).splitlines()
         reader, writer = await asyncio.open_connection("127.0.0.1", server.port)
         writer.write(f"{header}\n".encode())
         assert (await reader.readline()).startswith(b"ok header")
-        for mask, values in zip(lines[::2], lines[1::2]):  # each after the previous one's ack: one pose each
+        for mask, values in zip(lines[::2], lines[1::2]):
             writer.write(f"{mask}\n{values}\n".encode())
             assert (await reader.readline()).startswith(f"ok {values.split()[0]} ".encode())
         writer.close()
@@ -125,7 +125,14 @@ def test_a_native_stream_that_skips_frame_numbers_keeps_its_own_clock(tmp_path):
         await recorder.close()
         return recorder
 
-    recorder = run_main(main())
+    return run_main(main())
+
+
+def test_a_native_stream_that_skips_frame_numbers_keeps_its_own_clock(tmp_path):
+    """One frame a second on a 25 fps stream (numbers 0, 25, 50, 75): each pose is held
+    for a second of video, however fast the frames were sent."""
+    out = tmp_path / "gaps.mp4"
+    recorder = recorded([0, 25, 50, 75], out)
     assert recorder.frames_written == 76 and recorder.frames_rendered == 4
     levels = decoded_grey_levels(out)
     np.testing.assert_allclose(levels, [0] * 25 + [5] * 25 + [10] * 25 + [15], atol=3)
@@ -157,25 +164,7 @@ def test_a_gap_of_a_trillion_frames_is_held_for_max_hold_seconds(tmp_path):
     from fae.io.frames import MAX_HOLD_SECONDS
 
     out = tmp_path / "gap.mp4"
-
-    async def main():
-        server = FapServer(LinearFace, port=0)
-        await server.start()
-        recorder = StreamRecorder(server.subscribe(maxsize=4, lossless=True), out, GreyRenderer, (64, 64), fps=1.0)
-        recorder.start()
-        header, *lines = numbered_stream([0, 10**12, 10**12 + 25], fps=25).splitlines()
-        reader, writer = await asyncio.open_connection("127.0.0.1", server.port)
-        writer.write(f"{header}\n".encode())
-        assert (await reader.readline()).startswith(b"ok header")
-        for mask, values in zip(lines[::2], lines[1::2]):
-            writer.write(f"{mask}\n{values}\n".encode())
-            assert (await reader.readline()).startswith(f"ok {values.split()[0]} ".encode())
-        writer.close()
-        await server.close()
-        await recorder.close()
-        return recorder
-
-    recorder = run_main(main())
+    recorder = recorded([0, 10**12, 10**12 + 25], out, fps=1.0)
     assert recorder.gaps_cut == 1
     # at 1 frame/s: the first pose for MAX_HOLD_SECONDS, the second for the second between them, the last once
     assert recorder.frames_written == MAX_HOLD_SECONDS + 1 + 1 and out.is_file()
