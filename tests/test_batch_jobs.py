@@ -74,6 +74,8 @@ def test_json_lists_and_glob_times_heads(corpus, monkeypatch):
     ("stream,view\nstreams/hello.fap,top\n", r"jobs.csv:2: field 'view' 'top': expected one of front, three-quarter, profile"),
     ("stream,fps\nstreams/hello.fap,fast\n", r"jobs.csv:2: field 'fps' 'fast': expected a frame rate"),
     ("stream,fps\nstreams/hello.fap,0\n", r"jobs.csv:2: field 'fps' '0': expected a frame rate"),
+    # accepted, it reached ffmpeg as a rate of 0/1: a job failed with five lines of its log
+    ("stream,fps\nstreams/hello.fap,0.0001\n", r"jobs.csv:2: field 'fps' '0.0001': expected a frame rate in \[0.001"),
     ("stream,output\nstreams/hello.fap,../x.mp4\n", r"jobs.csv:2: field 'output' '../x.mp4': expected a plain file name"),
     ("stream,output\nstreams/hello.fap,x.avi\n", r"jobs.csv:2: field 'output' 'x.avi': expected a .mp4 file name"),
     ("stream,output\nstreams/hello.fap,a.mp4\nstreams/world.fap,a.mp4\n",

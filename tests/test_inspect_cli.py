@@ -99,3 +99,28 @@ def test_output_that_cannot_be_written_fails_the_command_and_a_closed_stderr_doe
     done = subprocess.run([sys.executable, "-m", "fae", "verify-faps", "--faps", "19", "--json"],
                           stdout=subprocess.PIPE, text=True, timeout=120, env=env, preexec_fn=lambda: os.close(2))
     assert done.returncode == 0 and "passed_fraction" in json.loads(done.stdout)
+
+
+@pytest.mark.parametrize("argv, expected", [
+    (["template", "build", "-o", "{tmp}/nowhere/head.glb"], "output folder"),  # was: a traceback after a minute
+    (["template", "build", "-o", "{tmp}/head.txt"], "expected a .glb"),
+    (["verify-skin", "fap_streams/visemes.fap", "fae/data/generic_head.glb"], "a head among the streams"),
+    (["verify-faps", "--faps", ""], "--faps"),  # an empty list checked every FAP
+])
+def test_commands_refuse_mistyped_arguments_at_once(tmp_path, capsys, argv, expected):
+    from fae.cli import main
+
+    assert main([a.format(tmp=tmp_path) for a in argv]) == 2
+    err = capsys.readouterr().err
+    assert expected in err and err.count("\n") == 1
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_an_output_that_is_a_folder_is_named_not_its_temporary_file(tmp_path):
+    from fae.io.atomic import OutputError, atomic_path
+
+    (tmp_path / "manifest.json").mkdir()
+    with pytest.raises(OutputError, match=r"manifest.json: cannot be replaced"):
+        with atomic_path(tmp_path / "manifest.json") as tmp:
+            tmp.write_text("{}")
+    assert [p.name for p in tmp_path.iterdir()] == ["manifest.json"]  # no temporary file left

@@ -28,6 +28,8 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from fae.io.frames import MIN_FPS
+
 COLUMNS = ("stream", "head", "view", "size", "fps", "output")
 MAX_SIDE = 8192
 
@@ -172,8 +174,8 @@ def _job(where: str, record: dict, base: Path, defaults: JobDefaults, default_he
             fps = float(fps_text)
         except ValueError:
             fps = math.nan
-        if not (0 < fps <= 1000):
-            raise JobFileError(f"{where}: field 'fps' {fps_text!r}: expected a frame rate in (0, 1000], "
+        if not (MIN_FPS <= fps <= 1000):
+            raise JobFileError(f"{where}: field 'fps' {fps_text!r}: expected a frame rate in [{MIN_FPS:g}, 1000], "
                                "or nothing for the stream's own")
     output_text = text("output")
     output = _output_name(where, output_text) if output_text else f"{stream.stem}.mp4"

@@ -77,7 +77,7 @@ def _render_on_worker(spec: dict, stream_bytes: bytes, head_bytes: bytes) -> dic
     try:
         result = render_job(spec, stream_bytes, head_bytes)
     except JobFailed as exc:  # an answer, not a crash: no traceback in the worker's log
-        result = {"error": str(exc)}
+        result = {"error": " ".join(str(exc).split())}  # one line (an encoder's message spans several)
     result["worker"] = get_worker().address
     return result
 

@@ -70,14 +70,13 @@ def output_problem(path: str, suffix: str | None = None) -> str | None:
 
 def timing_problem(fps: float | None, max_hold: float | None = None) -> str | None:
     """Why --fps (frames/s, None: the stream's own) or --max-hold (seconds) cannot be used."""
+    from fae.io.frames import MIN_FPS
+
     if fps is not None and not (MIN_FPS <= fps <= 1000):
         return f"--fps {fps:g}: expected a frame rate in [{MIN_FPS:g}, 1000]"
     if max_hold is not None and not 0 <= max_hold <= 1e6:
         return f"--max-hold {max_hold:g}: expected seconds in [0, 1e6]"
     return None
-
-
-MIN_FPS = 0.001  # frames/s: a video's rate is a fraction with a denominator up to 1001
 
 
 def render_size_problem(size: tuple[int, int], supersample: int) -> str | None:

@@ -18,9 +18,9 @@ import argparse
 import sys
 from pathlib import Path
 
-from fae.commands.common import (MIN_FPS, add_device_argument, add_view_arguments, fail, load_head, output_problem,
+from fae.commands.common import (add_device_argument, add_view_arguments, fail, load_head, output_problem,
                                  render_size_problem, timing_problem, video_size_problem, warp_device)
-from fae.io.frames import MAX_HOLD_SECONDS
+from fae.io.frames import MAX_HOLD_SECONDS, MIN_FPS
 
 
 def register(subparsers) -> None:

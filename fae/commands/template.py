@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import json
 
-from fae.commands.common import fail
+from fae.commands.common import fail, output_problem
 
 
 def register(subparsers) -> None:
@@ -47,8 +47,14 @@ def _build(output: str | None) -> int:
     from fae.io.facemodel_gltf import write_facemodel
 
     path = output or str(shipped_head_path())
+    problem = output_problem(path, ".glb")  # before a minute of work, not after it
+    if problem:
+        return fail("template build", problem)
     model = calibrate(build_template(), early_stop=False)  # a mapping that small changes move a little
-    write_facemodel(model, path)
+    try:
+        write_facemodel(model, path)
+    except OSError as exc:
+        return fail("template build", str(exc) if exc.filename is None else f"{exc.filename}: {exc.strerror}")
     print(f"wrote {path}: {model.skin_vertex_count} skin vertices, {len(model.muscles)} muscles, "
           f"{len(model.feature_points)} feature points")
     return 0

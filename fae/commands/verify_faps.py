@@ -50,7 +50,7 @@ def run(args) -> int:
     from fae.io.facemodel_gltf import FaceModelError
 
     try:
-        faps = parse_fap_list(args.faps) if args.faps else None
+        faps = parse_fap_list(args.faps) if args.faps is not None else None  # "" is a mistake, not "all"
     except ValueError as exc:
         return fail("verify-faps", str(exc))
     try:

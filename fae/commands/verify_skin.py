@@ -44,6 +44,10 @@ def run(args) -> int:
     head, streams = args.head, list(args.streams)
     if head is not None and head.lower().endswith(".fap"):  # streams only: the shipped head
         head, streams = None, [head] + streams
+    misplaced = [s for s in streams if s.lower().endswith((".glb", ".gltf"))]
+    if misplaced:
+        return fail("verify-skin", f"{misplaced[0]}: a head among the streams; expected .fap streams after the head "
+                    "(fae verify-skin [HEAD.glb] [STREAM.fap ...])")
     try:
         device = warp_device(args.device)
     except ValueError as exc:

@@ -85,7 +85,10 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None, sweep: bool 
         os.umask(umask)
         os.chmod(tmp_path, 0o666 & ~umask)
         yield tmp_path
-        os.replace(tmp_path, target)
+        try:
+            os.replace(tmp_path, target)
+        except OSError as exc:  # a folder where the file should go: name the file, not the temporary one
+            raise OutputError(f"{target}: cannot be replaced ({exc.strerror or exc})") from None
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             tmp_path.unlink()
