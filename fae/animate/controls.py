@@ -59,24 +59,31 @@ class FapControls:
         missing = [k for k in need if k not in m]
         if missing:
             raise MappingMismatch(f"fap_mapping: missing {', '.join(missing)} (the head is not calibrated)")
-        layout = np.asarray(m["layout"]).astype(int)
-        nm, nf, nj, version = (int(x) for x in layout[:4])
+        try:  # a mapping of any shape and type (what a file held) is one to recalibrate, not a crash
+            layout = np.asarray(m["layout"]).astype(int).ravel()
+            nm, nf, nj, version = (int(x) for x in layout[:4])
+            fields = np.asarray(m["field_faps"]).astype(int).ravel().tolist()
+        except (TypeError, ValueError, OverflowError):
+            raise MappingMismatch(f"fap_mapping: layout {m['layout']!r:.60} or field_faps {m['field_faps']!r:.60}: "
+                                  "expected whole numbers (the head is not calibrated)") from None
         C = nm + nf + nj
         if version != FORMAT_VERSION or nj != JAW_CONTROLS or nm != len(face.muscles):
             raise MappingMismatch(f"fap_mapping: layout {layout.tolist()} does not match this head "
                                   f"({len(face.muscles)} muscles, format {FORMAT_VERSION})")
-        fields = np.asarray(m["field_faps"]).astype(int).tolist()
         if fields != field_faps(face):
             raise MappingMismatch(f"fap_mapping: pull fields for FAPs {fields}, this head needs {field_faps(face)}")
         if model is not None and model.muscle_count != nm + nf:
             raise MappingMismatch(f"fap_mapping: {nm + nf} muscles and fields, the simulation has {model.muscle_count}")
-        self.gain_pos = np.asarray(m["gain_pos"], dtype=np.float64)
-        self.gain_neg = np.asarray(m["gain_neg"], dtype=np.float64)
-        self.table_values = np.asarray(m["table_values"], dtype=np.float64)
-        self.table_scale = np.asarray(m["table_scale"], dtype=np.float64)
-        self.jaw_follow = np.asarray(m["jaw_follow"], dtype=np.float64)
-        self.hold_scale = np.clip(np.asarray(m["hold_scale"], dtype=np.float64), 0.1, 10.0)
-        self.pair_overlap = np.clip(np.asarray(m["pair_overlap"], dtype=np.float64), 0.0, 1.0)
+        try:
+            self.gain_pos = np.asarray(m["gain_pos"], dtype=np.float64)
+            self.gain_neg = np.asarray(m["gain_neg"], dtype=np.float64)
+            self.table_values = np.asarray(m["table_values"], dtype=np.float64)
+            self.table_scale = np.asarray(m["table_scale"], dtype=np.float64)
+            self.jaw_follow = np.asarray(m["jaw_follow"], dtype=np.float64)
+            self.hold_scale = np.clip(np.asarray(m["hold_scale"], dtype=np.float64), 0.1, 10.0)
+            self.pair_overlap = np.clip(np.asarray(m["pair_overlap"], dtype=np.float64), 0.0, 1.0)
+        except (TypeError, ValueError) as exc:
+            raise MappingMismatch(f"fap_mapping: expected arrays of numbers ({exc})") from None
         for name, a, shape in (("gain_pos", self.gain_pos, (FAP_COUNT, C)), ("gain_neg", self.gain_neg, (FAP_COUNT, C)),
                                ("jaw_follow", self.jaw_follow, (FAP_COUNT,)),
                                ("hold_scale", self.hold_scale, (FAP_COUNT,)),

@@ -96,6 +96,9 @@ class RigidRig:
         return about(R, self.head_center)
 
     def eye(self, v: np.ndarray, side: str) -> np.ndarray:
+        """(4, 4) the eyeball's own pose (the identity for a head without that eye)."""
+        if side not in self.eye_centers:
+            return np.eye(4)
         k = 0 if side == "eye_l" else 1
         R = rotation_y(v[22 + k] * AU) @ rotation_x(v[24 + k] * AU)
         return about(R, self.eye_centers[side], np.array([0.0, 0.0, v[26 + k] * self.fapu["ES"]]))

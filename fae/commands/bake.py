@@ -63,7 +63,10 @@ def run(args: argparse.Namespace) -> int:
         from fae.animate.bake import bake_tables, baked_model
         from fae.animate.player import Player, playable_head
 
-        player = Player(playable_head(face))
+        try:
+            player = Player(playable_head(face))
+        except (RuntimeError, ValueError) as exc:  # data the engine cannot use (fae template check says which)
+            return fail("bake", f"{head}: cannot animate it: {exc}")
 
         def progress(done: int, total: int) -> None:
             if sys.stderr.isatty():

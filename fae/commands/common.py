@@ -108,6 +108,8 @@ def load_head(path: str | os.PathLike | None):
     from fae.io.facemodel_gltf import FaceModelError, read_facemodel
 
     head = Path(path) if path else shipped_head_path()
+    if head.is_dir():
+        raise FaceModelError(f"{head}: a folder; expected a head file (.glb)")
     if not head.is_file():
         if path:
             what = "head file"

@@ -63,7 +63,10 @@ def run(args: argparse.Namespace) -> int:
         from fae.animate.morphs import keyframes, morph_targets
         from fae.animate.player import Player, playable_head
 
-        player = Player(playable_head(model, engine="fdt"))
+        try:
+            player = Player(playable_head(model, engine="fdt"))
+        except (RuntimeError, ValueError) as exc:  # data the engine cannot use (fae template check says which)
+            return fail("export", f"{head}: cannot animate it: {exc}")
         targets = morph_targets(player.tables)
         frames = None
         fps = None

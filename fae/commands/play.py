@@ -111,6 +111,21 @@ def run(args: argparse.Namespace) -> int:
     if fps < MIN_FPS:
         return fail("play", f"{args.stream}: {fps:g} frames/s in its header; expected at least {MIN_FPS:g} "
                     "(--fps N plays it at another rate)")
+    if args.engine == "fdt":
+        from fae.animate.bake import has_baked_tables
+
+        if not has_baked_tables(model if retargeted is None else template):
+            print("fae play: the head has no baked FaceDefTables; baking them first (minutes; "
+                  "`fae bake` stores them)", file=sys.stderr)
+    try:
+        if retargeted is not None:
+            from fae.animate.retarget import RetargetPlayer
+
+            player = RetargetPlayer(retargeted, Player(playable_head(template, device=device, engine=args.engine)))
+        else:
+            player = Player(playable_head(model, device=device, engine=args.engine))
+    except (RuntimeError, ValueError) as exc:  # data the engine cannot use (fae template check says which)
+        return fail("play", f"{args.head or 'the shipped head'}: cannot animate it: {exc}")
     made_frames_dir = frames_dir is not None and not frames_dir.exists()
     if frames_dir is not None:  # made once the inputs are known to be good
         try:
@@ -126,19 +141,6 @@ def run(args: argparse.Namespace) -> int:
     try:
         with FaceRenderer(model, size=(width, height), view=args.view, supersample=args.supersample,
                           show_bones=args.show_bones, normal_groups=normal_groups) as renderer:
-            if args.engine == "fdt":
-                from fae.animate.bake import has_baked_tables
-
-                if not has_baked_tables(model if retargeted is None else template):
-                    print("fae play: the head has no baked FaceDefTables; baking them first (minutes; "
-                          "`fae bake` stores them)", file=sys.stderr)
-            if retargeted is not None:
-                from fae.animate.retarget import RetargetPlayer
-
-                player = RetargetPlayer(retargeted,
-                                        Player(playable_head(template, device=device, engine=args.engine)))
-            else:
-                player = Player(playable_head(model, device=device, engine=args.engine))
             frames = dense_frames(stream, fps=args.fps, max_hold=args.max_hold)
             timings = render_video(player.play(frames, fps=fps), renderer, args.output, fps,
                                    frames_dir=frames_dir,

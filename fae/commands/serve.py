@@ -141,10 +141,10 @@ def run(args) -> int:
     args.head = str(head)
     from fae.animate.player import needs_calibration, playable_head
 
-    if needs_calibration(model):
-        print(f"fae serve: {args.head} carries no FAP mapping that fits; calibrating it once (tens of seconds)",
-              file=sys.stderr, flush=True)
     try:
+        if needs_calibration(model):
+            print(f"fae serve: {args.head} carries no FAP mapping that fits; calibrating it once (tens of seconds)",
+                  file=sys.stderr, flush=True)
         playable = playable_head(model, device=device)  # shared by every client's face
     except (RuntimeError, ValueError) as exc:
         print(f"fae serve: --head {args.head}: cannot animate it: {exc}", file=sys.stderr)

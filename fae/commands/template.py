@@ -70,6 +70,12 @@ def _check(path: str, as_json: bool) -> int:
     from fae.anatomy.checks import check_report
 
     report = check_report(model)
+    from fae.sim.build import DEFAULTS, checked_params
+
+    try:  # what the simulation would refuse (a count of a billion rings, a stiffness of 1e300)
+        checked_params({**DEFAULTS, **{k: v for k, v in (model.layer_params or {}).items() if k in DEFAULTS}})
+    except ValueError as exc:
+        report["problems"].append(str(exc))
     if as_json:
         print(json.dumps(report, indent=1))
     else:

@@ -65,7 +65,10 @@ def run(args) -> int:
         from fae.animate.player import Player, playable_head
         from fae.animate.verify import TOLERANCE, passed_fraction, verify_faps
 
-        player = Player(playable_head(face))
+        try:
+            player = Player(playable_head(face))
+        except (RuntimeError, ValueError) as exc:  # data the engine cannot use (fae template check says which)
+            return fail("verify-faps", f"{head}: cannot animate it: {exc}")
         try:
             report = verify_faps(player, faps)
         except ValueError as exc:

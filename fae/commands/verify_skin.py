@@ -69,7 +69,10 @@ def run(args) -> int:
         from fae.animate.player import Player, playable_head
         from fae.animate.skin_check import SkinCheck, check_stream, default_streams
 
-        player = Player(playable_head(face, device=device))
+        try:
+            player = Player(playable_head(face, device=device))
+        except (RuntimeError, ValueError) as exc:  # data the engine cannot use (fae template check says which)
+            return fail("verify-skin", f"{path}: cannot animate it: {exc}")
         check = SkinCheck(player.face)
         if not loaded:
             loaded = default_streams()

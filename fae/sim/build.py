@@ -53,6 +53,7 @@ above the lower lid's margin, `LID_CONTACT_BAND`), in up to
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -121,11 +122,53 @@ class PullField:
     drag: float | None = None
 
 
+# what a head's layer_params may set: counts at most MAX_RINGS, other numbers finite, >= 0
+# and at most PARAM_SPAN x their default (past that, a step takes for ever or blows up),
+# these few positive, the contact grid no finer than MIN_SDF_CELL metres, cfl at most 1
+COUNT_PARAMS = ("active_rings", "jaw_blend_rings", "fold_passes")
+MAX_RINGS = 50
+PARAM_SPAN = 1000.0
+POSITIVE_PARAMS = ("density", "cfl", "sdf_cell")
+MIN_SDF_CELL = 0.0005
+
+
+def checked_params(p: dict) -> dict:
+    """`p` (DEFAULTS' keys) if every value is usable; ValueError naming the first that is not."""
+    for key, value in p.items():
+        where = f"layer_params.{key}"
+        if key == "layer_depth_fractions":
+            try:
+                fr = np.asarray(value, dtype=np.float64)
+            except (TypeError, ValueError):
+                fr = np.zeros(0)
+            if fr.shape != (LAYER_COUNT,) or fr[0] != 0.0 or not np.all(np.diff(fr) > 0) or fr[-1] > PARAM_SPAN:
+                raise ValueError(f"{where}: expected [0, f1, f2] increasing, got {value!r:.80}")
+            continue
+        if key in COUNT_PARAMS:
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not 0 <= value <= MAX_RINGS:
+                raise ValueError(f"{where}: expected a whole number 0..{MAX_RINGS}, got {value!r}")
+            continue
+        top = PARAM_SPAN * DEFAULTS[key] if key != "cfl" else 1.0
+        try:
+            number = float(value)
+        except (TypeError, ValueError):
+            number = math.nan
+        if isinstance(value, bool) or not 0.0 <= number <= top or (key in POSITIVE_PARAMS and number <= 0.0) \
+                or (key == "sdf_cell" and number < MIN_SDF_CELL):
+            low = MIN_SDF_CELL if key == "sdf_cell" else 0.0
+            raise ValueError(f"{where}: expected a number in {'(' if key in POSITIVE_PARAMS and low == 0 else '['}"
+                             f"{low:g}, {top:g}], got {value!r}")
+    return p
+
+
 def dilate(mask: np.ndarray, A: sp.csr_matrix, rings: int) -> np.ndarray:
     """(n,) bool: `mask` grown by `rings` edge rings over adjacency A."""
     m = mask.copy()
     for _ in range(rings):
-        m = m | (A @ m.astype(np.float64) > 0)
+        grown = m | (A @ m.astype(np.float64) > 0)
+        if np.array_equal(grown, m):  # nothing more to reach
+            break
+        m = grown
     return m
 
 
@@ -457,6 +500,7 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
     p = dict(DEFAULTS)
     p.update({k: v for k, v in (face.layer_params or {}).items() if k in DEFAULTS})
     p.update(params or {})
+    checked_params(p)
     fields = fields or []
     V = np.asarray(face.skin_vertices, dtype=np.float64)
     F = np.asarray(face.skin_faces, dtype=np.int64)
@@ -468,8 +512,6 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
         raise ValueError("skin_thickness: expected finite non-negative depths in metres")
     thickness = np.maximum(thickness, 1e-3)
     fr = np.asarray(p["layer_depth_fractions"], dtype=np.float64)
-    if fr.shape != (LAYER_COUNT,) or fr[0] != 0.0 or not np.all(np.diff(fr) > 0):
-        raise ValueError(f"layer_params.layer_depth_fractions: expected [0, f1, f2] increasing, got {fr.tolist()}")
 
     if like is not None and like.skin_jaw.shape != (nv,):
         raise ValueError(f"like: a model of {len(like.skin_jaw)} skin vertices, this face has {nv}")
