@@ -76,3 +76,13 @@ def test_growing_a_mask_stops_when_nothing_more_is_reached():
 def test_a_folder_given_as_a_head_is_named_as_one(tmp_path, capsys):
     assert main(["render", str(tmp_path), "-o", str(tmp_path / "x.png")]) == 2
     assert "a folder; expected a head file" in capsys.readouterr().err
+
+
+def test_counts_written_as_json_floats_are_whole_numbers(shipped):
+    """json.dumps writes 3.0 for a float 3: such a head built before and must still."""
+    from fae.sim.build import DEFAULTS, checked_params
+
+    assert checked_params({**DEFAULTS, "active_rings": 3.0, "fold_passes": 0.0})["active_rings"] == 3.0
+    for bad in (2.5, float("nan"), True, "3"):
+        with pytest.raises(ValueError, match="active_rings"):
+            checked_params({**DEFAULTS, "active_rings": bad})

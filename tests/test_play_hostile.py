@@ -133,18 +133,20 @@ def test_frames_dir_keeps_its_frames_when_a_run_fails_and_takes_a_good_runs_whol
     frames = tmp_path / "frames"
     frames.mkdir()
     (frames / "frame_00099.png").write_bytes(b"an earlier run's")
+    (frames / "frame_cover.png").write_bytes(b"the user's own")  # not a frame: kept
+    (frames / f".frames.{2**22 + 7}.dead").mkdir()  # a killed run's staging (no such process): swept
     broken = tmp_path / "broken.fap"
     broken.write_text("".join(SHORT_STREAM.read_text().splitlines(keepends=True)[:60]) + "junk\n")
     proc = fae_play(str(broken), "-o", str(tmp_path / "b.mp4"), "--frames-dir", str(frames))
     _, err = proc.communicate(timeout=300)
     assert proc.returncode == 2 and "no video written" in err, err
-    assert [p.name for p in frames.iterdir()] == ["frame_00099.png"]  # as it was: nothing added, nothing hidden
+    assert sorted(p.name for p in frames.iterdir()) == ["frame_00099.png", "frame_cover.png"]  # nothing added
     proc = fae_play(str(SHORT_STREAM), "-o", str(tmp_path / "v.mp4"), "--frames-dir", str(frames))
     _, err = proc.communicate(timeout=300)
     assert proc.returncode == 0, err
     names = sorted(p.name for p in frames.iterdir())
     count = int(err.strip().splitlines()[-1].split(": ")[1].split()[0])  # "<out>: 48 frames at ..."
-    assert names == [f"frame_{i:05d}.png" for i in range(count)]
+    assert names == [f"frame_{i:05d}.png" for i in range(count)] + ["frame_cover.png"]
 
 
 def test_the_readers_warnings_are_shown(tmp_path):

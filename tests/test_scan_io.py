@@ -165,3 +165,20 @@ def test_ibug_files_with_a_header_or_several_groups(tmp_path):
     ljson.write_text(json.dumps({"groups": {"brows": {"landmarks": {"points": [[0, 0, 0]] * 10}},
                                             "face": {"landmarks": {"points": pts.tolist()}}}}))
     assert np.allclose(read_landmarks(ljson)["9.3"], pts[30])  # the 68-point group, not the first
+
+
+def test_vertex_indices_of_an_obj_with_several_materials(tmp_path):
+    """A reader joins an OBJ's materials as pieces: their vertices in another order, some
+    repeated. An index still names the file's own `v` line."""
+    obj = tmp_path / "two_materials.obj"
+    V_file = np.arange(30, dtype=float).reshape(10, 3)
+    lines = [f"v {x:g} {y:g} {z:g}" for x, y, z in V_file] + ["vt 0 0", "vt 1 0", "vt 0 1"]
+    lines += ["usemtl a", "f 1/1 2/2 3/3", "f 8/1 9/2 10/3", "usemtl b", "f 3/1 4/2 8/3", "f 5/1 6/2 7/3"]
+    obj.write_text("\n".join(lines) + "\n")
+    V, _ = read_scan(obj)
+    lm = tmp_path / "lm.json"
+    lm.write_text(json.dumps({"9.3": 7}))
+    assert np.allclose(read_landmarks(lm, lambda: indexed_vertices(obj, V))["9.3"], V_file[7])
+    lm.write_text(json.dumps({"9.3": 12}))
+    with pytest.raises(LandmarkError, match="outside 0..9"):
+        read_landmarks(lm, lambda: indexed_vertices(obj, V))

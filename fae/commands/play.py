@@ -125,7 +125,8 @@ def run(args: argparse.Namespace) -> int:
         else:
             player = Player(playable_head(model, device=device, engine=args.engine))
     except (RuntimeError, ValueError) as exc:  # data the engine cannot use (fae template check says which)
-        return fail("play", f"{args.head or 'the shipped head'}: cannot animate it: {exc}")
+        which = "the template" if retargeted is not None else args.head or "the shipped head"
+        return fail("play", f"{which}: cannot animate it: {exc}")
     made_frames_dir = frames_dir is not None and not frames_dir.exists()
     if frames_dir is not None:  # made once the inputs are known to be good
         try:

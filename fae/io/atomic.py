@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import os
 import re
+import shutil
 import tempfile
 from pathlib import Path
 from typing import Iterator
@@ -53,6 +54,19 @@ def sweep_stale(path: str | os.PathLike) -> list[Path]:
             os.unlink(entry.path)
             removed.append(Path(entry.path))
     return removed
+
+
+def staging_folder(folder: str | os.PathLike, name: str) -> Path:
+    """A new hidden folder `.NAME.PID.XXXX` in `folder` for files that replace others only
+    when all are written; the ones left by writers no longer running are removed first."""
+    folder = Path(folder)
+    pattern = re.compile(r"\." + re.escape(name) + r"\.(\d+)\.[A-Za-z0-9_]+\Z")
+    with contextlib.suppress(OSError):
+        for entry in os.scandir(folder):
+            match = pattern.match(entry.name)
+            if match and entry.is_dir(follow_symlinks=False) and not _running(int(match.group(1))):
+                shutil.rmtree(entry.path, ignore_errors=True)
+    return Path(tempfile.mkdtemp(prefix=f".{name}.{os.getpid()}.", dir=folder))
 
 
 @contextlib.contextmanager

@@ -119,17 +119,16 @@ def read_scan(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
 def indexed_vertices(path: str | os.PathLike, V: np.ndarray) -> np.ndarray:
     """(k, 3) the vertices a landmark file's vertex indices count, in the scan file's own
     order: an OBJ's `v` lines, unused ones too (read_scan's V has a vertex per texture
-    seam copy and none unused, so its indices are not the file's); V for other formats,
-    which read_scan keeps in the file's order."""
+    seam copy, none unused, and a file's materials one after another, so its indices are
+    not the file's); V for other formats, which read_scan keeps in the file's order."""
     path = os.fspath(path)
     if os.path.splitext(path)[1].lower() != ".obj":
         return V
-    import trimesh
-
-    try:
-        loaded = trimesh.load(path, force="mesh", process=False, maintain_order=True)
-        return np.asarray(loaded.vertices, dtype=np.float64)
-    except Exception:  # read_scan read it; the same bytes read in order can only fail as oddly
+    try:  # the `v` lines themselves: a reader joins a file's materials as pieces of its own order
+        with open(path, encoding="utf-8", errors="replace") as fh:
+            rows = [line.split()[1:4] for line in fh if line.startswith("v ")]
+        return np.array(rows, dtype=np.float64).reshape(-1, 3)
+    except (OSError, ValueError):  # read_scan read it; the same lines can only fail as oddly
         return V
 
 

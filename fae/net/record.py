@@ -12,10 +12,10 @@ when). A native stream's frames fall at their own times (frame number / the stre
 fps), so coalesced frames repeat their step's image and the video lasts as long as the
 stream. Xface frames fall when they were played, by the wall clock: a client that
 uploads the latest pose once a second gets a video in which each pose lasts a second.
-A pose that falls in the same video frame as the next one is not shown. No pose is held
-longer than MAX_HOLD_SECONDS (`fae play`'s default --max-hold): a longer gap (a stream that
-jumps from frame 0 to frame 10^12, which the protocol allows) is cut to it, and counted in
-`gaps_cut`.
+A pose that falls in the same video frame as the next one is not shown. No pose of a
+native stream is held longer than MAX_HOLD_SECONDS (`fae play`'s default --max-hold): a
+longer gap between its frame numbers (0 then 10^12, which the protocol allows) is cut to
+it, and counted in `gaps_cut`; an Xface pause lasts as long as it did live.
 """
 
 from __future__ import annotations
@@ -162,7 +162,7 @@ class StreamRecorder:
             held, self._held = self._held, event.pose
             gap = slot - self.frames_written
             longest = max(1, math.ceil(MAX_HOLD_SECONDS * self.fps))
-            if gap > longest:
+            if gap > longest and event.stream != XFACE_STREAM:
                 self._cut += gap - longest
                 self.gaps_cut += 1
                 gap = longest

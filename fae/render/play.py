@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import os
 import queue
+import re
 import shutil
-import tempfile
 import threading
 import time
 from dataclasses import dataclass
@@ -21,11 +21,15 @@ from typing import Callable, Iterable
 
 import numpy as np
 
+from fae.io.atomic import staging_folder
 from fae.render.png import write_png
 from fae.render.renderer import FaceRenderer
 from fae.render.video import VideoWriter
 
 _DONE = object()
+
+
+FRAME_NAME = re.compile(r"frame_\d{5,}\.png")  # what frames_dir receives: frame_00000.png, ...
 
 
 class EmptyStreamError(ValueError):
@@ -170,9 +174,9 @@ def render_video(source: Iterable, renderer: FaceRenderer, path: str | os.PathLi
     render_s = 0.0
     count = 0
     t0 = time.perf_counter()
-    # the frames go to a hidden folder beside frames_dir and replace its frame_*.png only
-    # when the video is written: a failed run leaves the folder as it was
-    staging = None if frames_dir is None else Path(tempfile.mkdtemp(prefix=".frames-", dir=frames_dir))
+    # the frames go to a hidden folder inside frames_dir and replace its frame_NNNNN.png
+    # only when the video is written: a failed run leaves the folder as it was
+    staging = None if frames_dir is None else staging_folder(frames_dir, "frames")
     frames = _frames_overlapped(source, timings, queue_size) if overlap else _frames_serial(source, timings)
     try:
         with VideoWriter(path, renderer.size, fps, crf=crf, preset=preset, channels=4) as video:
@@ -189,8 +193,9 @@ def render_video(source: Iterable, renderer: FaceRenderer, path: str | os.PathLi
             if count == 0:
                 raise EmptyStreamError("the stream produced no frames")
         if staging is not None:
-            for old in Path(frames_dir).glob("frame_*.png"):  # an earlier, longer run's
-                old.unlink()
+            for old in Path(frames_dir).glob("frame_*.png"):  # an earlier, longer run's (not frame_cover.png)
+                if FRAME_NAME.fullmatch(old.name):
+                    old.unlink()
             for new in sorted(staging.iterdir()):
                 new.replace(Path(frames_dir) / new.name)
     finally:

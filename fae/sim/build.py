@@ -144,8 +144,12 @@ def checked_params(p: dict) -> dict:
             if fr.shape != (LAYER_COUNT,) or fr[0] != 0.0 or not np.all(np.diff(fr) > 0) or fr[-1] > PARAM_SPAN:
                 raise ValueError(f"{where}: expected [0, f1, f2] increasing, got {value!r:.80}")
             continue
-        if key in COUNT_PARAMS:
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not 0 <= value <= MAX_RINGS:
+        if key not in DEFAULTS:
+            continue
+        if key in COUNT_PARAMS:  # 3.0 as JSON writes a float is 3
+            whole = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool) \
+                and math.isfinite(value) and float(value).is_integer()
+            if not whole or not 0 <= value <= MAX_RINGS:
                 raise ValueError(f"{where}: expected a whole number 0..{MAX_RINGS}, got {value!r}")
             continue
         top = PARAM_SPAN * DEFAULTS[key] if key != "cfl" else 1.0
