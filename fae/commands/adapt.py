@@ -388,25 +388,47 @@ def photo_head(template, image, photo_name: str = "photo", template_name: str = 
     quarters when needed) and on the template, fae.adapt.photo.head_from_photo, then the
     result drawn like the photo and looked at again (report["verdict"] lists what is not
     to be trusted). Raises PhotoRefused, or LandmarkModelMissing without MediaPipe."""
-    import numpy as np
+    from fae.adapt.photo import PhotoRefused
+    from fae.render.landmarks import detect_points_all_turns, template_points
 
-    from fae.adapt.photo import PhotoPoints, PhotoRefused, head_from_photo
-    from fae.render.landmarks import (EYE_POINTS, EYES, FACE_OVAL, INNER_LIP_POINTS, MOUTH_OPENING,
-                                      OUTER_LIP_POINTS, detect_points_any_turn, points_on_render, template_points)
-
-    points, turns = detect_points_any_turn(image)
-    if points is None:
+    found = detect_points_all_turns(image)
+    if not found:
         raise PhotoRefused(f"{photo_name}: no face found (a face seen from the front, its eyes at least "
                            "20 pixels apart, is needed)")
     on_template = template_points(template)
     if on_template is None:
         raise PhotoRefused(f"{template_name}: the landmark model finds no face on the template")
+    # the face found in each turn of the photo, the most level first, until one reads as
+    # the same face when its head is drawn like the photo (a false face never does)
+    first, refused = None, None
+    for points, turns in found:
+        try:
+            model, report = _photo_head_from(template, image, points, on_template, photo_name)
+        except PhotoRefused as exc:  # that face cannot make a head; another turn's may
+            refused = refused or exc
+            continue
+        report["photo_quarter_turns"] = turns
+        if not report["verdict"]:
+            return model, report
+        first = first or (model, report)
+    if first is None:
+        raise refused
+    return first
+
+
+def _photo_head_from(template, image, points, on_template, photo_name: str):
+    """(model, report) of photo_head for the landmark model's points (468, 3) on the photo."""
+    import numpy as np
+
+    from fae.adapt.photo import PhotoPoints, head_from_photo
+    from fae.render.landmarks import (EYE_POINTS, EYES, FACE_OVAL, INNER_LIP_POINTS, MOUTH_OPENING,
+                                      OUTER_LIP_POINTS, points_on_render)
+
     size = (image.shape[1], image.shape[0])
     model, report = head_from_photo(
         template, image, PhotoPoints(points, size), on_template,
         skip=(EYE_POINTS, INNER_LIP_POINTS, OUTER_LIP_POINTS), eyes=EYES, outline=FACE_OVAL,
         holes=(EYES[0], EYES[1], MOUTH_OPENING), photo_name=photo_name)
-    report["photo_quarter_turns"] = turns
     # the result, drawn as the photo was taken, must read as the same face
     seen = points_on_render(model, size)
     eye_px = report["eye_distance_px"]

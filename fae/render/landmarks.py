@@ -153,10 +153,20 @@ def preload_landmark_model() -> None:
     threading.Thread(target=load, name="mediapipe-import", daemon=True).start()
 
 
-def detect_points(image: np.ndarray) -> np.ndarray | None:
+FACE_BOX_SCALE = 2.0  # the crop Face Mesh looks at around a face found by the detector, x its box
+SMALL_FACE_SHARE = 0.4  # a face box under this share of the image's shorter side is looked at cropped
+TILE_MIN = 256  # pixels: tiles smaller than this are not looked in for a face
+
+
+def detect_points(image: np.ndarray, small_faces: bool = False) -> np.ndarray | None:
     """MediaPipe Face Mesh's 468 points (468, 3) of an RGB image (H, W, 3) uint8: pixels
     (x right, y down) and the model's own depth (z away from the viewer, in pixels of the
-    image's width, 0 about the face's centre), or None when it finds no face."""
+    image's width, 0 about the face's centre), or None when it finds no face.
+
+    Face Mesh's own detector misses a face small in a large frame, or finds it poorly (a
+    half-length photo): when it finds none, or first with `small_faces` (a photo), the
+    full-range face detector looks for the face, in tiles of the image if need be, and
+    Face Mesh looks at FACE_BOX_SCALE x its box."""
     import warnings
 
     _quiet_native_logs()
@@ -167,16 +177,55 @@ def detect_points(image: np.ndarray) -> np.ndarray | None:
     except ImportError as exc:
         raise LandmarkModelMissing("finding feature points on a scan needs MediaPipe: "
                                    "pip install 'fae[landmarks]' (or give --landmarks)") from exc
-    h, w = image.shape[:2]
+    image = np.ascontiguousarray(image[:, :, :3])
     with native_stderr_filtered(), warnings.catch_warnings(), \
             mp.solutions.face_mesh.FaceMesh(static_image_mode=True, max_num_faces=1, refine_landmarks=False,
                                             min_detection_confidence=MIN_DETECTION_CONFIDENCE) as mesh:
         warnings.simplefilter("ignore")  # protobuf deprecation notices from inside MediaPipe
-        found = mesh.process(np.ascontiguousarray(image[:, :, :3]))
+        box = _face_box(mp, image) if small_faces else None
+        small = box is not None and max(box[2] - box[0], box[3] - box[1]) < SMALL_FACE_SHARE * min(image.shape[:2])
+        points = None if small else _mesh_points(mesh, image, (0, 0))
+        if points is None:
+            box = box if small_faces else _face_box(mp, image)
+            if box is not None:
+                x0, y0, x1, y1 = box
+                points = _mesh_points(mesh, np.ascontiguousarray(image[y0:y1, x0:x1]), (x0, y0))
+    return points
+
+
+def _mesh_points(mesh, image: np.ndarray, offset: tuple[int, int]) -> np.ndarray | None:
+    """Face Mesh's 468 points (468, 3) on `image`, in pixels shifted by offset (x, y)."""
+    found = mesh.process(image)
     if not found.multi_face_landmarks:
         return None
+    h, w = image.shape[:2]
     pts = found.multi_face_landmarks[0].landmark
-    return np.array([[p.x * w, p.y * h, p.z * w] for p in pts[:468]])
+    return np.array([[p.x * w + offset[0], p.y * h + offset[1], p.z * w] for p in pts[:468]])
+
+
+def _face_box(mp, image: np.ndarray) -> tuple[int, int, int, int] | None:
+    """(x0, y0, x1, y1) pixels: a square of FACE_BOX_SCALE x the face MediaPipe's
+    full-range detector finds most surely, on the whole image or else on overlapping
+    tiles of half its size (it looks at 192 pixels: a face of 40 in 1,500 is lost), or None."""
+    h, w = image.shape[:2]
+    side = min(h, w) // 2
+    tiles = [(0, 0, w, h)] + ([(x, y, x + side, y + side) for y in range(0, h - side + 1, side // 2)
+                               for x in range(0, w - side + 1, side // 2)] if side >= TILE_MIN else [])
+    with mp.solutions.face_detection.FaceDetection(model_selection=1,
+                                                   min_detection_confidence=MIN_DETECTION_CONFIDENCE) as detector:
+        for tx0, ty0, tx1, ty1 in tiles:
+            found = detector.process(np.ascontiguousarray(image[ty0:ty1, tx0:tx1]))
+            if found.detections:
+                break
+        else:
+            return None
+    tw, th = tx1 - tx0, ty1 - ty0
+    box = max(found.detections, key=lambda d: d.score[0]).location_data.relative_bounding_box
+    cx, cy = tx0 + (box.xmin + box.width / 2) * tw, ty0 + (box.ymin + box.height / 2) * th
+    half = FACE_BOX_SCALE * max(box.width * tw, box.height * th) / 2
+    x0, y0 = max(int(cx - half), 0), max(int(cy - half), 0)
+    x1, y1 = min(int(cx + half), w), min(int(cy + half), h)
+    return (x0, y0, x1, y1) if x1 - x0 >= 8 and y1 - y0 >= 8 else None
 
 
 def face_roll_degrees(points: np.ndarray) -> float:
@@ -187,22 +236,26 @@ def face_roll_degrees(points: np.ndarray) -> float:
     return float(np.degrees(np.arctan2(d[1], d[0])))
 
 
-def detect_points_any_turn(image: np.ndarray) -> tuple[np.ndarray | None, int]:
-    """detect_points on the image turned upright. MediaPipe finds a (poorer) face on a
-    photo stored on its side or upside down too, so the image is looked at in all four
-    quarter turns and the face whose eye line lies nearest to level in the image it was
-    found on wins. Returns (points (468, 3) in the image's own pixels, or None; the
-    quarter turns, 0-3, of the image they were found on)."""
+def detect_points_all_turns(image: np.ndarray) -> list[tuple[np.ndarray, int]]:
+    """detect_points on the image in each of its four quarter turns: MediaPipe finds a
+    (poorer) face on a photo stored on its side or upside down too, and a false one in a
+    turn of an upright photo (upside down, its "chin" above the nose). Returns [(points
+    (468, 3) in the image's own pixels, the quarter turns 0-3 of the image they were found
+    on)], the face whose eye line lies nearest to level first: most often the real one,
+    but a false face can lie more level than a real face's tilt of 10 degrees."""
     h, w = image.shape[:2]
-    best, best_roll, best_k = None, np.inf, 0
+    found = []
     for k in range(4):
-        points = detect_points(np.ascontiguousarray(np.rot90(image, k)) if k else image)
-        if points is None:
-            continue
-        roll = abs(face_roll_degrees(points))
-        if roll < best_roll:
-            best, best_roll, best_k = _unturned(points, k, (w, h)), roll, k
-    return best, best_k
+        points = detect_points(np.ascontiguousarray(np.rot90(image, k)) if k else image, small_faces=True)
+        if points is not None:
+            found.append((abs(face_roll_degrees(points)), k, _unturned(points, k, (w, h))))
+    return [(points, k) for _, k, points in sorted(found, key=lambda f: (f[0], f[1]))]
+
+
+def detect_points_any_turn(image: np.ndarray) -> tuple[np.ndarray | None, int]:
+    """The first of detect_points_all_turns: (points (468, 3) or None, quarter turns)."""
+    found = detect_points_all_turns(image)
+    return found[0] if found else (None, 0)
 
 
 def _unturned(points: np.ndarray, quarter_turns: int, size: tuple[int, int]) -> np.ndarray:
@@ -326,5 +379,5 @@ def points_on_render(model: FaceModel, size: tuple[int, int]) -> np.ndarray | No
     render_size = (round(width * k), round(height * k))
     with FaceRenderer(model, render_size, camera=photo_camera(model.scan_transform, size), supersample=2) as r:
         image = r.render()
-    points = detect_points(image)
+    points = detect_points(image, small_faces=True)  # looked at as the photo was
     return None if points is None else points / k
