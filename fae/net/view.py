@@ -21,14 +21,19 @@ vertex seam[k] of every frame. With the colours fae draws the skin in, it also s
 then one binary message per frame it is shown: a little-endian uint32 n, n bytes of JSON
 {"stream", "index", "time", "fps", "step", "bones": {bone: 16 floats, column-major}},
 zero padding to a multiple of 4, then the skin's positions as float32 (V x 3, metres,
-face frame). Each page has its own lossy subscription to the server's frames (fae.net.hub):
-a slow page skips frames, never slows a stream; a page that closes or breaks leaves the
-streams and the other pages as they were.
+face frame). A page answers each frame with the text "ack" once it has shown it, and is
+sent a frame only while fewer than IN_FLIGHT of its frames are unanswered. Each page has its
+own lossy subscription to the server's frames (fae.net.hub): a slow page skips frames (it is
+sent the latest, not a backlog: without the answers, a page drawing 10 frames a second of a
+25 fps stream fell 4 s behind), never slows a stream; a page that closes or breaks leaves
+the streams and the other pages as they were. A client whose unread replies pile up past
+MAX_PAGE_BUFFER (a ping flood: 35 MB/s) is cut off.
 """
 
 from __future__ import annotations
 
 import asyncio
+import collections
 import json
 import logging
 import mimetypes
@@ -41,7 +46,11 @@ import numpy as np
 
 from fae.net.hub import FrameEvent, StreamEnd
 
-log = logging.getLogger("fae.net.view")
+log = logging.getLogger("fae.net")  # the server's logger: its records are bounded (fae.net.logbound)
+IN_FLIGHT = 2  # frames a page may hold unanswered
+OUTBOX_LIMIT = 64  # what a page that answers nothing may have waiting (frames coalesce; ends do not)
+MAX_PAGE_BUFFER = 16 * 2**20  # bytes of replies a page leaves unread before it is cut off
+CLOSE_SECONDS = 1.0  # the longest a closing page is waited for
 PAGE_DIR = Path(__file__).resolve().parent / "view_page"
 THREE_FILES = ("build", "examples/jsm")  # the only folders of the three package served
 HIDDEN_PARTS = ("cranium", "mandible")  # always under the skin: not sent
@@ -141,10 +150,17 @@ class LiveView:
         return f"http://{self.host}:{self.port}/"
 
     async def start(self) -> None:
-        from websockets.asyncio.server import serve
+        from websockets.asyncio.server import ServerConnection, serve
+
+        class BoundedConnection(ServerConnection):
+            def data_received(self, data: bytes) -> None:
+                super().data_received(data)
+                if self.transport is not None and self.transport.get_write_buffer_size() > MAX_PAGE_BUFFER:
+                    self.transport.abort()  # it sends and never reads: its pongs would fill memory
 
         self._server = await serve(self._page, self.host, self.requested_port, process_request=self._http,
-                                   max_size=2 ** 16, compression=None, logger=log)
+                                   max_size=2 ** 16, compression=None, logger=log, close_timeout=CLOSE_SECONDS,
+                                   create_connection=BoundedConnection)
 
     async def close(self) -> None:
         if self._server is not None:
@@ -161,9 +177,12 @@ class LiveView:
             for allowed in THREE_FILES:
                 base = (self.three_dir / allowed).resolve()
                 if rel.startswith(allowed + "/"):
-                    target = (self.three_dir / rel).resolve()
-                    if target.is_file() and base in target.parents:
-                        return target
+                    try:
+                        target = (self.three_dir / rel).resolve()
+                        if target.is_file() and base in target.parents:
+                            return target
+                    except (OSError, ValueError):  # a NUL byte, a name too long: no such file
+                        return None
         return None
 
     def _http(self, connection, request):
@@ -171,6 +190,9 @@ class LiveView:
         from websockets.http11 import Response
 
         path = request.path.split("?", 1)[0]
+        if request.method not in ("GET", "HEAD"):
+            return Response(HTTPStatus.METHOD_NOT_ALLOWED, "Method Not Allowed",
+                            Headers([("Allow", "GET, HEAD"), ("Content-Length", "0")]), b"")
         if path == "/ws":
             return None  # the WebSocket handshake goes on
         if path == "/favicon.ico":
@@ -185,7 +207,7 @@ class LiveView:
             body = self._files[target] = target.read_bytes()
         headers = Headers([("Content-Type", f"{kind}; charset=utf-8" if kind.startswith("text") else kind),
                            ("Content-Length", str(len(body))), ("Cache-Control", "no-cache")])
-        return Response(HTTPStatus.OK, "OK", headers, body)
+        return Response(HTTPStatus.OK, "OK", headers, body if request.method == "GET" else b"")
 
     # -- WebSocket -------------------------------------------------------------------
     async def _page(self, ws) -> None:
@@ -193,29 +215,70 @@ class LiveView:
 
         self.pages_total += 1
         sub = self.subscribe(maxsize=2)  # latest frames only: a slow page skips, never slows a stream
-        reader = asyncio.create_task(self._drain(ws, sub))
+        credit = asyncio.BoundedSemaphore(IN_FLIGHT)  # frames the page may hold unanswered
+        reader = asyncio.create_task(self._drain(ws, sub, credit))
+        outbox: collections.deque = collections.deque()  # what the page is to be sent, in order
+        ready = asyncio.Event()
+        sender = None
         try:
             await ws.send(self._head)
+            sender = asyncio.create_task(self._send(ws, outbox, ready, credit))
             async for event in sub:
-                if isinstance(event, FrameEvent):
-                    await ws.send(frame_message(event))
-                elif isinstance(event, StreamEnd):
-                    await ws.send(json.dumps({"type": "end", "stream": event.stream}))
+                if isinstance(event, FrameEvent) and outbox and isinstance(outbox[-1], FrameEvent):
+                    outbox[-1] = event  # a frame not yet sent gives way to the newer one
+                elif isinstance(event, (FrameEvent, StreamEnd)):
+                    outbox.append(event)
+                    if len(outbox) > OUTBOX_LIMIT:  # a page that answers nothing while streams come and go
+                        outbox.popleft()
+                ready.set()
         except ConnectionClosed:
             pass
         finally:
             sub.close()
             reader.cancel()
+            if sender is not None:
+                sender.cancel()
 
     @staticmethod
-    async def _drain(ws, sub) -> None:
-        # the page sends nothing that matters; reading notices when it goes away, and then
-        # its subscription ends even while no stream plays
+    async def _send(ws, outbox: collections.deque, ready: asyncio.Event, credit: asyncio.BoundedSemaphore) -> None:
+        """Send the outbox in order: a frame once the page has credit (by then the newest
+        one), a stream's end at once."""
         from websockets.exceptions import ConnectionClosed
 
         try:
-            async for _ in ws:
-                pass
+            while True:
+                await ready.wait()
+                ready.clear()
+                while outbox:
+                    if isinstance(outbox[0], FrameEvent):
+                        await credit.acquire()
+                        if not outbox:
+                            credit.release()
+                            break
+                        event = outbox.popleft()
+                        if not isinstance(event, FrameEvent):  # the frame was dropped meanwhile
+                            credit.release()
+                            await ws.send(json.dumps({"type": "end", "stream": event.stream}))
+                            continue
+                        await ws.send(frame_message(event))
+                    else:
+                        await ws.send(json.dumps({"type": "end", "stream": outbox.popleft().stream}))
+        except ConnectionClosed:
+            pass
+
+    @staticmethod
+    async def _drain(ws, sub, credit: asyncio.BoundedSemaphore) -> None:
+        # the page's answers give credit for frames; reading also notices when it goes away,
+        # and then its subscription ends even while no stream plays
+        from websockets.exceptions import ConnectionClosed
+
+        try:
+            async for message in ws:
+                if message == "ack":
+                    try:
+                        credit.release()
+                    except ValueError:  # more answers than frames: nothing owed
+                        pass
         except ConnectionClosed:
             pass
         finally:
