@@ -86,3 +86,12 @@ def test_counts_written_as_json_floats_are_whole_numbers(shipped):
     for bad in (2.5, float("nan"), True, "3"):
         with pytest.raises(ValueError, match="active_rings"):
             checked_params({**DEFAULTS, "active_rings": bad})
+
+
+def test_coordinates_no_head_has_are_refused_on_reading(shipped, tmp_path, capsys):
+    """Skin coordinates of 1e160 (finite) read, and the renderer failed on a singular
+    matrix with a traceback; a million times the head's size is refused as well."""
+    path = tmp_path / "huge.glb"
+    write_facemodel(dataclasses.replace(shipped, skin_vertices=shipped.skin_vertices * 1e6), path, check=False)
+    assert main(["render", str(path), "-o", str(tmp_path / "x.png")]) == 2
+    assert "skin_vertices: expected metres" in capsys.readouterr().err

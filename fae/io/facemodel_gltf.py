@@ -85,6 +85,7 @@ def structural_problems(model: FaceModel, fdp_names: list[str] | None = None) ->
     mesh_sizes: dict[str, tuple[int, int]] = {}
 
     n_verts = _check_array(add, "skin_vertices", model.skin_vertices, np.float64, (None, 3))
+    _check_metres(add, "skin_vertices", model.skin_vertices)
     n_faces = _check_array(add, "skin_faces", model.skin_faces, np.int32, (None, 3))
     if n_verts is not None and n_faces is not None:
         _check_index_range(add, "skin_faces", model.skin_faces, n_verts, "skin vertex")
@@ -130,6 +131,7 @@ def structural_problems(model: FaceModel, fdp_names: list[str] | None = None) ->
                 add(f"{field}: expected a Part, got {type(part).__name__}")
                 continue
             pv = _check_array(add, f"{field}.vertices", part.vertices, np.float64, (None, 3))
+            _check_metres(add, f"{field}.vertices", part.vertices)
             pf = _check_array(add, f"{field}.faces", part.faces, np.int32, (None, 3))
             if pv is not None and pf is not None:
                 _check_index_range(add, f"{field}.faces", part.faces, pv, "vertex")
@@ -235,6 +237,19 @@ def _check_array(add, field: str, value, dtype, shape: tuple) -> int | None:
     if value.dtype.kind == "f" and not np.all(np.isfinite(value)):
         add(f"{field}: expected finite values, found NaN or infinity")
     return int(value.shape[0])
+
+
+MAX_COORDINATE = 1000.0  # metres: a head's coordinates lie within a metre or so of its origin
+
+
+def _check_metres(add, field: str, value) -> None:
+    """Coordinates beyond MAX_COORDINATE metres (1e160: finite, yet the renderer's matrices
+    turned singular) are not a head's."""
+    if isinstance(value, np.ndarray) and value.dtype.kind == "f" and value.size:
+        largest = float(np.nanmax(np.abs(np.where(np.isfinite(value), value, 0.0))))
+        if largest > MAX_COORDINATE:
+            add(f"{field}: expected metres (a head within {MAX_COORDINATE:g} m of its origin), "
+                f"found a coordinate of {largest:.3g}")
 
 
 def _shape_text(shape: tuple) -> str:
