@@ -95,3 +95,25 @@ def test_coordinates_no_head_has_are_refused_on_reading(shipped, tmp_path, capsy
     write_facemodel(dataclasses.replace(shipped, skin_vertices=shipped.skin_vertices * 1e6), path, check=False)
     assert main(["render", str(path), "-o", str(tmp_path / "x.png")]) == 2
     assert "skin_vertices: expected metres" in capsys.readouterr().err
+
+
+def test_a_negative_buffer_offset_is_named(tmp_path, capsys):
+    """The reader said "malformed FaceModel file (ValueError: offset must be non-negative...)"."""
+    import json
+    import struct
+
+    from fae.data import shipped_head_path
+
+    data = shipped_head_path().read_bytes()
+    (length,) = struct.unpack_from("<I", data, 12)  # the JSON chunk's, after the 12-byte header
+    doc = json.loads(data[20:20 + length])
+    doc["bufferViews"][-1]["byteOffset"] = -8
+    text = json.dumps(doc).encode()
+    text += b" " * (-len(text) % 4)
+    rest = data[20 + length:]  # the BIN chunk, as it was
+    path = tmp_path / "negative.glb"
+    path.write_bytes(struct.pack("<4sII", b"glTF", 2, 12 + 8 + len(text) + len(rest))
+                     + struct.pack("<I4s", len(text), b"JSON") + text + rest)
+    assert main(["render", str(path), "-o", str(tmp_path / "x.png")]) == 2
+    err = capsys.readouterr().err
+    assert f"bufferViews[{len(doc['bufferViews']) - 1}].byteOffset: expected a byte offset >= 0, got -8" in err

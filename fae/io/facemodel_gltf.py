@@ -762,6 +762,8 @@ class _Reader:
             self.fail(f"{field}.bufferView", f"expected a buffer view index in [0, {len(self.views)}), got {index}")
         view = self.views[index]
         start = view.byteOffset or 0
+        if not isinstance(start, int) or isinstance(start, bool) or start < 0:
+            self.fail(f"bufferViews[{index}].byteOffset", f"expected a byte offset >= 0, got {start!r} (for {field})")
         if view.buffer != 0 or view.byteLength != nbytes or start + nbytes > len(self.blob):
             self.fail(
                 f"{field}.bufferView",
