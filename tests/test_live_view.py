@@ -167,6 +167,54 @@ def test_a_slow_page_is_sent_the_latest_frame_not_a_backlog(model, three):
     assert after >= 27  # one of the latest frames, not frame 2
 
 
+def test_a_page_that_answers_nothing_still_hears_ends_and_each_stream_gets_its_frames(model, three):
+    """A stream's end waited behind a frame the page had no credit for (a page that stopped
+    answering showed the stream as live for ever); with two streams at once, the newer
+    stream's frame took the place of the other's, and a slow page saw only one stream."""
+    from websockets.asyncio.client import connect
+
+    def frame(stream: str, index: int) -> FrameEvent:
+        e = event(model, index, 0.0)
+        return FrameEvent(stream, index, e.time, e.fps, e.pose, e.step)
+
+    async def main():
+        hub = FrameHub()
+        view = LiveView(model, hub.subscribe, port=0, three_dir=three)
+        await view.start()
+        try:
+            async with connect(f"ws://127.0.0.1:{view.port}/ws", max_size=2 ** 24) as page:
+                await page.recv()
+                while hub.subscriber_count < 1:
+                    await asyncio.sleep(0.01)
+                for i in range(10):
+                    await hub.publish(frame("A", i))
+                    await asyncio.sleep(0.002)
+                await hub.publish(StreamEnd("A"))
+                got = [await asyncio.wait_for(page.recv(), 5) for _ in range(3)]  # two frames, then the end
+                for _ in range(2):
+                    await page.send("ack")  # shown at last
+                seen = set()
+                for i in range(20):  # two streams on one tick; the page answers each frame it gets
+                    await hub.publish(frame("B", i))
+                    await hub.publish(frame("C", i))
+                    await asyncio.sleep(0.01)
+                    while True:
+                        try:
+                            message = await asyncio.wait_for(page.recv(), 0.05)
+                        except asyncio.TimeoutError:
+                            break
+                        seen.add(parse_frame(message)[0]["stream"])
+                        await page.send("ack")
+                return got, seen
+        finally:
+            await view.close()
+
+    got, seen = asyncio.run(asyncio.wait_for(main(), 60))
+    assert [parse_frame(m)[0]["index"] for m in got[:2]] == [0, 1]
+    assert json.loads(got[2]) == {"type": "end", "stream": "A"}
+    assert seen == {"B", "C"}
+
+
 def test_a_client_that_floods_pings_and_never_reads_is_cut_off(model, three):
     """Pings sent as fast as a socket takes them, pongs never read: the server's memory grew
     35 MB a second (1.6 GB in 36 s) and the FAP port slowed 5x."""

@@ -400,19 +400,19 @@ def photo_head(template, image, photo_name: str = "photo", template_name: str = 
         raise PhotoRefused(f"{template_name}: the landmark model finds no face on the template")
     # the face found in each turn of the photo, the most level first, until one reads as
     # the same face when its head is drawn like the photo (a false face never does)
-    first, refused = None, None
+    first = None  # what the most level face gave, the answer when no face reads as itself
     for points, turns in found:
         try:
             model, report = _photo_head_from(template, image, points, on_template, photo_name)
         except PhotoRefused as exc:  # that face cannot make a head; another turn's may
-            refused = refused or exc
+            first = first or exc
             continue
         report["photo_quarter_turns"] = turns
         if not report["verdict"]:
             return model, report
         first = first or (model, report)
-    if first is None:
-        raise refused
+    if isinstance(first, PhotoRefused):
+        raise first
     return first
 
 

@@ -86,6 +86,10 @@ def structural_problems(model: FaceModel, fdp_names: list[str] | None = None) ->
 
     n_verts = _check_array(add, "skin_vertices", model.skin_vertices, np.float64, (None, 3))
     _check_metres(add, "skin_vertices", model.skin_vertices)
+    _check_metres(add, "jaw_pivot", model.jaw_pivot)
+    if isinstance(model.eye_centers, dict):
+        for key, centre in model.eye_centers.items():
+            _check_metres(add, f"eye_centers[{key!r}]", centre)
     n_faces = _check_array(add, "skin_faces", model.skin_faces, np.int32, (None, 3))
     if n_verts is not None and n_faces is not None:
         _check_index_range(add, "skin_faces", model.skin_faces, n_verts, "skin vertex")

@@ -48,7 +48,6 @@ from fae.net.hub import FrameEvent, StreamEnd
 
 log = logging.getLogger("fae.net")  # the server's logger: its records are bounded (fae.net.logbound)
 IN_FLIGHT = 2  # frames a page may hold unanswered
-OUTBOX_LIMIT = 64  # what a page that answers nothing may have waiting (frames coalesce; ends do not)
 MAX_PAGE_BUFFER = 16 * 2**20  # bytes of replies a page leaves unread before it is cut off
 CLOSE_SECONDS = 1.0  # the longest a closing page is waited for
 PAGE_DIR = Path(__file__).resolve().parent / "view_page"
@@ -215,22 +214,14 @@ class LiveView:
 
         self.pages_total += 1
         sub = self.subscribe(maxsize=2)  # latest frames only: a slow page skips, never slows a stream
-        credit = asyncio.BoundedSemaphore(IN_FLIGHT)  # frames the page may hold unanswered
-        reader = asyncio.create_task(self._drain(ws, sub, credit))
-        outbox: collections.deque = collections.deque()  # what the page is to be sent, in order
-        ready = asyncio.Event()
+        page = _PageQueue()
+        reader = asyncio.create_task(self._drain(ws, sub, page))
         sender = None
         try:
             await ws.send(self._head)
-            sender = asyncio.create_task(self._send(ws, outbox, ready, credit))
+            sender = asyncio.create_task(self._send(ws, page))
             async for event in sub:
-                if isinstance(event, FrameEvent) and outbox and isinstance(outbox[-1], FrameEvent):
-                    outbox[-1] = event  # a frame not yet sent gives way to the newer one
-                elif isinstance(event, (FrameEvent, StreamEnd)):
-                    outbox.append(event)
-                    if len(outbox) > OUTBOX_LIMIT:  # a page that answers nothing while streams come and go
-                        outbox.popleft()
-                ready.set()
+                page.put(event)
         except ConnectionClosed:
             pass
         finally:
@@ -240,46 +231,58 @@ class LiveView:
                 sender.cancel()
 
     @staticmethod
-    async def _send(ws, outbox: collections.deque, ready: asyncio.Event, credit: asyncio.BoundedSemaphore) -> None:
-        """Send the outbox in order: a frame once the page has credit (by then the newest
-        one), a stream's end at once."""
+    async def _send(ws, page: "_PageQueue") -> None:
+        """Send the page its streams' ends at once and, while it holds fewer than IN_FLIGHT
+        frames unanswered, each stream's newest frame, oldest stream first."""
         from websockets.exceptions import ConnectionClosed
 
         try:
             while True:
-                await ready.wait()
-                ready.clear()
-                while outbox:
-                    if isinstance(outbox[0], FrameEvent):
-                        await credit.acquire()
-                        if not outbox:
-                            credit.release()
-                            break
-                        event = outbox.popleft()
-                        if not isinstance(event, FrameEvent):  # the frame was dropped meanwhile
-                            credit.release()
-                            await ws.send(json.dumps({"type": "end", "stream": event.stream}))
-                            continue
-                        await ws.send(frame_message(event))
-                    else:
-                        await ws.send(json.dumps({"type": "end", "stream": outbox.popleft().stream}))
+                await page.wake.wait()
+                page.wake.clear()
+                while page.ends:
+                    await ws.send(json.dumps({"type": "end", "stream": page.ends.popleft().stream}))
+                while page.pending and page.in_flight < IN_FLIGHT:
+                    event = page.pending.pop(next(iter(page.pending)))
+                    page.in_flight += 1
+                    await ws.send(frame_message(event))
         except ConnectionClosed:
             pass
+        except Exception:  # a frame that cannot be sent: this page stops, the others go on
+            log.exception("live view: a page's frames stopped")
+            await ws.close()
 
     @staticmethod
-    async def _drain(ws, sub, credit: asyncio.BoundedSemaphore) -> None:
+    async def _drain(ws, sub, page: "_PageQueue") -> None:
         # the page's answers give credit for frames; reading also notices when it goes away,
         # and then its subscription ends even while no stream plays
         from websockets.exceptions import ConnectionClosed
 
         try:
             async for message in ws:
-                if message == "ack":
-                    try:
-                        credit.release()
-                    except ValueError:  # more answers than frames: nothing owed
-                        pass
+                if message == "ack" and page.in_flight > 0:
+                    page.in_flight -= 1
+                    page.wake.set()
         except ConnectionClosed:
             pass
         finally:
             sub.close()
+
+
+class _PageQueue:
+    """What one page is still to be sent: the newest unsent frame of each stream (in the
+    order the streams began) and the streams' ends; `in_flight`: frames sent, unanswered."""
+
+    def __init__(self) -> None:
+        self.pending: dict[str, FrameEvent] = {}
+        self.ends: collections.deque = collections.deque()
+        self.in_flight = 0
+        self.wake = asyncio.Event()
+
+    def put(self, event) -> None:
+        if isinstance(event, FrameEvent):
+            self.pending[event.stream] = event  # a frame not yet sent gives way to its stream's newer one
+        elif isinstance(event, StreamEnd):
+            self.pending.pop(event.stream, None)  # its last unsent frame is skipped: the end says more
+            self.ends.append(event)
+        self.wake.set()

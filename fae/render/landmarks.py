@@ -190,6 +190,8 @@ def detect_points(image: np.ndarray, small_faces: bool = False) -> np.ndarray | 
             if box is not None:
                 x0, y0, x1, y1 = box
                 points = _mesh_points(mesh, np.ascontiguousarray(image[y0:y1, x0:x1]), (x0, y0))
+        if points is None and small:  # the box was not a face Face Mesh reads: the whole image, as before
+            points = _mesh_points(mesh, image, (0, 0))
     return points
 
 
@@ -209,8 +211,11 @@ def _face_box(mp, image: np.ndarray) -> tuple[int, int, int, int] | None:
     tiles of half its size (it looks at 192 pixels: a face of 40 in 1,500 is lost), or None."""
     h, w = image.shape[:2]
     side = min(h, w) // 2
-    tiles = [(0, 0, w, h)] + ([(x, y, x + side, y + side) for y in range(0, h - side + 1, side // 2)
-                               for x in range(0, w - side + 1, side // 2)] if side >= TILE_MIN else [])
+    tiles = [(0, 0, w, h)]
+    if side >= TILE_MIN:  # half-overlapping, the last ones flush with the right and bottom edges
+        xs = sorted(set(range(0, w - side + 1, side // 2)) | {w - side})
+        ys = sorted(set(range(0, h - side + 1, side // 2)) | {h - side})
+        tiles += [(x, y, x + side, y + side) for y in ys for x in xs]
     with mp.solutions.face_detection.FaceDetection(model_selection=1,
                                                    min_detection_confidence=MIN_DETECTION_CONFIDENCE) as detector:
         for tx0, ty0, tx1, ty1 in tiles:
