@@ -4,6 +4,7 @@ a real browser (Debian's chromium driven by Playwright) watching a stream sent w
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import shutil
 import signal
@@ -132,35 +133,43 @@ def test_every_page_gets_the_head_then_each_frame_and_one_leaving_disturbs_no_on
     assert pages == 2 and subscribers == 1  # the page that left took its subscription along
 
 
+@contextlib.asynccontextmanager
+async def live_page(model, three):
+    """(hub, page): a live view on a free port and one page connected to it, its head read
+    and its subscription in place."""
+    from websockets.asyncio.client import connect
+
+    hub = FrameHub()
+    view = LiveView(model, hub.subscribe, port=0, three_dir=three)
+    await view.start()
+    try:
+        async with connect(f"ws://127.0.0.1:{view.port}/ws", max_size=2 ** 24) as page:
+            await page.recv()  # the head
+            while hub.subscriber_count < 1:
+                await asyncio.sleep(0.01)
+            yield hub, page
+    finally:
+        await view.close()
+
+
 def test_a_slow_page_is_sent_the_latest_frame_not_a_backlog(model, three):
     """A page that had shown frame 1 while the stream reached frame 30 was sent frames 2,
     3, ... from the socket's buffers (a page drawing 10 frames a second of a 25 fps stream
     fell 4 s behind). A page answers each frame it has shown; it holds at most IN_FLIGHT
     unanswered, and the next it is sent is the latest."""
-    from websockets.asyncio.client import connect
-
     from fae.net.view import IN_FLIGHT
 
     async def main():
-        hub = FrameHub()
-        view = LiveView(model, hub.subscribe, port=0, three_dir=three)
-        await view.start()
-        try:
-            async with connect(f"ws://127.0.0.1:{view.port}/ws", max_size=2 ** 24) as page:
-                await page.recv()  # the head
-                while hub.subscriber_count < 1:
-                    await asyncio.sleep(0.01)
-                for i in range(30):  # the page answers nothing meanwhile
-                    await hub.publish(event(model, i, 0.0))
-                    await asyncio.sleep(0.005)
-                held = [parse_frame(await page.recv())[0]["index"] for _ in range(IN_FLIGHT)]
-                with pytest.raises(asyncio.TimeoutError):
-                    await asyncio.wait_for(page.recv(), 0.5)  # nothing more until it answers
-                await page.send("ack")
-                after = parse_frame(await asyncio.wait_for(page.recv(), 5))[0]["index"]
-                return held, after
-        finally:
-            await view.close()
+        async with live_page(model, three) as (hub, page):
+            for i in range(30):  # the page answers nothing meanwhile
+                await hub.publish(event(model, i, 0.0))
+                await asyncio.sleep(0.005)
+            held = [parse_frame(await page.recv())[0]["index"] for _ in range(IN_FLIGHT)]
+            with pytest.raises(asyncio.TimeoutError):
+                await asyncio.wait_for(page.recv(), 0.5)  # nothing more until it answers
+            await page.send("ack")
+            after = parse_frame(await asyncio.wait_for(page.recv(), 5))[0]["index"]
+            return held, after
 
     held, after = asyncio.run(asyncio.wait_for(main(), 60))
     assert held == list(range(IN_FLIGHT))
@@ -171,47 +180,37 @@ def test_a_page_that_answers_nothing_still_hears_ends_and_each_stream_gets_its_f
     """A stream's end waited behind a frame the page had no credit for (a page that stopped
     answering showed the stream as live for ever); with two streams at once, the newer
     stream's frame took the place of the other's, and a slow page saw only one stream."""
-    from websockets.asyncio.client import connect
 
     def frame(stream: str, index: int) -> FrameEvent:
         e = event(model, index, 0.0)
         return FrameEvent(stream, index, e.time, e.fps, e.pose, e.step)
 
     async def main():
-        hub = FrameHub()
-        view = LiveView(model, hub.subscribe, port=0, three_dir=three)
-        await view.start()
-        try:
-            async with connect(f"ws://127.0.0.1:{view.port}/ws", max_size=2 ** 24) as page:
-                await page.recv()
-                while hub.subscriber_count < 1:
-                    await asyncio.sleep(0.01)
-                for i in range(10):
-                    await hub.publish(frame("A", i))
-                    await asyncio.sleep(0.002)
-                await hub.publish(StreamEnd("A"))
-                got = [await asyncio.wait_for(page.recv(), 5) for _ in range(3)]  # two frames, then the end
-                for _ in range(2):
-                    await page.send("ack")  # shown at last
-                seen = set()
-                for i in range(20):  # two streams on one tick; the page answers each frame it gets
-                    await hub.publish(frame("B", i))
-                    await hub.publish(frame("C", i))
-                    await asyncio.sleep(0.01)
-                    while True:
-                        try:
-                            message = await asyncio.wait_for(page.recv(), 0.05)
-                        except asyncio.TimeoutError:
-                            break
-                        seen.add(parse_frame(message)[0]["stream"])
-                        await page.send("ack")
-                return got, seen
-        finally:
-            await view.close()
+        async with live_page(model, three) as (hub, page):
+            for i in range(10):
+                await hub.publish(frame("A", i))
+                await asyncio.sleep(0.002)
+            await hub.publish(StreamEnd("A"))
+            got = [await asyncio.wait_for(page.recv(), 5) for _ in range(4)]  # two frames, the last, the end
+            for _ in range(3):
+                await page.send("ack")  # shown at last
+            seen = set()
+            for i in range(20):  # two streams on one tick; the page answers each frame it gets
+                await hub.publish(frame("B", i))
+                await hub.publish(frame("C", i))
+                await asyncio.sleep(0.01)
+                while True:
+                    try:
+                        message = await asyncio.wait_for(page.recv(), 0.05)
+                    except asyncio.TimeoutError:
+                        break
+                    seen.add(parse_frame(message)[0]["stream"])
+                    await page.send("ack")
+            return got, seen
 
     got, seen = asyncio.run(asyncio.wait_for(main(), 60))
-    assert [parse_frame(m)[0]["index"] for m in got[:2]] == [0, 1]
-    assert json.loads(got[2]) == {"type": "end", "stream": "A"}
+    assert [parse_frame(m)[0]["index"] for m in got[:3]] == [0, 1, 9]  # the pose it ends on is shown
+    assert json.loads(got[3]) == {"type": "end", "stream": "A"}
     assert seen == {"B", "C"}
 
 

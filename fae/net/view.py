@@ -232,16 +232,22 @@ class LiveView:
 
     @staticmethod
     async def _send(ws, page: "_PageQueue") -> None:
-        """Send the page its streams' ends at once and, while it holds fewer than IN_FLIGHT
-        frames unanswered, each stream's newest frame, oldest stream first."""
+        """Send the page its streams' ends at once (each after its stream's last frame) and,
+        while it holds fewer than IN_FLIGHT frames unanswered, each stream's newest frame,
+        oldest stream first."""
         from websockets.exceptions import ConnectionClosed
 
         try:
             while True:
                 await page.wake.wait()
                 page.wake.clear()
-                while page.ends:
-                    await ws.send(json.dumps({"type": "end", "stream": page.ends.popleft().stream}))
+                while page.ends:  # a stream's last frame, then its end: whatever the page owes
+                    item = page.ends.popleft()
+                    if isinstance(item, FrameEvent):
+                        page.in_flight += 1
+                        await ws.send(frame_message(item))
+                    else:
+                        await ws.send(json.dumps({"type": "end", "stream": item.stream}))
                 while page.pending and page.in_flight < IN_FLIGHT:
                     event = page.pending.pop(next(iter(page.pending)))
                     page.in_flight += 1
@@ -271,7 +277,9 @@ class LiveView:
 
 class _PageQueue:
     """What one page is still to be sent: the newest unsent frame of each stream (in the
-    order the streams began) and the streams' ends; `in_flight`: frames sent, unanswered."""
+    order the streams began), and the streams' ends, each after its stream's last frame
+    (sent whatever the page owes: one frame more per stream at most); `in_flight`: frames
+    sent, unanswered."""
 
     def __init__(self) -> None:
         self.pending: dict[str, FrameEvent] = {}
@@ -283,6 +291,8 @@ class _PageQueue:
         if isinstance(event, FrameEvent):
             self.pending[event.stream] = event  # a frame not yet sent gives way to its stream's newer one
         elif isinstance(event, StreamEnd):
-            self.pending.pop(event.stream, None)  # its last unsent frame is skipped: the end says more
+            last = self.pending.pop(event.stream, None)
+            if last is not None:  # the pose the stream ends on is shown, at once, then its end
+                self.ends.append(last)
             self.ends.append(event)
         self.wake.set()
