@@ -276,8 +276,8 @@ class LiveView:
 
 
 class _PageQueue:
-    """What one page is still to be sent: the newest unsent frame of each stream (in the
-    order the streams began), and the streams' ends, each after its stream's last frame
+    """What one page is still to be sent: the newest unsent frame of each stream (the
+    stream waiting longest first), and the streams' ends, each after its stream's last frame
     (sent whatever the page owes: one frame more per stream at most); `in_flight`: frames
     sent, unanswered."""
 
