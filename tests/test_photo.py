@@ -244,12 +244,12 @@ def test_a_scan_and_a_photo_together_are_refused(tmp_path, capsys):
 
 
 def test_a_face_is_looked_at_upright_whichever_way_the_photo_is_turned():
-    from fae.render.landmarks import detect_points_any_turn, face_roll_degrees
+    from fae.render.landmarks import detect_points_all_turns, face_roll_degrees
 
     image = data.astronaut()
-    upright, _ = detect_points_any_turn(image)
+    upright, _ = detect_points_all_turns(image)[0]
     for k in (1, 2, 3):
-        points, turns = detect_points_any_turn(np.ascontiguousarray(np.rot90(image, k)))
+        points, turns = detect_points_all_turns(np.ascontiguousarray(np.rot90(image, k)))[0]
         assert (turns + k) % 4 == 0  # turned back by the quarters it was turned
         # np.rot90 turns counter-clockwise: the eye line turns by -90 k degrees (y down)
         off = (face_roll_degrees(points) - face_roll_degrees(upright) + 90 * k) % 360

@@ -257,12 +257,6 @@ def detect_points_all_turns(image: np.ndarray) -> list[tuple[np.ndarray, int]]:
     return [(points, k) for _, k, points in sorted(found, key=lambda f: (f[0], f[1]))]
 
 
-def detect_points_any_turn(image: np.ndarray) -> tuple[np.ndarray | None, int]:
-    """The first of detect_points_all_turns: (points (468, 3) or None, quarter turns)."""
-    found = detect_points_all_turns(image)
-    return found[0] if found else (None, 0)
-
-
 def _unturned(points: np.ndarray, quarter_turns: int, size: tuple[int, int]) -> np.ndarray:
     """Points (n, 3) found on np.rot90(image, k) back in the pixels of image (size (w, h))."""
     w, h = size
