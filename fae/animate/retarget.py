@@ -19,11 +19,13 @@ skin has the template's topology, that point is also a point of the template. Wh
 neighbours on the target bind to points far apart on the template (either side of a
 crease), their bindings are averaged over the target's mesh (smoothed_across_jumps): the
 menpo3d mask's fold lines along its creases went, and its folded share halved. Where the
-target is finer than the template, every vertex's binding is averaged with its neighbours'
-over a few of its own edges (smoothed_where_fine): the template's piecewise-linear motion,
-read through a binding that jitters from vertex to vertex, folded the mask's 1 mm triangles
-at the mouth corners of a smile and over lowered brows (its folded share 0.43 -> 0.23 %, the
-marble bust's 0.11 -> 0.06 %, every FAP as before). Per template
+target is finer than the template (more than 1.4 of its vertices bound per template
+triangle: the mask's 3-27, the template bound to itself 0.4-1.3), every vertex's binding is
+averaged with its neighbours' over a few of its own short edges (smoothed_where_fine): the
+template's piecewise-linear motion, read through a binding that jitters from vertex to
+vertex, folded the mask's 1 mm triangles at the mouth corners of a smile and over lowered
+brows (its folded share 0.43 -> 0.24 %, every FAP as before); a target as coarse as the
+template keeps its bindings. Per template
 vertex a 3x3 T = R_fit S R_template^T (fae.adapt.binding.frame_transforms: the paper's
 local frames and box scales, eq. 5-9) turns a motion vector of the template into one of
 the fitted skin, i.e. of the target; a smooth per-axis factor over the target's skin
@@ -431,9 +433,12 @@ def _target_feature_points(template: FaceModel, fitted: FaceModel, given: dict[s
 JUMP_STRETCH = 2.5  # a target edge whose ends bind this many times its length apart on the template jumps
 JUMP_RINGS = 2  # rings around a jump whose rows are averaged with their neighbours'
 JUMP_ROUNDS = 3  # rounds of that averaging
-FINE_SCALE = 0.0015  # metres: target edges much shorter than this average their rows with each other
+# target vertices bound per template triangle around a binding: not fine (the template
+# bound to itself has at most 1.33) .. fully fine
+FINE_DENSITY = (1.4, 2.0)
+FINE_SHARE = 0.5  # of the template's local edge: target edges this long weigh exp(-1) in the averaging
 FINE_ROUNDS = 3  # rounds of that averaging
-FINE_LEAST = 0.02  # weights below this (edges over twice FINE_SCALE) are left out
+FINE_LEAST = 0.02  # weights below this are left out (the rows stay as sparse as they can)
 
 
 def _rows_averaged(G: sp.csr_matrix, Y: np.ndarray, F: np.ndarray, groups: np.ndarray | None, rounds: int,
@@ -500,24 +505,52 @@ def smoothed_across_jumps(G: sp.csr_matrix, U: np.ndarray, Y: np.ndarray, F: np.
     return _rows_averaged(G, Y, F, groups, JUMP_ROUNDS, step_of)
 
 
-def smoothed_where_fine(G: sp.csr_matrix, Y: np.ndarray, F: np.ndarray, groups: np.ndarray | None = None,
-                        scale: float = FINE_SCALE, rounds: int = FINE_ROUNDS) -> sp.csr_matrix:
+def template_resolution(face: np.ndarray, F: np.ndarray, X: np.ndarray, covered: np.ndarray
+                        ) -> tuple[np.ndarray, np.ndarray]:
+    """How much finer than the template the target is, per target vertex bound to triangle
+    face (k,) of the template's faces F (m, 3) on its fitted skin X (n, 3) metres (covered
+    (k,) bool: the vertices that follow it): (density (k,): target vertices bound per template
+    triangle, averaged over the triangles around each corner of its triangle; edge (k,)
+    metres: the mean edge of its triangle on X). The template bound to itself has about
+    0.4-1.3 (a vertex per two triangles); the menpo3d mask 3-27; the marble bust 0.3-2.7."""
+    face = np.asarray(face, dtype=np.int64)
+    F = np.asarray(F, dtype=np.int64)
+    counts = np.bincount(face[np.asarray(covered, dtype=bool)], minlength=len(F)).astype(np.float64)
+    around = sp.csr_matrix((np.ones(F.size), (F.ravel(), np.repeat(np.arange(len(F)), 3))), shape=(len(X), len(F)))
+    per_corner = (around @ counts) / np.maximum(around @ np.ones(len(F)), 1.0)
+    density = per_corner[F].mean(axis=1)
+    edge = np.mean([np.linalg.norm(X[F[:, i]] - X[F[:, (i + 1) % 3]], axis=1) for i in range(3)], axis=0)
+    return density[face], edge[face]
+
+
+def smoothed_where_fine(G: sp.csr_matrix, Y: np.ndarray, F: np.ndarray, density: np.ndarray, edge: np.ndarray,
+                        groups: np.ndarray | None = None, rounds: int = FINE_ROUNDS) -> sp.csr_matrix:
     """The gather matrix G (k, m) with each row averaged `rounds` times with its covered
-    neighbours' over the target's mesh Y (k, 3) metres, F (f, 3), each neighbour weighted
-    exp(-(edge length / scale)^2): where the target is finer than the template (the menpo3d
-    mask's 1 mm edges under the template's 3-4 mm), the motion it is given is the template's
-    piecewise-linear field, with a kink at every template edge, read through a binding that
-    jitters from one target vertex to the next; its small triangles fold where the template's
-    large ones only bend (a brow lowered, a cheek raised). Averaged over a few of its own
-    edges, the field is smooth at the target's scale and unchanged at the template's (the
-    FAPs' motion); a target as coarse as the template (edges over twice `scale`, weights
-    under FINE_LEAST) keeps its rows as they are. Coverage kept, split vertices (groups (k,)) one point (_rows_averaged)."""
+    neighbours' over the target's mesh Y (k, 3) metres, F (f, 3), where the target is finer
+    than the template: density (k,) and edge (k,) metres, from template_resolution. There
+    (the menpo3d mask's 1 mm edges under the template's 3-4 mm) the motion a target is
+    given is the template's piecewise-linear field, with a kink at every template edge, read
+    through a binding that jitters from one target vertex to the next; its small triangles
+    fold where the template's large ones only bend (a brow lowered, a cheek raised). A
+    neighbour weighs exp(-(edge length / (FINE_SHARE x the template's local edge))^2) times
+    how fine both ends are (0 at FINE_DENSITY[0] target vertices per template triangle, 1 from
+    FINE_DENSITY[1]): averaged over a few of its own short edges, the field is smooth at the
+    target's scale and all but unchanged at the template's (the FAPs' motion); a target as
+    coarse as the template (about 0.5 per triangle) keeps its rows as they are. The reach is
+    `rounds` of the target's edges: a target many times finer still than the mask is smoothed
+    over less of the template's scale. Coverage kept, split vertices (groups (k,)) one point
+    (_rows_averaged)."""
+    lo, hi = FINE_DENSITY
+    fine = np.clip((np.asarray(density, dtype=np.float64) - lo) / (hi - lo), 0.0, 1.0)
+    reach = FINE_SHARE * np.asarray(edge, dtype=np.float64)
 
     def step_of(edges, Yg, covered, first):
         k = len(Yg)
         e = np.unique(np.sort(edges[covered[edges].all(axis=1)], axis=1), axis=0)  # once each
-        w = np.exp(-(np.linalg.norm(Yg[e[:, 0]] - Yg[e[:, 1]], axis=1) / scale) ** 2)
-        e, w = e[w > FINE_LEAST], w[w > FINE_LEAST]  # a coarse mesh's rows stay as sparse as they were
+        f, r = fine[first], reach[first]
+        length = np.linalg.norm(Yg[e[:, 0]] - Yg[e[:, 1]], axis=1)
+        w = np.minimum(f[e[:, 0]], f[e[:, 1]]) * np.exp(-(length / np.maximum(r[e].mean(axis=1), 1e-12)) ** 2)
+        e, w = e[w > FINE_LEAST], w[w > FINE_LEAST]
         if len(e) == 0:
             return None
         W = sp.coo_matrix((np.r_[w, w], (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(k, k))
@@ -616,7 +649,7 @@ def retarget(template: FaceModel, target: TargetMesh, say: Callable[[str], None]
     Tv, scale = frame_transforms(P, X, TF, used=bound)
     G = gather_matrix(face, bary, coverage, TF, len(P))
     G = smoothed_across_jumps(G, np.einsum("kj,kjd->kd", bary, P[TF[face]]), Ys, skin_F, seams)
-    G = smoothed_where_fine(G, Ys, skin_F, seams)
+    G = smoothed_where_fine(G, Ys, skin_F, *template_resolution(face, TF, X, coverage > 0.5), groups=seams)
     used = np.flatnonzero(np.asarray(abs(G).sum(axis=0)).ravel() > 0)
     G = G[:, used].tocsr()
     nearest = TF[face, np.argmax(bary, axis=1)]
