@@ -115,6 +115,21 @@ def test_an_output_folder_that_takes_no_files_is_one_line_naming_it(capsys):
 
 
 
+def test_an_output_named_as_an_input_is_refused_and_the_input_kept(tmp_path, capsys):
+    """`fae play clip.mp4 -o clip.mp4` (a stream saved under a video's name) replaced the
+    stream with the video, exit 0; the head and its landmarks are inputs too."""
+    stream = tmp_path / "clip.mp4"
+    stream.write_bytes(SHORT_STREAM.read_bytes())
+    assert main(["play", str(stream), "-o", str(stream)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "would overwrite the stream" in err
+    assert stream.read_bytes() == SHORT_STREAM.read_bytes()
+    head = tmp_path / "head.mp4"
+    head.write_bytes(b"not read")
+    assert main(["play", str(SHORT_STREAM), "--head", str(head), "-o", str(head)]) == 2
+    assert "would overwrite the --head" in capsys.readouterr().err and head.read_bytes() == b"not read"
+
+
 def test_a_stream_without_frames_is_refused_and_leaves_nothing(tmp_path):
     """A header and no frame line gave a ValueError traceback (exit 1)."""
     stream = tmp_path / "empty.fap"

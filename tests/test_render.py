@@ -292,3 +292,31 @@ def test_the_teeth_darken_towards_the_back_of_the_arch_in_an_open_mouth():
     assert outer.sum() > 10 and middle.sum() > 50, (outer.sum(), middle.sum())
     corner, front = brightness[lower_y[outer], lower_x[outer]].mean(), brightness[upper_y[middle], upper_x[middle]].mean()
     assert corner < 0.8 * front, (corner, front)
+
+
+def test_a_skin_of_loose_triangles_renders_as_the_welded_skin(head):
+    """An STL scan arrives as a triangle soup: every triangle its own piece and its own hole.
+    Testing each triangle against every hole's box per frame cost a second a frame at 22k
+    triangles; past MAX_HOLE_BOXES holes every inside triangle is drawn instead. The picture
+    is the welded skin's (normals shared through normal_groups, as `fae play` does for a
+    mesh split along its seams)."""
+    import dataclasses
+
+    from fae.render.renderer import MAX_HOLE_BOXES
+
+    F = np.asarray(head.skin_faces, dtype=np.int64)
+    corner = F.ravel()
+    soup = dataclasses.replace(
+        head, skin_vertices=np.asarray(head.skin_vertices)[corner], skin_faces=np.arange(F.size).reshape(-1, 3),
+        skin_uv=np.asarray(head.skin_uv)[corner], skin_mirror=np.arange(F.size), skin_region=np.asarray(head.skin_region)[corner],
+        skin_thickness=np.asarray(head.skin_thickness)[corner])
+    assert len(F) > MAX_HOLE_BOXES
+    frames = list(jaw_frames(head, [0.0, 0.3]))
+    with FaceRenderer(head, size=SIZE) as r:
+        welded = [r.render(f.skin_vertices, f.bone_transforms) for f in frames]
+    with FaceRenderer(soup, size=SIZE, normal_groups=corner) as r:
+        assert r._holes is None
+        loose = [r.render(f.skin_vertices[corner], f.bone_transforms) for f in frames]
+    for a, b in zip(welded, loose):
+        assert np.abs(a.astype(int) - b).max() <= 2
+        assert np.mean(np.abs(a.astype(int) - b) > 0) < 0.001

@@ -63,26 +63,6 @@ def landmark_problem(V: np.ndarray, landmarks: dict[str, np.ndarray], path: str,
             "for a scan in mm?)")
 
 
-def overwritten_input(outputs: dict[str, str | None], inputs: dict[str, str | None]) -> str | None:
-    """A reason when an output path is one of the input files or another output, or None."""
-    def same(a: str, b: str) -> bool:
-        if os.path.exists(a) and os.path.exists(b):
-            return os.path.samefile(a, b)
-        return os.path.realpath(a) == os.path.realpath(b)
-
-    given = [(flag, out) for flag, out in outputs.items() if out]
-    for i, (flag, out) in enumerate(given):  # -o H.glb --report H.glb wrote the report over the head
-        for other_flag, other in given[i + 1:]:
-            if same(out, other):
-                return f"{other_flag} {other}: the same file as {flag}; expected a file of its own"
-    for out_flag, out in outputs.items():
-        for in_name, src in inputs.items():
-            if out and src and same(out, src):
-                return (f"{out_flag} {out}: would overwrite the {in_name}; expected a new file (inputs are "
-                        "never overwritten)")
-    return None
-
-
 def _non_finite(values: dict, where: str) -> list[str]:
     bad = [k for k, v in values.items() if isinstance(v, (float, np.floating)) and not math.isfinite(v)]
     return [f"{where} {', '.join(bad)} not finite (part of the model found no scan)"] if bad else []

@@ -169,3 +169,23 @@ def drawn_skin_colors(model):
     except Exception:  # an OpenGL stack that fails to import: the colours are a nicety
         return None
     return skin_colors(model)
+
+
+def overwritten_input(outputs: dict[str, str | None], inputs: dict[str, str | None]) -> str | None:
+    """A reason when an output path is one of the input files or another output, or None."""
+    def same(a: str, b: str) -> bool:
+        if os.path.exists(a) and os.path.exists(b):
+            return os.path.samefile(a, b)
+        return os.path.realpath(a) == os.path.realpath(b)
+
+    given = [(flag, out) for flag, out in outputs.items() if out]
+    for i, (flag, out) in enumerate(given):  # -o H.glb --report H.glb wrote the report over the head
+        for other_flag, other in given[i + 1:]:
+            if same(out, other):
+                return f"{other_flag} {other}: the same file as {flag}; expected a file of its own"
+    for out_flag, out in outputs.items():
+        for in_name, src in inputs.items():
+            if out and src and same(out, src):
+                return (f"{out_flag} {out}: would overwrite the {in_name}; expected a new file (inputs are "
+                        "never overwritten)")
+    return None

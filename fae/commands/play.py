@@ -19,7 +19,8 @@ import sys
 from pathlib import Path
 
 from fae.commands.common import (add_device_argument, add_view_arguments, fail, load_head, output_problem,
-                                 render_size_problem, timing_problem, video_size_problem, warp_device)
+                                 overwritten_input, render_size_problem, timing_problem, video_size_problem,
+                                 warp_device)
 from fae.io.frames import MAX_HOLD_SECONDS, MIN_FPS
 
 
@@ -61,7 +62,8 @@ def run(args: argparse.Namespace) -> int:
     problem = timing_problem(args.fps, args.max_hold)
     if problem:
         return fail("play", problem)
-    problem = output_problem(args.output, ".mp4")
+    problem = output_problem(args.output, ".mp4") or overwritten_input(
+        {"-o": args.output}, {"stream": args.stream, "--head": args.head, "--landmarks file": args.landmarks})
     if problem:
         return fail("play", problem)
     try:

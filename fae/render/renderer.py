@@ -224,6 +224,9 @@ def mouth_weight(model: FaceModel) -> np.ndarray:
     return w
 
 
+MAX_HOLE_BOXES = 64  # holes whose screen boxes are tested per frame; more: all inside triangles drawn
+
+
 def boundary_components(F: np.ndarray, n: int) -> list[np.ndarray]:
     """The holes of a triangle mesh: one (k,) int64 array of vertex indices per connected
     set of boundary edges (edges used by one triangle). F (m, 3) int, n vertex count."""
@@ -443,7 +446,11 @@ class FaceRenderer:
         # lie on the near half of the head or overlap a hole on screen (bounding boxes):
         # the far half's inside, hidden behind the face, costs the rasterizer as much as
         # the whole outside.
-        self._holes = boundary_components(faces, nv)
+        holes = boundary_components(faces, nv)
+        # a mesh of many loose pieces (an STL triangle soup, hair cards) has a hole per piece:
+        # testing every triangle against each hole's box cost a second a frame for 22k
+        # triangles (a minute for 90k); beyond MAX_HOLE_BOXES every inside triangle is drawn
+        self._holes = holes if len(holes) <= MAX_HOLE_BOXES else None
         # Per frame: positions and normals, float32, interleaved.
         self._dynamic = np.empty((offset, 6), dtype=np.float32)
         static = np.concatenate([self.vertex_colors, np.concatenate(gloss), np.concatenate(texcoords)],
@@ -640,6 +647,8 @@ class FaceRenderer:
         a, b, c = xy[F[:, 0]], xy[F[:, 1]], xy[F[:, 2]]
         # Counter-clockwise seen from outside; negative area on screen: facing away.
         away = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0]) < 0.0
+        if self._holes is None:  # too many holes to test: every inside triangle may show
+            return np.ascontiguousarray(self._skin_draw_faces[away], dtype=np.uint32)
         seen = w[F].min(axis=1) < self._target_distance
         if self._holes:
             lo = np.minimum(np.minimum(a, b), c)
