@@ -82,7 +82,9 @@ def make_target(template, folder, scale=1.08, angle=20.0, unit=1000.0):
     T[:3, 3] = [12.0, -40.0, 7.0]
     mesh_path = folder / "target.obj"
     trimesh.Trimesh(apply_transform(T, np.vstack(pieces_V)), np.vstack(pieces_F), process=False).export(mesh_path)
-    fdp = template.feature_point_positions()
+    from fae.anatomy.surface_points import markup_positions
+
+    fdp = markup_positions(template)  # where a person marks them (2.1 at the chin's lowest point)
     lm_path = folder / "target_landmarks.csv"
     lm_path.write_text("".join(f"{n},{p[0]:.6f},{p[1]:.6f},{p[2]:.6f}\n" for n, p in
                                ((n, apply_transform(T, fdp[n][None])[0]) for n in fdp
@@ -246,6 +248,18 @@ def test_too_few_points_raise(template, tmp_path):
     target = read_target(mesh, lm)
     target.landmarks = dict(list(target.landmarks.items())[:7])
     with pytest.raises(RetargetError, match="at least 8"):
+        retarget(template, target)
+
+
+def test_eight_points_with_one_misplaced_are_too_few(template, tmp_path):
+    """The fit sets aside a point that disagrees with the others; with eight given, seven
+    were played (at least 8 are needed)."""
+    mesh, lm, _ = make_target(template, tmp_path)
+    target = read_target(mesh, lm)
+    names = ["3.7", "3.11", "3.8", "3.12", "9.3", "8.3", "8.4", "2.1"]
+    target.landmarks = {n: target.landmarks[n] for n in names}
+    target.landmarks["8.3"] = target.landmarks["8.3"] + np.array([0.0, 60.0, 0.0])  # 6 cm up (mm file)
+    with pytest.raises(RetargetError, match=r"7 feature points agree.*8\.3 set aside.*at least 8"):
         retarget(template, target)
 
 

@@ -41,7 +41,9 @@ def default_target(folder: Path, template) -> tuple[Path, Path]:
     T[:3, :3] = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]]) * 1.07 * 1000.0
     mesh = folder / "target.obj"
     trimesh.Trimesh(apply_transform(T, template.skin_vertices), template.skin_faces, process=False).export(mesh)
-    fdp = template.feature_point_positions()
+    from fae.anatomy.surface_points import markup_positions
+
+    fdp = markup_positions(template)  # where a person marks them (2.1 at the chin's lowest point)
     lm = folder / "target.csv"
     lm.write_text("".join(f"{n},{p[0]},{p[1]},{p[2]}\n" for n, p in
                           ((n, apply_transform(T, fdp[n][None])[0]) for n in fdp
