@@ -263,6 +263,36 @@ def test_eight_points_with_one_misplaced_are_too_few(template, tmp_path):
         retarget(template, target)
 
 
+def test_a_mesh_wound_inside_out_is_turned_and_mixed_windings_are_refused(template, synthetic, tmp_path):
+    """A mesh whose faces all wind the other way played inside out (its back drawn, and
+    8,286 of 11k vertices never moved: their normals faced away from the skin they bind
+    to); one with a sixth of its faces wound against their neighbours, or every face doubled
+    back to back, played speckled. The first is turned outward and plays as the good mesh;
+    the others are refused with the share that faces into the head."""
+    import trimesh
+
+    mesh, lm, _, good = synthetic
+    m = trimesh.load(mesh, process=False)
+    flipped = tmp_path / "flipped.obj"
+    trimesh.Trimesh(m.vertices, m.faces[:, ::-1], process=False).export(flipped)
+    said = []
+    rt = retarget(template, read_target(flipped, lm), say=said.append)
+    assert any("wound inside out" in line for line in said)
+    assert np.array_equal(rt.model.skin_faces, good.model.skin_faces)
+    a = list(RetargetPlayer(good, Player(playable_head(template))).play(read_fap(f"{STREAMS}/expressions.fap")))
+    b = list(RetargetPlayer(rt, Player(playable_head(template))).play(read_fap(f"{STREAMS}/expressions.fap")))
+    assert max(np.abs(x.skin_vertices - y.skin_vertices).max() for x, y in zip(a, b)) < 1e-6
+    rng = np.random.default_rng(0)
+    mixed = m.faces.copy()
+    some = rng.random(len(mixed)) < 0.3
+    mixed[some] = mixed[some][:, ::-1]
+    for name, faces in (("mixed", mixed), ("doubled", np.vstack([m.faces, m.faces[:, ::-1]]))):
+        path = tmp_path / f"{name}.obj"
+        trimesh.Trimesh(m.vertices, faces, process=False).export(path)
+        with pytest.raises(RetargetError, match=r"% of its surface faces into the head.*one outward winding"):
+            retarget(template, read_target(path, lm))
+
+
 @pytest.mark.slow
 def test_menpo3d_template(template, shared_data, template_folds):
     folder = shared_data / "heads" / "menpo3d_template"

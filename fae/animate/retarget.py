@@ -72,6 +72,8 @@ from fae.io.facemodel import FaceModel, Part, SurfacePoint
 from fae.mesh import vertex_normals
 
 MIN_FEATURE_POINTS = 8  # usable feature points of the template's skin a target must have
+INSIDE_OUT_SHARE = 0.9  # of a target's surface facing into the head: wound inside out, turned
+MIXED_WINDING_SHARE = 0.1  # ... beyond this (and up to the above): windings mixed, refused
 COVERAGE_NEAR = 0.004  # metres from the fitted skin within which a target vertex moves fully
 COVERAGE_FAR = 0.015  # metres from it beyond which a target vertex does not move at all
 RIGID_PARTS = ("eye_l", "eye_r", "upper_teeth", "lower_teeth", "tongue")
@@ -560,6 +562,25 @@ def smoothed_where_fine(G: sp.csr_matrix, Y: np.ndarray, F: np.ndarray, density:
     return _rows_averaged(G, Y, F, groups, rounds, step_of)
 
 
+def facing_against(Y: np.ndarray, F: np.ndarray, X: np.ndarray, XF: np.ndarray, reach: float = COVERAGE_FAR) -> float:
+    """Share (0..1) of the target's vertices Y (k, 3) metres, faces F (f, 3), within `reach`
+    metres of the fitted skin X (n, 3), XF (m, 3), whose normal points against the skin's
+    there: a mesh wound inside out has nearly all of them (its normals point into the head,
+    and no vertex binds), one with faces wound against their neighbours or doubled back to
+    back a sixth to a half; a good mesh's creases and folds a few per cent (the menpo3d mask
+    2 %, the marble bust 3 %)."""
+    from fae.adapt.query import MeshQuery
+
+    _, dist, face, bary = MeshQuery(X, XF).closest_points(Y)
+    near = np.isfinite(dist) & (dist < reach) & (face >= 0)
+    if not near.any():
+        return 0.0
+    NX = vertex_normals(X, XF)
+    skin = np.einsum("kj,kjd->kd", bary[near], NX[XF[face[near]]])
+    own = vertex_normals(Y, F)[near]
+    return float(np.mean(np.einsum("ij,ij->i", skin, own) < 0.0))
+
+
 def retarget(template: FaceModel, target: TargetMesh, say: Callable[[str], None] | None = None) -> Retarget:
     """Bind `target` to `template` (module docstring). Raises RetargetError when the target
     cannot be animated (too few feature points, no head found at them)."""
@@ -590,12 +611,27 @@ def retarget(template: FaceModel, target: TargetMesh, say: Callable[[str], None]
         raise FacePairsUnavailable("the feature points given stand in for a face-landmark model", fatal=False)
 
     fit_index, fit_F = _sub_mesh(F, ~candidate)
-    try:
-        fitted, fit_report, _ = adapt_scan(template, V[fit_index], fit_F, no_pairs,
-                                           {k: target.landmarks[k] for k in names}, scan_name=target.path,
-                                           landmarks_name=target.landmarks_path, say=say)
-    except AdaptRefused as exc:
-        raise RetargetError(str(exc)) from None
+    for turned in (False, True):
+        try:
+            fitted, fit_report, _ = adapt_scan(template, V[fit_index], fit_F, no_pairs,
+                                               {k: target.landmarks[k] for k in names}, scan_name=target.path,
+                                               landmarks_name=target.landmarks_path, say=say)
+        except AdaptRefused as exc:
+            raise RetargetError(str(exc)) from None
+        # the fit pairs the scan's points by their normals: a mesh wound inside out is fitted again, turned
+        against = facing_against(apply_transform(np.linalg.inv(fitted.scan_transform), V[fit_index]), fit_F,
+                                 np.asarray(fitted.skin_vertices, dtype=np.float64),
+                                 np.asarray(template.skin_faces, dtype=np.int64))
+        if turned or against <= INSIDE_OUT_SHARE:
+            break
+        say(f"{target.path}: its faces are wound inside out ({against * 100:.0f} % face into the head); "
+            "turned outward")
+        F, fit_F = np.ascontiguousarray(F[:, ::-1]), np.ascontiguousarray(fit_F[:, ::-1])
+    if against > MIXED_WINDING_SHARE:
+        raise RetargetError(
+            f"{target.path}: {against * 100:.0f} % of its surface faces into the head (faces wound against their "
+            f"neighbours, or doubled back to back); expected one outward winding (at most "
+            f"{MIXED_WINDING_SHARE * 100:.0f} %; a mesh tool's 're-orient faces coherently' mends it)")
     for line in fit_report.get("verdict", []):
         say(f"warning: the template's fit to {target.path}: {line}")
     kept = list(fit_report.get("landmarks_used", names))
