@@ -99,7 +99,8 @@ def run(args: argparse.Namespace) -> int:
         verdict = retargeted.report["fit"].get("verdict") or []
         if verdict and not args.force:
             return fail("play", f"{args.head}: the template's fit to the mesh is not to be trusted ({'; '.join(verdict)}); "
-                        "check the feature points in --landmarks (--force plays it anyway)")
+                        "check that the feature points in --landmarks mark this mesh's features, in its unit, and "
+                        "that the mesh covers the face without large holes or loose fins (--force plays it anyway)")
         model = retargeted.model
         normal_groups = retargeted.normal_groups  # a scan's texture seams split its vertices
 
