@@ -189,6 +189,7 @@ def test_fae_bake_writes_a_baked_head_and_never_the_input(tmp_path, physics, cap
     (["{missing}", "-o", "{out}"], "not found"),
     (["{head}", "-o", "{out}", "--faps", "23"], "does not move the skin"),
     (["{head}", "-o", "{out}", "--faps", "x"], "--faps"),
+    (["{head}", "-o", "{out}", "--faps", ""], "got ''"),  # an empty variable baked every FAP (45 s)
     (["{head}", "-o", "{head}"], "input head"),
     (["{head}", "-o", "{tmp}/out.txt"], "expected a .glb"),
     (["{head}", "-o", "{out}", "--intervals", "0"], "--intervals"),

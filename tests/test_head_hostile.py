@@ -25,6 +25,8 @@ def shipped():
     ({"kappa_epidermis": 1e300}, "kappa_epidermis"),  # substeps without end: a hang
     ({"drag": "fast"}, "drag"),  # a traceback
     ({"layer_depth_fractions": [0.0, 1.0, 0.5]}, "layer_depth_fractions"),  # a traceback
+    ({"cfl": 1e-9}, "cfl"),  # a billion times the substeps: a frame took minutes, `template check` said valid
+    ({"density": 1e-9}, "density"),  # the same through the particles' mass
 ])
 def test_layer_params_the_simulation_cannot_use_are_named(shipped, tmp_path, capsys, params, field):
     path = tmp_path / "head.glb"

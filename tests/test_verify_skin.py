@@ -220,6 +220,49 @@ def test_verify_skin_refuses_what_it_cannot_read(tmp_path):
     assert r.returncode == 2 and "missing.glb" in r.stderr
 
 
+def test_a_stream_without_frames_is_refused_and_warnings_and_long_names_are_shown(tmp_path):
+    """A header and no frame said "the skin stays whole", exit 0, having checked nothing; the
+    reader's warnings (values cut to the range the face plays) were not shown; the table cut
+    a long path after 44 characters, so takes of one session all read alike."""
+    empty = tmp_path / "empty.fap"
+    empty.write_text("2.1 empty 25 0\n")
+    r = _verify_skin(str(empty))
+    assert r.returncode == 2 and "empty.fap: no frames to check" in r.stderr and "Traceback" not in r.stderr
+    folder = tmp_path / "recordings" / "session_2024_11_03" / "speaker_01"
+    folder.mkdir(parents=True)
+    take = folder / "take_07.fap"
+    mask = " ".join(["0", "0", "1"] + ["0"] * 65)  # open_jaw alone
+    take.write_text(f"2.1 take 25 2\n{mask}\n0 1080000\n{mask}\n1 0\n")  # open_jaw 1000x its range, then shut
+    r = _verify_skin(str(take))
+    assert r.returncode in (0, 1), r.stderr
+    assert "open_jaw" in r.stderr and "outside" in r.stderr  # the reader's warning
+    assert "take_07.fap" in r.stdout
+
+
+def test_skin_that_is_not_finite_is_not_whole(face, check):
+    """A head whose tables overflow to inf (an authored FaceDefTable of 1e308 m a unit) was
+    "whole": NaN edge ratios vanished in max/min and NaN normals never counted as turned."""
+    class Broken:
+        def __init__(self):
+            self.face, self.rest = face, np.asarray(face.skin_vertices, dtype=np.float64)
+
+        def reset(self):
+            pass
+
+        def play(self, frames, fps=None):
+            from fae.animate.player import PlayedFrame
+
+            for i, bad in enumerate(frames):
+                skin = self.rest.copy()
+                if bad:
+                    skin[: len(skin) // 2] = np.nan
+                yield PlayedFrame(index=i, time=i / 25, skin_vertices=skin, bone_transforms={"head": np.eye(4)})
+
+    report = check_stream(Broken(), [False, True, True], "overflow", check=check)
+    assert report["frames"] == 3 and report["frames_not_finite"] == 2 and not report["ok"]
+    assert check_stream(Broken(), [False, False], "fine", check=check)["ok"]
+
+
 @pytest.mark.slow
 def test_verify_skin_reports_each_stream_as_json_and_its_status(tmp_path):
     r = _verify_skin(str(ROOT / "fap_streams" / "visemes.fap"), "--json")

@@ -330,11 +330,12 @@ def check_stream(player, frames: Iterable, name: str = "", fps: float | None = N
                  check: SkinCheck | None = None) -> dict:
     """Play `frames` (a FapStream or DenseFrames) from rest and check every frame.
 
-    Returns {"stream", "frames", "frames_folded", "triangles_folded", "triangles_turned" (of
+    Returns {"stream", "frames", "frames_not_finite" (skin positions NaN or infinite: not
+    measured, and not whole), "frames_folded", "triangles_folded", "triangles_turned" (of
     those, the ones whose own normal ever turned over; the rest only sat on a crease), "folded_by_region"
     {region: triangles}, "worst_frame", "worst_frame_folded", "max_stretch", "min_compression",
     "frames_lips_crossed", "max_lip_crossings", "frames_lining_shown", "max_lining_crossings",
-    "frames_back_shown", "max_back_area_mm2", "worst_back_frame", "ok"}; ok: nothing folded,
+    "frames_back_shown", "max_back_area_mm2", "worst_back_frame", "ok"}; ok: every frame finite, nothing folded,
     strain within [MIN_COMPRESSION, MAX_STRETCH], the lips never cross, no lining comes out
     through the skin and no frame shows the skin's back over more than BACK_AREA_LIMIT."""
     check = check or SkinCheck(player.face)
@@ -345,7 +346,12 @@ def check_stream(player, frames: Iterable, name: str = "", fps: float | None = N
     worst, worst_count = -1, 0
     worst_back, back_area = -1, 0.0
     stretch, compression = 1.0, 1.0
+    broken = 0  # frames whose skin is not finite: nothing of it can be measured, and it is not whole
     for frame in player.play(frames, fps=fps):
+        count += 1
+        if not (np.isfinite(frame.skin_vertices).all() and np.isfinite(frame.bone_transforms["head"]).all()):
+            broken += 1
+            continue
         r = check.frame(in_head_frame(frame.skin_vertices, frame.bone_transforms["head"]))
         k = int(r.folded.sum())
         if k:
@@ -365,14 +371,13 @@ def check_stream(player, frames: Iterable, name: str = "", fps: float | None = N
         if r.back_area > back_area:
             worst_back, back_area = frame.index, r.back_area
         stretch, compression = max(stretch, r.stretch), min(compression, r.compression)
-        count += 1
     player.reset()
     regions = {}
     for rid in np.unique(check.triangle_region[ever]):
         regions[check.region_names[rid]] = int(np.sum(check.triangle_region[ever] == rid))
     ok = (not ever.any()) and stretch <= MAX_STRETCH and compression >= MIN_COMPRESSION and lip_frames == 0 \
-        and lining_frames == 0 and back_frames == 0
-    return {"stream": name, "frames": count, "frames_folded": folded_frames, "triangles_folded": int(ever.sum()),
+        and lining_frames == 0 and back_frames == 0 and broken == 0
+    return {"stream": name, "frames": count, "frames_not_finite": broken, "frames_folded": folded_frames, "triangles_folded": int(ever.sum()),
             "triangles_turned": int(turned.sum()),
             "folded_by_region": regions, "worst_frame": worst, "worst_frame_folded": worst_count,
             "max_stretch": round(stretch, 3), "min_compression": round(compression, 3),

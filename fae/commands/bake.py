@@ -42,7 +42,8 @@ def run(args: argparse.Namespace) -> int:
     if not 1 <= intervals <= 32:
         return fail("bake", f"--intervals {intervals}: expected 1..32 intervals per sign")
     try:
-        faps = parse_fap_list(args.faps) if args.faps else list(SKIN_TRANSLATION_FAPS)
+        # "" (an empty shell variable) is a mistake, not "all": 45 s of baking every FAP
+        faps = parse_fap_list(args.faps) if args.faps is not None else list(SKIN_TRANSLATION_FAPS)
     except ValueError as exc:
         return fail("bake", str(exc))
     wrong = [k for k in faps if k not in SKIN_TRANSLATION_FAPS]

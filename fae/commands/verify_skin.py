@@ -40,6 +40,7 @@ def run(args) -> int:
     from fae.commands.common import fail, load_head, warp_device
     from fae.io.facemodel_gltf import FaceModelError
     from fae.io.fap import FapFormatError, read_fap
+    from fae.io.frames import dense_frames
 
     head, streams = args.head, list(args.streams)
     if head is not None and head.lower().endswith(".fap"):  # streams only: the shipped head
@@ -77,11 +78,18 @@ def run(args) -> int:
         if not loaded:
             loaded = default_streams()
         reports = []
-        for name, frames in loaded:
+        for name, stream in loaded:
+            is_file = hasattr(stream, "header")
+            frames = dense_frames(stream) if is_file else stream  # a file's: its warnings kept, at its own rate
             try:
-                reports.append(check_stream(player, frames, name, check=check))
+                reports.append(check_stream(player, frames, name, fps=stream.header.fps if is_file else None,
+                                            check=check))
             except FapFormatError as exc:
                 return fail("verify-skin", str(exc))
+            if reports[-1]["frames"] == 0:
+                return fail("verify-skin", f"{name}: no frames to check; expected at least one frame after the header")
+            for warning in getattr(stream, "warnings", []) + getattr(frames, "warnings", []):
+                print(f"fae verify-skin: warning: {warning}", file=sys.stderr)
     whole = all(r["ok"] for r in reports)
     if args.json:
         print(json.dumps({"head": str(path), "streams": reports, "ok": whole}, indent=1))
@@ -94,11 +102,20 @@ def run(args) -> int:
         print(f"{'stream':<44} {'frames':>6} {'folded':>7} {'turned':>6} {'(frames)':>8} {'stretch':>7} {'compr.':>6} "
               f"{'lips':>5} {'lining':>6} {'backs':>5} {'mm^2':>6}  worst regions")
         for r in reports:
-            regions = ", ".join(f"{k} {v}" for k, v in sorted(r["folded_by_region"].items(), key=lambda kv: -kv[1])[:4])
-            print(f"{str(r['stream'])[:44]:<44} {r['frames']:>6} {r['triangles_folded']:>7} {r['triangles_turned']:>6} "
+            regions = [f"{k} {v}" for k, v in sorted(r["folded_by_region"].items(), key=lambda kv: -kv[1])[:4]]
+            if r["frames_not_finite"]:
+                regions.insert(0, f"{r['frames_not_finite']} frames not finite (NaN or inf)")
+            regions = ", ".join(regions)
+            print(f"{_column(str(r['stream'])):<44} {r['frames']:>6} {r['triangles_folded']:>7} {r['triangles_turned']:>6} "
                   f"{r['frames_folded']:>8} "
                   f"{r['max_stretch']:>7.2f} {r['min_compression']:>6.2f} {r['frames_lips_crossed']:>5} "
                   f"{r['frames_lining_shown']:>6} {r['frames_back_shown']:>5} {r['max_back_area_mm2']:>6.0f}  {regions}")
         print("the skin stays whole" if whole else
-              "the skin folds, tears, the lips cross, a lining or the skin's back shows: see above")
+              "the skin folds, tears, the lips cross, a lining or the skin's back shows, or it is not finite: see above")
     return 0 if whole else 1
+
+
+def _column(name: str, width: int = 44) -> str:
+    """A stream's name in the table's first column: a long path keeps its end (the file's
+    name), not its start (takes of one session differ only there)."""
+    return name if len(name) <= width else "..." + name[-(width - 3):]

@@ -124,7 +124,8 @@ class PullField:
 
 # what a head's layer_params may set: counts at most MAX_RINGS, other numbers finite, >= 0
 # and at most PARAM_SPAN x their default (past that, a step takes for ever or blows up),
-# these few positive, the contact grid no finer than MIN_SDF_CELL metres, cfl at most 1
+# these few at least their default / PARAM_SPAN, the contact grid no finer than MIN_SDF_CELL
+# metres, cfl at most 1
 COUNT_PARAMS = ("active_rings", "jaw_blend_rings", "fold_passes")
 MAX_RINGS = 50
 PARAM_SPAN = 1000.0
@@ -157,11 +158,10 @@ def checked_params(p: dict) -> dict:
             number = float(value)
         except (TypeError, ValueError):
             number = math.nan
-        if isinstance(value, bool) or not 0.0 <= number <= top or (key in POSITIVE_PARAMS and number <= 0.0) \
-                or (key == "sdf_cell" and number < MIN_SDF_CELL):
-            low = MIN_SDF_CELL if key == "sdf_cell" else 0.0
-            raise ValueError(f"{where}: expected a number in {'(' if key in POSITIVE_PARAMS and low == 0 else '['}"
-                             f"{low:g}, {top:g}], got {value!r}")
+        # a positive one far below its default multiplies the substeps (cfl 1e-9: a frame took minutes)
+        low = MIN_SDF_CELL if key == "sdf_cell" else DEFAULTS[key] / PARAM_SPAN if key in POSITIVE_PARAMS else 0.0
+        if isinstance(value, bool) or not low <= number <= top:
+            raise ValueError(f"{where}: expected a number in [{low:g}, {top:g}], got {value!r}")
     return p
 
 
