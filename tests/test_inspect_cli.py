@@ -124,3 +124,19 @@ def test_an_output_that_is_a_folder_is_named_not_its_temporary_file(tmp_path):
         with atomic_path(tmp_path / "manifest.json") as tmp:
             tmp.write_text("{}")
     assert [p.name for p in tmp_path.iterdir()] == ["manifest.json"]  # no temporary file left
+
+
+def test_json_is_strict_json_when_a_number_is_not_finite(tmp_path, capsys):
+    """A header rate of 1e-320 frames/s gives an infinite duration: the summary said
+    `"duration_s": Infinity`, which JavaScript's JSON.parse (and any strict reader) refuses;
+    it is null now, as in `fae adapt --report`."""
+    stream = tmp_path / "slow.fap"
+    mask = " ".join(["0", "0", "1"] + ["0"] * 65)
+    stream.write_text(f"2.1 slow 1e-320 1\n{mask}\n0 100\n")
+    assert main(["inspect", "--json", str(stream)]) == 0
+
+    def refuse(constant):
+        raise ValueError(f"not JSON: {constant}")
+
+    summary = json.loads(capsys.readouterr().out, parse_constant=refuse)
+    assert summary["duration_s"] is None

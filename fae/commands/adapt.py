@@ -20,7 +20,6 @@ paper methods.
 
 from __future__ import annotations
 
-import json
 import os
 import sys
 import time
@@ -206,6 +205,7 @@ def _finish(args, model, report, V, F, keep, started, start_mapping=None) -> int
 def _refused(args, source: str, verdict: list[str], report: dict, hint: str = "") -> bool:
     """Say each reason the head is not to be trusted; True when nothing is to be written
     (a verdict without --force), after writing the report when asked for."""
+    from fae.commands.common import json_text
     from fae.io.atomic import atomic_open
 
     for why in verdict:
@@ -215,19 +215,20 @@ def _refused(args, source: str, verdict: list[str], report: dict, hint: str = ""
     _say(f"not writing {args.output}: the head is not to be trusted (--force writes it anyway{hint})")
     if args.report:
         with atomic_open(args.report, "w") as fh:
-            json.dump(_json_safe(report), fh, indent=1, allow_nan=False)
+            fh.write(json_text(report, indent=1))
     return True
 
 
 def _write_outputs(args, model, report: dict, picture) -> None:
     """The head (-o), the report (--report) and the picture (--compare), each atomically."""
+    from fae.commands.common import json_text
     from fae.io.atomic import atomic_open, atomic_path
     from fae.io.facemodel_gltf import write_facemodel
 
     write_facemodel(model, args.output)
     if args.report:
         with atomic_open(args.report, "w") as fh:
-            json.dump(_json_safe(report), fh, indent=1, allow_nan=False)
+            fh.write(json_text(report, indent=1))
     if picture is not None:
         from fae.render.png import write_png
 
@@ -277,25 +278,6 @@ def _calibrated(args, model, report: dict, start_mapping: dict | None = None):
     model = calibrate(model, start=start_mapping)
     report["calibration_seconds"] = time.perf_counter() - started
     return model
-
-
-def _json_safe(value):
-    """The report with non-finite floats as null (JSON has no Infinity or NaN)."""
-    import math
-
-    import numpy as np
-
-    if isinstance(value, dict):
-        return {k: _json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_safe(v) for v in value]
-    if isinstance(value, (float, np.floating)):
-        return float(value) if math.isfinite(value) else None
-    if isinstance(value, np.integer):
-        return int(value)
-    if isinstance(value, np.ndarray):
-        return _json_safe(value.tolist())
-    return value
 
 
 def _run_paper(args, template, V, F, landmarks) -> int:

@@ -16,7 +16,6 @@ scaled far from the face's own scale, or unlike each other; FAPU ratios far from
 from __future__ import annotations
 
 import math
-import os
 
 import numpy as np
 

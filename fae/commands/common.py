@@ -189,3 +189,30 @@ def overwritten_input(outputs: dict[str, str | None], inputs: dict[str, str | No
                 return (f"{out_flag} {out}: would overwrite the {in_name}; expected a new file (inputs are "
                         "never overwritten)")
     return None
+
+
+def json_safe(value):
+    """`value` (dicts, lists, numbers, numpy scalars and arrays) with non-finite floats as
+    null: JSON has no Infinity or NaN, and strict readers (JavaScript's JSON.parse) refuse them."""
+    import math
+
+    import numpy as np
+
+    if isinstance(value, dict):
+        return {k: json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    if isinstance(value, (float, np.floating)):
+        return float(value) if math.isfinite(value) else None
+    if isinstance(value, np.integer):
+        return int(value)
+    if isinstance(value, np.ndarray):
+        return json_safe(value.tolist())
+    return value
+
+
+def json_text(value, indent: int | None = None) -> str:
+    """`value` as strict JSON text (non-finite numbers as null, json_safe)."""
+    import json
+
+    return json.dumps(json_safe(value), indent=indent, allow_nan=False)

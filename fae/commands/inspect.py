@@ -7,10 +7,9 @@ rejected or missing (the reason, naming file and line, on stderr).
 from __future__ import annotations
 
 import argparse
-import json
 import os
 
-from fae.commands.common import fail
+from fae.commands.common import fail, json_text
 from fae.io.fap import FapFormatError
 from fae.io.fap_summary import summarize_fap
 from fae.mpeg4.faps import FAPS
@@ -61,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
     except FapFormatError as exc:
         return fail("inspect", str(exc))
     if args.json:
-        print(json.dumps(summary))
+        print(json_text(summary))
     else:
         print(_text(summary))
     return 0

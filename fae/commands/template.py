@@ -11,9 +11,8 @@ check  validates any FaceModel file: structure (fae.io.facemodel_gltf) and geome
 
 from __future__ import annotations
 
-import json
 
-from fae.commands.common import fail, output_problem
+from fae.commands.common import fail, json_text, output_problem
 
 
 def register(subparsers) -> None:
@@ -77,7 +76,7 @@ def _check(path: str, as_json: bool) -> int:
     except ValueError as exc:
         report["problems"].append(str(exc))
     if as_json:
-        print(json.dumps(report, indent=1))
+        print(json_text(report, indent=1))
     else:
         f = report["fapu0"]
         print(f"{path}: {report['skin_vertex_count']} skin vertices, {len(report['muscles'])} muscles, "

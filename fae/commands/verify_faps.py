@@ -10,10 +10,9 @@ the FAP list is invalid. Without HEAD the shipped generic head is checked.
 
 from __future__ import annotations
 
-import json
 import sys
 
-from fae.commands.common import fail, load_head
+from fae.commands.common import fail, json_text, load_head
 
 PASS_FRACTION = 0.9
 
@@ -75,7 +74,7 @@ def run(args) -> int:
             return fail("verify-faps", str(exc))
     fraction = passed_fraction(report)
     if args.json:
-        print(json.dumps({"head": path, "tolerance": TOLERANCE, "faps": report, "passed_fraction": fraction}, indent=1))
+        print(json_text({"head": path, "tolerance": TOLERANCE, "faps": report, "passed_fraction": fraction}, indent=1))
     else:
         print(f"{path}: each FAP alone at half its range, settled; ratio = measured / expected along its direction")
         print(f"{'FAP':>4} {'name':<24} {'FDP':<5} {'value':>7} {'expected mm':>12} {'measured mm':>12} {'ratio':>6}")

@@ -18,7 +18,6 @@ when the head or a stream cannot be read.
 from __future__ import annotations
 
 import contextlib
-import json
 import sys
 
 from fae.commands.common import add_device_argument
@@ -37,7 +36,7 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from fae.commands.common import fail, load_head, warp_device
+    from fae.commands.common import fail, json_text, load_head, warp_device
     from fae.io.facemodel_gltf import FaceModelError
     from fae.io.fap import FapFormatError, read_fap
     from fae.io.frames import dense_frames
@@ -92,7 +91,7 @@ def run(args) -> int:
                 print(f"fae verify-skin: warning: {warning}", file=sys.stderr)
     whole = all(r["ok"] for r in reports)
     if args.json:
-        print(json.dumps({"head": str(path), "streams": reports, "ok": whole}, indent=1))
+        print(json_text({"head": str(path), "streams": reports, "ok": whole}, indent=1))
     else:
         print(f"{path}: folded = visible skin triangles ever turned over or on a crease (turned: their own normal "
               f"turned over); stretch / compression = "
