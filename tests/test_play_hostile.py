@@ -149,19 +149,21 @@ def test_frames_dir_keeps_its_frames_when_a_run_fails_and_takes_a_good_runs_whol
     frames.mkdir()
     (frames / "frame_00099.png").write_bytes(b"an earlier run's")
     (frames / "frame_cover.png").write_bytes(b"the user's own")  # not a frame: kept
-    (frames / f".frames.{2**22 + 7}.dead").mkdir()  # a killed run's staging (no such process): swept
+    (frames / f".frames.{2**22 + 7}.dead_run").mkdir()  # a killed run's staging (no such process): swept
+    (frames / ".frames.2024.backup").mkdir()  # the user's own (not a pid and 8 random letters): kept
     broken = tmp_path / "broken.fap"
     broken.write_text("".join(SHORT_STREAM.read_text().splitlines(keepends=True)[:60]) + "junk\n")
     proc = fae_play(str(broken), "-o", str(tmp_path / "b.mp4"), "--frames-dir", str(frames))
     _, err = proc.communicate(timeout=300)
     assert proc.returncode == 2 and "no video written" in err, err
-    assert sorted(p.name for p in frames.iterdir()) == ["frame_00099.png", "frame_cover.png"]  # nothing added
+    kept = [".frames.2024.backup"]
+    assert sorted(p.name for p in frames.iterdir()) == kept + ["frame_00099.png", "frame_cover.png"]  # nothing added
     proc = fae_play(str(SHORT_STREAM), "-o", str(tmp_path / "v.mp4"), "--frames-dir", str(frames))
     _, err = proc.communicate(timeout=300)
     assert proc.returncode == 0, err
     names = sorted(p.name for p in frames.iterdir())
     count = int(err.strip().splitlines()[-1].split(": ")[1].split()[0])  # "<out>: 48 frames at ..."
-    assert names == [f"frame_{i:05d}.png" for i in range(count)] + ["frame_cover.png"]
+    assert names == kept + [f"frame_{i:05d}.png" for i in range(count)] + ["frame_cover.png"]
 
 
 def test_the_readers_warnings_are_shown(tmp_path):
@@ -198,3 +200,15 @@ def test_a_fap_list_names_each_fap_once():
     for bad in ("0", "69", "5-3", "x"):
         with pytest.raises(ValueError, match="--faps"):
             parse_fap_list(bad)
+
+
+def test_a_users_file_named_like_a_temporary_one_is_not_swept(tmp_path):
+    """The sweep took `.face.glb.20241105.final.glb` (a user's file: a date, a word) for a
+    dead writer's temporary file and deleted it; a temporary name is the pid (at most 7
+    digits) and tempfile's 8 random characters."""
+    users = tmp_path / ".face.glb.20241105.final.glb"
+    users.write_bytes(b"mine")
+    stale = tmp_path / f".face.glb.{2**22 + 7}.k3j9_x0q.glb"  # no such process
+    stale.write_bytes(b"half written")
+    assert sweep_stale(tmp_path / "face.glb") == [stale]
+    assert users.read_bytes() == b"mine"

@@ -32,12 +32,18 @@ def _running(pid: int) -> bool:
     return True
 
 
+# what a temporary name adds after ".NAME.": the writer's pid (at most 7 digits: Linux's
+# pid_max is 4194304) and tempfile's 8 random characters; a user's ".face.glb.20241105.final.glb"
+# or ".frames.2024.backup" is no temporary file and is never swept
+_TEMP_TAIL = r"(\d{1,7})\.[a-z0-9_]{8}"
+
+
 def sweep_stale(path: str | os.PathLike) -> list[Path]:
     """Remove the temporary files of `path` left by writers that are no longer running;
     returns them. Files of running writers (this process included) are left alone."""
     target = Path(path)
     folder = target.parent if str(target.parent) else Path(".")
-    pattern = re.compile(r"\." + re.escape(target.name) + r"\.(\d+)\.[A-Za-z0-9_]+\.[A-Za-z0-9]+\Z")
+    pattern = re.compile(r"\." + re.escape(target.name) + r"\." + _TEMP_TAIL + r"\.[A-Za-z0-9]+\Z")
     removed = []
     try:
         entries = list(os.scandir(folder))
@@ -60,7 +66,7 @@ def staging_folder(folder: str | os.PathLike, name: str) -> Path:
     """A new hidden folder `.NAME.PID.XXXX` in `folder` for files that replace others only
     when all are written; the ones left by writers no longer running are removed first."""
     folder = Path(folder)
-    pattern = re.compile(r"\." + re.escape(name) + r"\.(\d+)\.[A-Za-z0-9_]+\Z")
+    pattern = re.compile(r"\." + re.escape(name) + r"\." + _TEMP_TAIL + r"\Z")
     with contextlib.suppress(OSError):
         for entry in os.scandir(folder):
             match = pattern.match(entry.name)
