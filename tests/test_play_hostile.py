@@ -212,3 +212,21 @@ def test_a_users_file_named_like_a_temporary_one_is_not_swept(tmp_path):
     stale.write_bytes(b"half written")
     assert sweep_stale(tmp_path / "face.glb") == [stale]
     assert users.read_bytes() == b"mine"
+
+
+@pytest.mark.parametrize("command", ["render", "play"])
+def test_a_render_that_runs_out_of_memory_is_one_line_and_writes_nothing(tmp_path, capsys, monkeypatch, command):
+    """`fae render --size 8192x8192 --supersample 2` passes the size guard but holds about
+    10 GB; under a memory limit it ended in a numpy traceback (exit 1)."""
+    from fae.render.renderer import FaceRenderer
+
+    def no_memory(self, *args, **kwargs):
+        raise MemoryError("Unable to allocate 2.00 GiB")
+
+    monkeypatch.setattr(FaceRenderer, "render_rgba", no_memory)
+    out = tmp_path / ("big.png" if command == "render" else "big.mp4")
+    argv = ["render", "-o", str(out)] if command == "render" else ["play", str(SHORT_STREAM), "-o", str(out)]
+    assert main([*argv, "--size", "4096x4096", "--supersample", "2"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith(f"fae {command}: --size 4096x4096 with --supersample 2: not enough memory")
+    assert not out.exists() and "Traceback" not in "\n".join(err)

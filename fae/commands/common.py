@@ -91,6 +91,14 @@ def render_size_problem(size: tuple[int, int], supersample: int) -> str | None:
     return None
 
 
+def memory_message(size: tuple[int, int], supersample: int) -> str:
+    """What to say when a render of `size` at `supersample` ran out of memory."""
+    width, height = size
+    need = width * supersample * height * supersample * 4 * 5 / 2**30  # about five copies of its pixels
+    return (f"--size {width}x{height} with --supersample {supersample}: not enough memory for the render "
+            f"(its pixels alone take about {need:.1f} GiB); expected a smaller --size or --supersample")
+
+
 def video_size_problem(size: tuple[int, int]) -> str | None:
     """Why frames of `size` cannot be encoded as H.264 (it needs an even width and height)."""
     width, height = size

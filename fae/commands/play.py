@@ -18,9 +18,9 @@ import argparse
 import sys
 from pathlib import Path
 
-from fae.commands.common import (add_device_argument, add_view_arguments, fail, load_head, output_problem,
-                                 overwritten_input, render_size_problem, timing_problem, video_size_problem,
-                                 warp_device)
+from fae.commands.common import (add_device_argument, add_view_arguments, fail, load_head, memory_message,
+                                 output_problem, overwritten_input, render_size_problem, timing_problem,
+                                 video_size_problem, warp_device)
 from fae.io.frames import MAX_HOLD_SECONDS, MIN_FPS
 
 
@@ -156,6 +156,8 @@ def run(args: argparse.Namespace) -> int:
                     "(no video written)")
     except VideoError as exc:
         return fail("play", str(exc), status=1)
+    except MemoryError:
+        return fail("play", memory_message(args.size, args.supersample) + " (no video written)")
     except OSError as exc:  # the output folder refused the file (OutputError names it)
         return fail("play", str(exc) if exc.filename is None else f"{exc.filename}: {exc.strerror}")
     finally:

@@ -8,7 +8,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from fae.commands.common import add_view_arguments, fail, load_head, output_problem, render_size_problem
+from fae.commands.common import (add_view_arguments, fail, load_head, memory_message, output_problem,
+                                 render_size_problem)
 
 
 def register(subparsers) -> None:
@@ -35,9 +36,12 @@ def run(args: argparse.Namespace) -> int:
     from fae.render.png import write_png
     from fae.render.renderer import FaceRenderer
 
-    with FaceRenderer(model, size=args.size, view=args.view, supersample=args.supersample,
-                      show_bones=args.show_bones) as renderer:
-        image = renderer.render()
-    write_png(args.output, image)
+    try:
+        with FaceRenderer(model, size=args.size, view=args.view, supersample=args.supersample,
+                          show_bones=args.show_bones) as renderer:
+            image = renderer.render()
+        write_png(args.output, image)
+    except MemoryError:  # a large render holds about five copies of its pixels (8192x8192 x2: 10 GB)
+        return fail("render", memory_message(args.size, args.supersample))
     print(f"{args.output}: {head.name}, {args.view} view, {args.size[0]}x{args.size[1]}", file=sys.stderr)
     return 0
