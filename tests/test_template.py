@@ -322,3 +322,13 @@ def test_check_command_reports_json_and_exit_status(tmp_path, capsys):
     broken.write_bytes(b"glTF not really")
     assert main(["template", "check", str(broken)]) == 2
     assert "broken.glb" in capsys.readouterr().err
+
+
+def test_a_skin_wound_inside_out_is_a_problem(head):
+    """A head whose skin triangles all wind the other way was `valid`: rendered, it showed
+    its back (dark and inside out), and verify-skin counted its back seen in every frame."""
+    import dataclasses
+
+    flipped = dataclasses.replace(head, skin_faces=np.ascontiguousarray(np.asarray(head.skin_faces)[:, ::-1]))
+    problems = facemodel_problems(flipped)
+    assert any("faces away from the head's middle" in p and "inside out" in p for p in problems), problems

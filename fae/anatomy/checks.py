@@ -154,6 +154,26 @@ def claims_symmetry(model: FaceModel) -> bool:
     return bool(np.allclose(np.asarray(model.scan_transform, dtype=np.float64), np.eye(4)))
 
 
+MIN_OUTWARD_SHARE = 0.5  # of the skin's area facing away from its middle (heads: 95-96 %; inside out: 5 %)
+
+
+def outward_share(V: np.ndarray, F: np.ndarray) -> float:
+    """Share (0..1) of a skin's area, V (n, 3), F (m, 3), whose normal points away from the
+    skin's area-weighted middle (each triangle weighed by how squarely): a head's skin, mouth
+    and nostrils included, 0.95-0.96; wound inside out, its render shows the back and every
+    normal-based step (fit, binding, shading) turns against it."""
+    from fae.mesh import triangle_normals
+
+    n = triangle_normals(np.asarray(V, dtype=np.float64), np.asarray(F, dtype=np.int64))
+    area = np.linalg.norm(n, axis=1)
+    if len(F) == 0 or area.sum() <= 0.0 or not np.all(np.isfinite(n)):
+        return 1.0  # nothing to tell (the other checks say what is wrong)
+    c = np.asarray(V, dtype=np.float64)[np.asarray(F, dtype=np.int64)].mean(axis=1)
+    d = c - np.average(c, axis=0, weights=area)
+    facing = np.einsum("ij,ij->i", n, d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-300))
+    return float(facing[facing > 0].sum() / max(np.abs(facing).sum(), 1e-300))
+
+
 def facemodel_problems(model: FaceModel) -> list[str]:
     """Geometric problems of `model` (see module docstring); [] when it is a valid head."""
     problems: list[str] = []
@@ -170,6 +190,10 @@ def facemodel_problems(model: FaceModel) -> list[str]:
         if unused:
             problems.append(f"region_names: regions without vertices: {', '.join(unused)}")
     problems += edge_problems(F, allowed)
+    outward = outward_share(V, F)
+    if outward < MIN_OUTWARD_SHARE:
+        problems.append(f"skin: only {outward * 100:.0f} % of its area faces away from the head's middle; expected "
+                        f"at least {MIN_OUTWARD_SHARE * 100:.0f} % (its faces are wound inside out)")
     pairs = self_intersections(V, F)
     if len(pairs):
         problems.append(f"skin: {len(pairs)} pairs of faces intersect (first: faces {int(pairs[0, 0])} and {int(pairs[0, 1])})")
