@@ -4,7 +4,8 @@
     check_report(model) -> dict                  `fae template check`'s report (FAPU, parts, problems)
 
 Checks: the skin is an oriented 2-manifold whose only open borders (if any) run through
-the mouth, the eyelids or the bottom of the neck; it does not cut through itself; no skin
+the mouth, the eyelids or the bottom of the neck; it faces outward (`outward_share`: most of
+its area faces away from its middle, not wound inside out); it does not cut through itself; no skin
 vertex lies inside a bone and every bone lies inside the skin; linear muscles run inside
 the soft tissue; every rigid part is closed; all 84 MPEG-4 feature points are present;
 the mirror map is a pairing (mirror[mirror[i]] == i) and, for a head that claims to be

@@ -72,8 +72,9 @@ from fae.io.facemodel import FaceModel, Part, SurfacePoint
 from fae.mesh import vertex_normals
 
 MIN_FEATURE_POINTS = 8  # usable feature points of the template's skin a target must have
-INSIDE_OUT_SHARE = 0.9  # of a target's surface facing into the head: wound inside out, turned
-MIXED_WINDING_SHARE = 0.1  # ... beyond this (and up to the above): windings mixed, refused
+INSIDE_OUT_SHARE = 0.5  # of a target's surface facing into the head: wound inside out, turned (and
+# fitted again: the first fit, paired by the wrong normals, leaves some of it facing out: 0.89-0.98)
+MIXED_WINDING_SHARE = 0.1  # ... beyond this after any turning: windings mixed, refused
 COVERAGE_NEAR = 0.004  # metres from the fitted skin within which a target vertex moves fully
 COVERAGE_FAR = 0.015  # metres from it beyond which a target vertex does not move at all
 RIGID_PARTS = ("eye_l", "eye_r", "upper_teeth", "lower_teeth", "tongue")
@@ -626,7 +627,10 @@ def retarget(template: FaceModel, target: TargetMesh, say: Callable[[str], None]
             break
         say(f"{target.path}: its faces are wound inside out ({against * 100:.0f} % face into the head); "
             "turned outward")
-        F, fit_F = np.ascontiguousarray(F[:, ::-1]), np.ascontiguousarray(fit_F[:, ::-1])
+        # the skin's faces only: the small pieces (eyes, teeth) keep the winding they were given
+        skin_faces = ~candidate[F[:, 0]]
+        F = np.ascontiguousarray(np.where(skin_faces[:, None], F[:, ::-1], F))
+        fit_F = np.ascontiguousarray(fit_F[:, ::-1])
     if against > MIXED_WINDING_SHARE:
         raise RetargetError(
             f"{target.path}: {against * 100:.0f} % of its surface faces into the head (faces wound against their "
@@ -737,6 +741,7 @@ def retarget(template: FaceModel, target: TargetMesh, say: Callable[[str], None]
         "target": target.path, "vertices": n, "skin_vertices": int(len(skin_index)),
         "parts": {k: {"template_part": parts_at[k][0], "vertices": int(len(v))} for k, v in part_index.items()},
         "landmarks_used": list(fit_report.get("landmarks_used", names)),
+        "turned_outward": bool(turned),  # its skin was wound inside out, and was fitted again turned
         "fit": {"errors": fit_report.get("errors"), "folded_triangles": fit_report.get("folded_triangles"),
                 "verdict": fit_report.get("verdict", []), "seconds": fit_report.get("seconds")},
         "coverage": {"full": int((coverage >= 1.0).sum()), "partial": int(((coverage > 0) & (coverage < 1)).sum()),

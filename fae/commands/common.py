@@ -94,9 +94,10 @@ def render_size_problem(size: tuple[int, int], supersample: int) -> str | None:
 def memory_message(size: tuple[int, int], supersample: int) -> str:
     """What to say when a render of `size` at `supersample` ran out of memory."""
     width, height = size
-    need = width * supersample * height * supersample * 4 * 5 / 2**30  # about five copies of its pixels
-    return (f"--size {width}x{height} with --supersample {supersample}: not enough memory for the render "
-            f"(its pixels alone take about {need:.1f} GiB); expected a smaller --size or --supersample")
+    copy = width * supersample * height * supersample * 4 / 2**30
+    return (f"--size {width}x{height} with --supersample {supersample}: not enough memory (the render holds "
+            f"about five copies of its {copy:.2g} GiB of pixels); expected a smaller --size or --supersample, "
+            "or more memory")
 
 
 def video_size_problem(size: tuple[int, int]) -> str | None:
@@ -214,6 +215,8 @@ def json_safe(value):
         return float(value) if math.isfinite(value) else None
     if isinstance(value, np.integer):
         return int(value)
+    if isinstance(value, np.bool_):
+        return bool(value)
     if isinstance(value, np.ndarray):
         return json_safe(value.tolist())
     return value

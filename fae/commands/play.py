@@ -156,7 +156,7 @@ def run(args: argparse.Namespace) -> int:
                     "(no video written)")
     except VideoError as exc:
         return fail("play", str(exc), status=1)
-    except MemoryError:
+    except MemoryError:  # most likely the render's buffers (the simulation's arrays are small)
         return fail("play", memory_message(args.size, args.supersample) + " (no video written)")
     except OSError as exc:  # the output folder refused the file (OutputError names it)
         return fail("play", str(exc) if exc.filename is None else f"{exc.filename}: {exc.strerror}")
