@@ -239,28 +239,44 @@ def test_a_stream_without_frames_is_refused_and_warnings_and_long_names_are_show
     assert "take_07.fap" in r.stdout
 
 
+class _SkinPlayer:
+    """Plays given skins (functions of the rest skin) as frames, head still."""
+
+    def __init__(self, face):
+        self.face, self.rest = face, np.asarray(face.skin_vertices, dtype=np.float64)
+
+    def reset(self):
+        pass
+
+    def play(self, frames, fps=None):
+        from fae.animate.player import PlayedFrame
+
+        for i, make in enumerate(frames):
+            yield PlayedFrame(index=i, time=i / 25, skin_vertices=make(self.rest.copy()),
+                              bone_transforms={"head": np.eye(4)})
+
+
 def test_skin_that_is_not_finite_is_not_whole(face, check):
     """A head whose tables overflow to inf (an authored FaceDefTable of 1e308 m a unit) was
     "whole": NaN edge ratios vanished in max/min and NaN normals never counted as turned."""
-    class Broken:
-        def __init__(self):
-            self.face, self.rest = face, np.asarray(face.skin_vertices, dtype=np.float64)
+    def rest(skin):
+        return skin
 
-        def reset(self):
-            pass
+    def broken(skin):
+        skin[: len(skin) // 2] = np.nan
+        return skin
 
-        def play(self, frames, fps=None):
-            from fae.animate.player import PlayedFrame
-
-            for i, bad in enumerate(frames):
-                skin = self.rest.copy()
-                if bad:
-                    skin[: len(skin) // 2] = np.nan
-                yield PlayedFrame(index=i, time=i / 25, skin_vertices=skin, bone_transforms={"head": np.eye(4)})
-
-    report = check_stream(Broken(), [False, True, True], "overflow", check=check)
+    report = check_stream(_SkinPlayer(face), [rest, broken, broken], "overflow", check=check)
     assert report["frames"] == 3 and report["frames_not_finite"] == 2 and not report["ok"]
-    assert check_stream(Broken(), [False, False], "fine", check=check)["ok"]
+    assert check_stream(_SkinPlayer(face), [rest, rest], "fine", check=check)["ok"]
+
+
+def test_a_stretch_just_past_the_limit_never_reads_as_within_it(face, check):
+    """Every edge at 2.0003x its rest length failed, and the report said "max_stretch": 2.0
+    (the table 2.00) beside the failure."""
+    report = check_stream(_SkinPlayer(face), [lambda skin: skin * 2.0003], "grown", check=check)
+    assert not report["ok"] and report["max_stretch"] == pytest.approx(2.001) and report["triangles_folded"] == 0
+    assert check_stream(_SkinPlayer(face), [lambda skin: skin * 1.0], "rest", check=check)["max_stretch"] == 1.0
 
 
 @pytest.mark.slow

@@ -37,6 +37,7 @@ exceeds `BACK_AREA_LIMIT`.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable
 from dataclasses import dataclass
 
@@ -380,7 +381,9 @@ def check_stream(player, frames: Iterable, name: str = "", fps: float | None = N
     return {"stream": name, "frames": count, "frames_not_finite": broken, "frames_folded": folded_frames, "triangles_folded": int(ever.sum()),
             "triangles_turned": int(turned.sum()),
             "folded_by_region": regions, "worst_frame": worst, "worst_frame_folded": worst_count,
-            "max_stretch": round(stretch, 3), "min_compression": round(compression, 3),
+            # rounded away from the limits: a stretch of 2.0003 reads 2.001, not a passing 2.0
+            "max_stretch": math.ceil(stretch * 1000.0 - 1e-6) / 1000.0,
+            "min_compression": math.floor(compression * 1000.0 + 1e-6) / 1000.0,
             "frames_lips_crossed": lip_frames, "max_lip_crossings": max_crossings,
             "frames_lining_shown": lining_frames, "max_lining_crossings": max_lining,
             "frames_back_shown": back_frames, "max_back_area_mm2": round(back_area * 1e6, 1),
