@@ -450,18 +450,19 @@ def _rows_averaged(G: sp.csr_matrix, Y: np.ndarray, F: np.ndarray, groups: np.nd
     """G (k, m) with its rows, as barycentric coordinates, replaced `rounds` times by
     step @ rows, then scaled by each row's own coverage (its sum) again: every row keeps its
     coverage, so a neutral frame still gives the rest exactly and a vertex that does not
-    follow stays still. step = step_of(edges (e, 2) between points, Yg (p, 3) the points,
+    follow stays still. step = step_of(edges (e, 2) between points, each once, Yg (p, 3) the points,
     covered (p,) bool, first (p,) the first vertex of each point), (p, p) with rows summing to
     one, None: G as it is. groups (k,): vertices split along a texture seam (one label per
     point) are one point, and share its row."""
+    from fae.mesh import edges as unique_edges
+
     g = np.arange(len(Y)) if groups is None else np.asarray(groups, dtype=np.int64)
     _, first, point = np.unique(g, return_index=True, return_inverse=True)  # one row per point
-    Fg = point[np.asarray(F, dtype=np.int64)]
-    edges = np.vstack([Fg[:, [0, 1]], Fg[:, [1, 2]], Fg[:, [2, 0]]])
-    edges = edges[edges[:, 0] != edges[:, 1]]
+    edges = unique_edges(point[np.asarray(F, dtype=np.int64)].reshape(-1, 3))
+    edges = edges[edges[:, 0] != edges[:, 1]]  # a triangle welded flat at a seam joins a point to itself
     G = G.tocsr()[first]
     coverage = np.asarray(G.sum(axis=1)).ravel()
-    step = step_of(edges, Y[first], coverage > 0.0, first)
+    step = step_of(edges, Y[first], coverage > 0.0, first)  # edges: each once
     if step is None:
         return G[point].tocsr()
     out = sp.diags(np.where(coverage > 0.0, 1.0 / np.maximum(coverage, 1e-300), 0.0)) @ G  # barycentric rows
@@ -549,7 +550,7 @@ def smoothed_where_fine(G: sp.csr_matrix, Y: np.ndarray, F: np.ndarray, density:
 
     def step_of(edges, Yg, covered, first):
         k = len(Yg)
-        e = np.unique(np.sort(edges[covered[edges].all(axis=1)], axis=1), axis=0)  # once each
+        e = edges[covered[edges].all(axis=1)]
         f, r = fine[first], reach[first]
         length = np.linalg.norm(Yg[e[:, 0]] - Yg[e[:, 1]], axis=1)
         w = np.minimum(f[e[:, 0]], f[e[:, 1]]) * np.exp(-(length / np.maximum(r[e].mean(axis=1), 1e-12)) ** 2)
