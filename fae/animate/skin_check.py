@@ -382,12 +382,23 @@ def check_stream(player, frames: Iterable, name: str = "", fps: float | None = N
             "triangles_turned": int(turned.sum()),
             "folded_by_region": regions, "worst_frame": worst, "worst_frame_folded": worst_count,
             # rounded away from the limits: a stretch of 2.0003 reads 2.001, not a passing 2.0
-            "max_stretch": math.ceil(stretch * 1000.0 - 1e-6) / 1000.0,
-            "min_compression": math.floor(compression * 1000.0 + 1e-6) / 1000.0,
+            "max_stretch": rounded_up(stretch, 3), "min_compression": rounded_down(compression, 3),
             "frames_lips_crossed": lip_frames, "max_lip_crossings": max_crossings,
             "frames_lining_shown": lining_frames, "max_lining_crossings": max_lining,
             "frames_back_shown": back_frames, "max_back_area_mm2": round(back_area * 1e6, 1),
             "worst_back_frame": worst_back, "ok": bool(ok)}
+
+
+def rounded_up(x: float, places: int) -> float:
+    """x rounded up to `places` decimals (a stretch just past its limit never reads as within it)."""
+    scale = 10.0 ** places
+    return math.ceil(x * scale - 1e-6) / scale
+
+
+def rounded_down(x: float, places: int) -> float:
+    """x rounded down to `places` decimals (a compression just under its limit)."""
+    scale = 10.0 ** places
+    return math.floor(x * scale + 1e-6) / scale
 
 
 def fap_sweep() -> list[np.ndarray]:

@@ -18,7 +18,6 @@ when the head or a stream cannot be read.
 from __future__ import annotations
 
 import contextlib
-import math
 import sys
 
 from fae.commands.common import add_device_argument
@@ -68,7 +67,7 @@ def run(args) -> int:
 
     with contextlib.redirect_stdout(sys.stderr):  # Warp's banner and kernel-load lines: stdout is the report's
         from fae.animate.player import Player, playable_head
-        from fae.animate.skin_check import SkinCheck, check_stream, default_streams
+        from fae.animate.skin_check import SkinCheck, check_stream, default_streams, rounded_down, rounded_up
 
         try:
             player = Player(playable_head(face, device=device))
@@ -108,7 +107,7 @@ def run(args) -> int:
             regions = ", ".join(regions)
             print(f"{_column(str(r['stream'])):<44} {r['frames']:>6} {r['triangles_folded']:>7} {r['triangles_turned']:>6} "
                   f"{r['frames_folded']:>8} "
-                  f"{_up(r['max_stretch']):>7.2f} {_down(r['min_compression']):>6.2f} {r['frames_lips_crossed']:>5} "
+                  f"{rounded_up(r['max_stretch'], 2):>7.2f} {rounded_down(r['min_compression'], 2):>6.2f} {r['frames_lips_crossed']:>5} "
                   f"{r['frames_lining_shown']:>6} {r['frames_back_shown']:>5} {r['max_back_area_mm2']:>6.0f}  {regions}")
         print("the skin stays whole" if whole else
               "the skin folds, tears, the lips cross, a lining or the skin's back shows, or it is not finite: see above")
@@ -119,13 +118,3 @@ def _column(name: str, width: int = 44) -> str:
     """A stream's name in the table's first column: a long path keeps its end (the file's
     name), not its start (takes of one session differ only there)."""
     return name if len(name) <= width else "..." + name[-(width - 3):]
-
-
-def _up(x: float) -> float:
-    """x rounded up to 2 decimals: a stretch just past its limit never prints as within it."""
-    return math.ceil(x * 100.0 - 1e-9) / 100.0
-
-
-def _down(x: float) -> float:
-    """x rounded down to 2 decimals (a compression just under its limit)."""
-    return math.floor(x * 100.0 + 1e-9) / 100.0
