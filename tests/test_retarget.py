@@ -234,13 +234,45 @@ def test_a_mesh_whose_feature_points_do_not_fit_it_is_refused(tmp_path):
     rng = np.random.default_rng(0)
     names = ["2.1", "3.5", "3.6", "3.7", "3.8", "3.11", "3.12", "8.3", "8.4", "9.3", "4.1", "4.2"]
     lm = tmp_path / "scattered.json"
-    lm.write_text(json.dumps({n: (rng.normal(size=3) * 0.05).tolist() for n in names}))
+    on_sphere = rng.normal(size=(len(names), 3))
+    on_sphere *= 0.1 / np.linalg.norm(on_sphere, axis=1, keepdims=True)  # on the mesh, yet no face
+    lm.write_text(json.dumps({n: p.tolist() for n, p in zip(names, on_sphere)}))
     out = tmp_path / "x.mp4"
     r = subprocess.run([sys.executable, "-m", "fae", "play", f"{STREAMS}/visemes.fap", "--head", str(mesh),
                         "--landmarks", str(lm), "-o", str(out)], capture_output=True, text=True)
     assert r.returncode == 2, r.stderr
     assert "not to be trusted" in r.stderr and "--force" in r.stderr
     assert not out.exists()
+
+
+def test_feature_points_of_another_head_are_refused(template, tmp_path):
+    """Feature points that do not lie on the mesh (here the right ones, 1.2x as far from
+    their middle: another head's, or another unit's) are refused, naming the file and how
+    far off they lie (they played with a hole in the cheek at rest and the mouth torn)."""
+    mesh, lm, _ = make_target(template, tmp_path)
+    rows = [line.split(",") for line in lm.read_text().splitlines()]
+    P = np.array([[float(x) for x in r[1:]] for r in rows])
+    P = P.mean(axis=0) + 1.2 * (P - P.mean(axis=0))
+    other = tmp_path / "other_head.csv"
+    other.write_text("".join(f"{r[0]},{p[0]:.4f},{p[1]:.4f},{p[2]:.4f}\n" for r, p in zip(rows, P)))
+    out = tmp_path / "x.mp4"
+    r = subprocess.run([sys.executable, "-m", "fae", "play", f"{STREAMS}/visemes.fap", "--head", str(mesh),
+                        "--landmarks", str(other), "-o", str(out)], capture_output=True, text=True)
+    assert r.returncode == 2, r.stderr
+    assert "other_head.csv: the feature points lie off" in r.stderr and "median" in r.stderr
+    assert not out.exists()
+
+
+def test_a_feature_point_off_the_mesh_is_left_out(template, tmp_path):
+    """One point 2 cm in front of the nose (a slip of the hand in a landmark tool) is left out
+    with a notice; the others place the template."""
+    mesh, lm, _ = make_target(template, tmp_path)
+    target = read_target(mesh, lm)
+    target.landmarks["9.3"] = target.landmarks["9.3"] + np.array([0.0, 0.0, 20.0])  # mm file, turned 20 degrees
+    said = []
+    rt = retarget(template, target, say=said.append)
+    assert any(line.startswith("ignored feature point 9.3:") and "mm off" in line for line in said), said
+    assert "9.3" not in rt.report["landmarks_used"] and len(rt.report["landmarks_used"]) >= 60
 
 
 def test_too_few_points_raise(template, tmp_path):
