@@ -237,12 +237,18 @@ def test_a_mesh_whose_feature_points_do_not_fit_it_is_refused(tmp_path):
     on_sphere = rng.normal(size=(len(names), 3))
     on_sphere *= 0.1 / np.linalg.norm(on_sphere, axis=1, keepdims=True)  # on the mesh, yet no face
     lm.write_text(json.dumps({n: p.tolist() for n, p in zip(names, on_sphere)}))
-    out = tmp_path / "x.mp4"
+    stderr = refused_play(mesh, lm, tmp_path)
+    assert "not to be trusted" in stderr and "--force" in stderr
+
+
+def refused_play(mesh, lm, folder) -> str:
+    """`fae play --head mesh --landmarks lm`, which must exit 2 and write nothing: its stderr."""
+    out = folder / "x.mp4"
     r = subprocess.run([sys.executable, "-m", "fae", "play", f"{STREAMS}/visemes.fap", "--head", str(mesh),
                         "--landmarks", str(lm), "-o", str(out)], capture_output=True, text=True)
     assert r.returncode == 2, r.stderr
-    assert "not to be trusted" in r.stderr and "--force" in r.stderr
     assert not out.exists()
+    return r.stderr
 
 
 def test_feature_points_of_another_head_are_refused(template, tmp_path):
@@ -255,12 +261,8 @@ def test_feature_points_of_another_head_are_refused(template, tmp_path):
     P = P.mean(axis=0) + 1.2 * (P - P.mean(axis=0))
     other = tmp_path / "other_head.csv"
     other.write_text("".join(f"{r[0]},{p[0]:.4f},{p[1]:.4f},{p[2]:.4f}\n" for r, p in zip(rows, P)))
-    out = tmp_path / "x.mp4"
-    r = subprocess.run([sys.executable, "-m", "fae", "play", f"{STREAMS}/visemes.fap", "--head", str(mesh),
-                        "--landmarks", str(other), "-o", str(out)], capture_output=True, text=True)
-    assert r.returncode == 2, r.stderr
-    assert "other_head.csv: the feature points lie off" in r.stderr and "median" in r.stderr
-    assert not out.exists()
+    stderr = refused_play(mesh, other, tmp_path)
+    assert "other_head.csv: the feature points lie off" in stderr and "median" in stderr
 
 
 def test_a_feature_point_off_the_mesh_is_left_out(template, tmp_path):
