@@ -188,6 +188,34 @@ def test_eyes_follow_the_gaze(template, synthetic):
     assert np.allclose(M[:3, :3] @ centre + M[:3, 3], centre, atol=1e-9)  # about the target's own eye
 
 
+def test_a_separate_hat_turns_with_the_head(template, tmp_path):
+    """A piece the template does not reach (a hat, a bun of hair standing off the scalp)
+    turns with the head as one body: it stayed where it was while the head turned under it."""
+    import trimesh
+
+    mesh, lm, T = make_target(template, tmp_path)
+    head = trimesh.load(mesh, process=False, force="mesh")
+    top = apply_transform(T, np.array([[0.0, template.skin_vertices[:, 1].max() + 0.03, -0.02]]))[0]
+    hat = trimesh.creation.icosphere(subdivisions=2, radius=30.0)  # mm, 3 cm above the crown
+    hat.apply_translation(top)
+    both = tmp_path / "with_hat.obj"
+    trimesh.Trimesh(np.vstack([head.vertices, hat.vertices]), np.vstack([head.faces, hat.faces + len(head.vertices)]),
+                    process=False).export(both)
+    rt = retarget(template, read_target(both, lm))
+    on_hat = np.isin(rt.skin_index, np.arange(len(head.vertices), len(head.vertices) + len(hat.vertices)))
+    assert on_hat.sum() == len(hat.vertices)  # skin, not taken for an eye
+    player = RetargetPlayer(rt, Player(playable_head(template)))
+    values = np.zeros(68)
+    values[48] = 10000  # head_yaw: 0.1 rad
+    for _ in range(3):
+        skin = player.step(values)
+    H = player.bone_transforms["head"]
+    rest = rt.model.skin_vertices[on_hat]
+    assert np.degrees(np.arccos((np.trace(H[:3, :3]) - 1) / 2)) > 4.0  # the head did turn
+    off = np.linalg.norm(skin[on_hat] - (rest @ H[:3, :3].T + H[:3, 3]), axis=1)
+    assert off.max() < 1e-4, off.max()  # as one body with the head (it stayed put: 1.5 cm off)
+
+
 def test_play_command_on_a_mesh(template, synthetic, tmp_path):
     mesh, lm, _, _ = synthetic
     out = tmp_path / "out.mp4"

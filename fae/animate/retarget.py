@@ -41,7 +41,8 @@ bones, re-anchored at the fitted head's eye centres, jaw hinge and 7.1.
 Per frame (`RetargetPlayer.step`): the head pose is taken off the template's skin, the
 displacement from its neutral skin gathered (one batched 3x3 product over the template
 vertices in use and one sparse (k, u) product), added to the target's rest, and the head
-pose, re-anchored, put back (faded like the motion). A neutral frame gives the target's
+pose, re-anchored, put back (faded like the motion, except above the chin, where what the
+template does not reach, a hat or hair off the scalp, turns with the head as one body). A neutral frame gives the target's
 rest exactly. tools/bench_retarget.py measures the transfer's frames per second.
 
 The target is held as a FaceModel in the face frame (metres; `model.scan_transform` maps
@@ -99,6 +100,7 @@ MOTION_GAIN_FAPS = (19, 20, 21, 22) + tuple(range(4, 14)) + tuple(range(51, 61))
 SETTLE_FRAMES = 30  # frames of 1/25 s to settle each (within 1 % of verify-faps' 60 on the generic head)
 SETTLE_THREADS = 4  # at most, settling side by side
 NECK_FADE = (0.02, 0.09)  # metres below the chin (2.1) where the head pose starts and ends fading out
+ABOVE_CHIN = (0.0, 0.02)  # metres below the chin over which the head pose of what the fit does not reach fades out
 
 
 class RetargetError(ValueError):
@@ -179,8 +181,10 @@ class Retarget:
     fapu_gain      (k, 3) the factor, per skin vertex and face axis (x, y, z), that pins the
                    carried motion's magnitude to the target's FAPU (fapu_gain_field)
     head_weight    (k,) in [0, 1]: how fully each skin vertex turns with the head pose: the
-                   coverage, fading down the neck (NECK_FADE below the chin, 2.1) so that
-                   a bust's shoulders and chest stay put
+                   coverage, and fully above the chin (2.1; fading over ABOVE_CHIN below it)
+                   wherever the coverage is less (a hat, hair off the scalp), fading down
+                   the neck (NECK_FADE below the chin) so that a bust's shoulders and chest
+                   stay put
     anchors        bone -> ((3,) template point, (3,) target point) its poses are re-anchored at
     scale          the target's size over the template's (FAPU ratio, mean of ES, ENS, MNS, MW)
     report         what was found and measured (fit errors, scales, parts, feature points)
@@ -753,7 +757,11 @@ def retarget(template: FaceModel, target: TargetMesh, say: Callable[[str], None]
     }
     chin = fitted_fp["2.1"][1] if "2.1" in fitted_fp else float(Ys[:, 1].min())
     neck = coverage_weights(chin - Ys[:, 1], *NECK_FADE)
-    rt = Retarget(model=model, skin_index=skin_index, head_weight=coverage * neck, part_index=part_index, used=used,
+    # what the template does not reach above the chin (a hat, hair standing off the scalp, a
+    # wreath's leaves) turns with the head as one body: held by its coverage alone, it stayed
+    # put while the head turned under it
+    above = coverage_weights(chin - Ys[:, 1], *ABOVE_CHIN)
+    rt = Retarget(model=model, skin_index=skin_index, head_weight=np.maximum(coverage, above) * neck, part_index=part_index, used=used,
                   frame_transform=np.ascontiguousarray(Tv[used]), gather=G, coverage=coverage,
                   anchors=anchors, scale=ratio, report=report, vertex_count=n, normal_groups=seams)
     rt.fapu_gain, report["fapu_gains"] = fapu_gain_field(
