@@ -216,6 +216,32 @@ def test_a_separate_hat_turns_with_the_head(template, tmp_path):
     assert off.max() < 1e-4, off.max()  # as one body with the head (it stayed put: 1.5 cm off)
 
 
+def test_eyes_meshed_finer_than_the_head_are_still_eyes(template, tmp_path):
+    """Eyeballs with nearly as many vertices as the head (an artist's smooth spheres) are found as
+    eyes: the skin is the piece the feature points lie on, and a piece far smaller than it
+    is a part, whatever its vertex count (each eye was taken for skin and fitted as face)."""
+    import trimesh
+
+    mesh, lm, T = make_target(template, tmp_path)
+    head = trimesh.load(mesh, process=False, force="mesh")
+    eyes = sum(len(template.mesh(e)[0]) for e in ("eye_l", "eye_r"))
+    skin_V, skin_F = head.vertices[:-eyes], head.faces[: len(head.faces) - sum(len(template.mesh(e)[1])
+                                                                                for e in ("eye_l", "eye_r"))]
+    pieces_V, pieces_F = [skin_V], [skin_F]
+    for e in ("eye_l", "eye_r"):
+        ev = apply_transform(T, np.asarray(template.mesh(e)[0]))
+        ball = trimesh.creation.icosphere(subdivisions=6, radius=float(np.ptp(ev, axis=0).max()) / 2)
+        ball.apply_translation(ev.mean(axis=0))
+        pieces_F.append(ball.faces + sum(len(v) for v in pieces_V))
+        pieces_V.append(ball.vertices)
+    assert all(len(v) > 0.3 * sum(len(w) for w in pieces_V) for v in pieces_V[1:])  # 40k each, the skin 44k
+    dense = tmp_path / "dense_eyes.obj"
+    trimesh.Trimesh(np.vstack(pieces_V), np.vstack(pieces_F), process=False).export(dense)
+    rt = retarget(template, read_target(dense, lm))
+    assert set(rt.model.parts) == {"eye_l", "eye_r"}
+    assert len(rt.skin_index) == len(skin_V)
+
+
 def test_play_command_on_a_mesh(template, synthetic, tmp_path):
     mesh, lm, _, _ = synthetic
     out = tmp_path / "out.mp4"

@@ -35,7 +35,8 @@ for each of their FAPs, settled at half its range, the others' from a uniform on
 fades to zero where the target extends beyond
 what the template covers (shoulders, plinth, hair: COVERAGE_NEAR..COVERAGE_FAR metres from
 the fitted skin). The target's separate pieces that sit on the fitted head's eyeballs,
-teeth or tongue become rigid parts moved by the template's eye, head, jaw and tongue
+teeth or tongue (pieces under PART_SIZE_SHARE of the size of the face's piece, the one
+the feature points lie on, however finely meshed) become rigid parts moved by the template's eye, head, jaw and tongue
 bones, re-anchored at the fitted head's eye centres, jaw hinge and 7.1.
 
 Per frame (`RetargetPlayer.step`): the head pose is taken off the template's skin, the
@@ -79,7 +80,7 @@ MIXED_WINDING_SHARE = 0.1  # ... beyond this after any turning: windings mixed, 
 COVERAGE_NEAR = 0.004  # metres from the fitted skin within which a target vertex moves fully
 COVERAGE_FAR = 0.015  # metres from it beyond which a target vertex does not move at all
 RIGID_PARTS = ("eye_l", "eye_r", "upper_teeth", "lower_teeth", "tongue")
-MAX_PART_SHARE = 0.2  # a connected piece with more of the target's vertices than this is skin
+PART_SIZE_SHARE = 0.5  # a piece at least this share of the face piece's size is skin (an eyeball 0.1, teeth 0.2)
 PART_REACH = 0.3  # a piece is a part when its median distance to it is below this share of its size
 PART_REACH_MIN = 0.002  # ... or below this many metres
 PIN_REACH = 0.03  # metres around the given feature points within which the fit is moved onto them
@@ -587,6 +588,26 @@ def facing_against(Y: np.ndarray, F: np.ndarray, X: np.ndarray, XF: np.ndarray, 
     return float(np.mean(np.einsum("ij,ij->i", skin, own) < 0.0))
 
 
+def skin_pieces(V: np.ndarray, F: np.ndarray, label: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(c,) bool over the connected pieces `label` (n,) of mesh V (n, 3), F (m, 3): the skin
+    to fit. The face is the piece that most of the feature points `points` (k, 3) lie
+    closest to; any piece at least PART_SIZE_SHARE of its size (bounding-box diagonal) is
+    skin too (a scalp or neck meshed apart); the smaller ones are eyes, teeth, or bits
+    (judged later). Vertex counts say nothing: an artist's eyeballs may be meshed finer than
+    the head."""
+    from fae.adapt.query import MeshQuery
+
+    count = int(label.max()) + 1
+    face = MeshQuery(V, F).closest_points(points)[2]
+    face_piece = int(np.argmax(np.bincount(label[F[face[face >= 0], 0]], minlength=count)))
+    lo = np.full((count, 3), np.inf)
+    hi = np.full((count, 3), -np.inf)
+    np.minimum.at(lo, label, V)
+    np.maximum.at(hi, label, V)
+    size = np.linalg.norm(hi - lo, axis=1)
+    return size >= PART_SIZE_SHARE * size[face_piece]
+
+
 def retarget(template: FaceModel, target: TargetMesh, say: Callable[[str], None] | None = None) -> Retarget:
     """Bind `target` to `template` (module docstring). Raises RetargetError when the target
     cannot be animated (too few feature points, no head found at them)."""
@@ -607,11 +628,7 @@ def retarget(template: FaceModel, target: TargetMesh, say: Callable[[str], None]
     F = np.asarray(target.faces, dtype=np.int64)
     n = len(V)
     label = welded_components(V, F)
-    sizes = np.bincount(label)
-    biggest = int(np.argmax(sizes))
-    piece = (sizes > MAX_PART_SHARE * n)
-    piece[biggest] = True
-    candidate = ~piece[label]  # vertices of small pieces: eyes, teeth, or bits of skin
+    candidate = ~skin_pieces(V, F, label, np.array([target.landmarks[k] for k in names]))[label]
 
     def no_pairs(part_V, part_F):
         raise FacePairsUnavailable("the feature points given stand in for a face-landmark model", fatal=False)
