@@ -242,6 +242,42 @@ def test_eyes_meshed_finer_than_the_head_are_still_eyes(template, tmp_path):
     assert len(rt.skin_index) == len(skin_V)
 
 
+def test_a_textured_mesh_plays_in_its_own_texture(template, tmp_path):
+    """A mesh with UVs and a colour texture (OBJ + MTL + PNG, as modelling tools write them)
+    is drawn in its texture, right way up: the top half of the image (green) on the crown
+    and forehead, the bottom half (blue) on the chin and neck. It was drawn in the
+    template's skin colour."""
+    import trimesh
+    from PIL import Image
+
+    from fae.render.framing import camera_view
+    from fae.render.renderer import FaceRenderer
+
+    mesh, lm, T = make_target(template, tmp_path)
+    plain = trimesh.load(mesh, process=False, force="mesh")
+    V = np.asarray(plain.vertices)
+    lo, hi = V.min(axis=0), V.max(axis=0)
+    uv = np.column_stack([(V[:, 0] - lo[0]) / (hi[0] - lo[0]), (V[:, 1] - lo[1]) / (hi[1] - lo[1])])  # v up (OBJ)
+    image = np.zeros((64, 64, 3), np.uint8)
+    image[:32] = (40, 200, 40)  # the image's top rows: v near 1, the top of the head
+    image[32:] = (40, 40, 200)
+    textured = tmp_path / "textured" / "head.obj"
+    textured.parent.mkdir()
+    trimesh.Trimesh(V, plain.faces, process=False,
+                    visual=trimesh.visual.TextureVisuals(uv=uv, image=Image.fromarray(image))).export(textured)
+    rt = retarget(template, read_target(textured, lm))
+    assert rt.model.skin_texture is not None and rt.model.skin_texture.shape == (64, 64, 3)
+    fdp = rt.model.feature_point_positions()
+    size = (200, 200)
+    with FaceRenderer(rt.model, size=size, view="front") as renderer:
+        picture = renderer.render().astype(int)
+    xy = camera_view(rt.model, "front", aspect=1.0).project(np.array([fdp["11.1"], fdp["2.1"]]), size)
+    (xf, yf), (xc, yc) = np.round(xy).astype(int)
+    forehead, chin = picture[yf + 3, xf], picture[yc - 3, xc]  # just inside the hairline and the chin
+    assert forehead[1] > forehead[0] + 30 and forehead[1] > forehead[2] + 30, forehead
+    assert chin[2] > chin[0] + 30 and chin[2] > chin[1] + 30, chin
+
+
 def test_play_command_on_a_mesh(template, synthetic, tmp_path):
     mesh, lm, _, _ = synthetic
     out = tmp_path / "out.mp4"

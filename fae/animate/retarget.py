@@ -115,9 +115,11 @@ class TargetMesh:
     path       where it came from (for messages)
     vertices   (n, 3) float64 in the file's frame and unit
     faces      (m, 3) int64
-    uv         (n, 2) float32 texture coordinates, or None when the file has none
+    uv         (n, 2) float32 texture coordinates as in the file (v = 0 at the image's
+               bottom row, OBJ's convention), or None when the file has none
     landmarks  MPEG-4 feature point name -> (3,) in the file's frame and unit
     landmarks_path  the feature points' file (for messages)
+    texture    (H, W, 3) uint8 sRGB colour image of its material, or None
     """
 
     path: str
@@ -126,20 +128,30 @@ class TargetMesh:
     uv: np.ndarray | None
     landmarks: dict[str, np.ndarray]
     landmarks_path: str = "--landmarks"
+    texture: np.ndarray | None = None
 
 
-def _read_uv(path: str, n: int) -> np.ndarray | None:
-    """(n, 2) float32 UVs of the mesh file when it has one per vertex, else None."""
+def _read_surface(path: str, n: int) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The mesh file's texture coordinates (n, 2) float32 as the file has them (v = 0 at the
+    image's bottom row), when it has one per vertex, and its colour texture (H, W, 3) uint8
+    sRGB when its material has one (an OBJ's map_Kd, a glTF's base colour; trimesh packs a
+    file's several materials into one image); None for what it lacks."""
     try:
         import trimesh
 
         loaded = trimesh.load(path, force="mesh", process=False)
-        uv = getattr(getattr(loaded, "visual", None), "uv", None)
-    except Exception:
-        return None
+        visual = getattr(loaded, "visual", None)
+        uv = getattr(visual, "uv", None)
+        material = getattr(visual, "material", None)
+        image = getattr(material, "image", None) or getattr(material, "baseColorTexture", None)
+        texture = None if image is None else np.asarray(image.convert("RGB"), dtype=np.uint8)
+    except Exception:  # a texture that cannot be read leaves the mesh untextured, as one without
+        return None, None
     if uv is None or len(uv) != n:
-        return None
-    return np.asarray(uv, dtype=np.float32)
+        return None, None
+    if texture is not None and (texture.ndim != 3 or min(texture.shape[:2]) < 1):
+        texture = None
+    return np.asarray(uv, dtype=np.float32), texture
 
 
 def read_target(mesh_path: str | os.PathLike, landmarks_path: str | os.PathLike) -> TargetMesh:
@@ -157,7 +169,8 @@ def read_target(mesh_path: str | os.PathLike, landmarks_path: str | os.PathLike)
         landmarks = read_landmarks(landmarks_path, lambda: indexed_vertices(mesh_path, V))
     except (OSError, LandmarkError, ValueError) as exc:
         raise RetargetError(str(exc)) from None
-    return TargetMesh(mesh_path, V, F, _read_uv(mesh_path, len(V)), landmarks, landmarks_path)
+    uv, texture = _read_surface(mesh_path, len(V))
+    return TargetMesh(mesh_path, V, F, uv, landmarks, landmarks_path, texture)
 
 
 def usable_landmarks(template: FaceModel, landmarks: dict[str, np.ndarray]) -> list[str]:
@@ -725,9 +738,13 @@ def retarget(template: FaceModel, target: TargetMesh, say: Callable[[str], None]
     # the target as a FaceModel
     U = np.einsum("kj,kjd->kd", bary, P[TF[face]])
     feature_points, fp_source = _target_feature_points(template, fitted, given, Ys, U, skin_F, skin_region, parts_at)
-    uv = np.zeros((len(skin_index), 2), np.float32) if target.uv is None else target.uv[skin_index]
+    if target.uv is None:
+        uv, texture = np.zeros((len(skin_index), 2), np.float32), None
+    else:  # a FaceModel's v runs down the image from its first row (glTF's way)
+        uv = np.column_stack([target.uv[skin_index, 0], 1.0 - target.uv[skin_index, 1]]).astype(np.float32)
+        texture = target.texture
     model = FaceModel(
-        skin_vertices=Ys, skin_faces=skin_F.astype(np.int32), skin_uv=uv,
+        skin_vertices=Ys, skin_faces=skin_F.astype(np.int32), skin_uv=uv, skin_texture=texture,
         skin_color=np.asarray(template.skin_color, np.float32), skin_mirror=np.arange(len(Ys), dtype=np.int32),
         skin_region=skin_region, region_names=list(template.region_names), skin_thickness=np.zeros(len(Ys)),
         layer_params={},
