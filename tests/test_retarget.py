@@ -140,6 +140,11 @@ def test_synthetic_target_moves_like_the_template(template, synthetic, template_
     assert rt.report["local_scale_median_face"] == pytest.approx(rt.report["fapu_ratio"], rel=0.1)
     assert set(rt.model.parts) == {"eye_l", "eye_r"}  # the eyeballs, found as separate pieces
     assert rt.model.parts["eye_l"].bone == "eye_l"
+    # an untextured target's eyeballs wear the template's iris and pupil (they stared white)
+    colors, own = rt.model.parts["eye_l"].vertex_colors, template.parts["eye_l"].vertex_colors
+    assert colors is not None
+    dark = lambda c: float(np.mean(c[:, :3].max(axis=1) < 0.05))  # noqa: E731
+    assert dark(colors) == pytest.approx(dark(own), rel=0.2) and dark(own) > 0.0
     # its face folds over 0.016 % of its area (0.093 % before the lids unfolded their
     # crease, the skin's strain was limited and crease moves became inelastic), the
     # template's 0.0001 % (0.080 %): a floor of 0.05 % keeps the bound meaningful
@@ -267,6 +272,9 @@ def test_a_textured_mesh_plays_in_its_own_texture(template, tmp_path):
                     visual=trimesh.visual.TextureVisuals(uv=uv, image=Image.fromarray(image))).export(textured)
     rt = retarget(template, read_target(textured, lm))
     assert rt.model.skin_texture is not None and rt.model.skin_texture.shape == (64, 64, 3)
+    for eye in ("eye_l", "eye_r"):  # the eyeballs in the texture too (green or blue, never the template's white)
+        colors = rt.model.parts[eye].vertex_colors
+        assert colors is not None and colors[:, 0].max() < 0.05 and (colors[:, 1:3].max(axis=1) > 0.3).all()
     fdp = rt.model.feature_point_positions()
     size = (200, 200)
     with FaceRenderer(rt.model, size=size, view="front") as renderer:

@@ -86,7 +86,7 @@ def outline_weight(outline: np.ndarray, image_size: tuple[int, int], feather_px:
     return 0.5 - 0.5 * np.cos(np.pi * x)
 
 
-def _bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+def bilinear_samples(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """(k, C) float samples of image (H, W, C) at pixel coordinates x, y (k,) (pixel
     centres at +0.5), clamped at the border."""
     from scipy.ndimage import map_coordinates
@@ -172,7 +172,7 @@ def photo_texture(V: np.ndarray, N: np.ndarray, uv: np.ndarray, to_photo: np.nda
     on_image = (q[:, 0] >= 0) & (q[:, 0] < iw) & (q[:, 1] >= 0) & (q[:, 1] < ih)
     edge = np.where(on_image, ow[py, px], 0.0)
     w *= edge
-    colour = _bilinear(image, q[:, 0], q[:, 1])
+    colour = bilinear_samples(image, q[:, 0], q[:, 1])
     # in the outline's soft border the photo often shows hair, a hat's brim or background:
     # there a colour far from the face's own counts less (inside, brows and lips keep theirs)
     core = (edge >= 1.0) & (w > 0.5)

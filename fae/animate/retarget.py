@@ -601,6 +601,26 @@ def facing_against(Y: np.ndarray, F: np.ndarray, X: np.ndarray, XF: np.ndarray, 
     return float(np.mean(np.einsum("ij,ij->i", skin, own) < 0.0))
 
 
+def part_colors(target: TargetMesh, index: np.ndarray, V: np.ndarray, template_part: Part) -> np.ndarray | None:
+    """(k, 4) float32 linear RGBA vertex colours of a rigid part of the target: its vertices
+    `index` (k,), at V (k, 3) in the face frame, sit on the fitted head's `template_part`.
+    Sampled from the target's own texture where it has one (an eyeball's iris is painted
+    on it), else the nearest vertex's colour of the template's part (its iris and pupil;
+    an eyeball drawn in one colour stared white); None when neither has colours."""
+    if target.texture is not None and target.uv is not None:
+        from fae.adapt.texture import bilinear_samples
+
+        H, W = target.texture.shape[:2]
+        uv = np.mod(target.uv[index], 1.0)  # tiled coordinates wrap, as a viewer draws them
+        srgb = bilinear_samples(target.texture, uv[:, 0] * W, (1.0 - uv[:, 1]) * H) / 255.0
+        return np.column_stack([srgb ** 2.2, np.ones(len(index))]).astype(np.float32)  # the renderer's gamma
+    if template_part.vertex_colors is None:
+        return None
+    from scipy.spatial import cKDTree
+
+    return np.asarray(template_part.vertex_colors, np.float32)[cKDTree(template_part.vertices).query(V)[1]]
+
+
 def skin_pieces(V: np.ndarray, F: np.ndarray, label: np.ndarray, points: np.ndarray) -> np.ndarray:
     """(c,) bool over the connected pieces `label` (n,) of mesh V (n, 3), F (m, 3): the skin
     to fit. The face is the piece that most of the feature points `points` (k, 3) lie
@@ -749,7 +769,8 @@ def retarget(template: FaceModel, target: TargetMesh, say: Callable[[str], None]
         skin_region=skin_region, region_names=list(template.region_names), skin_thickness=np.zeros(len(Ys)),
         layer_params={},
         parts={k: Part(vertices=v, faces=f.astype(np.int32), color=np.asarray(fitted.parts[src].color, np.float32),
-                       bone=part_bone[k]) for k, (src, v, f) in parts_at.items()},
+                       bone=part_bone[k], vertex_colors=part_colors(target, part_index[k], v, fitted.parts[src]))
+               for k, (src, v, f) in parts_at.items()},
         jaw_pivot=np.asarray(fitted.jaw_pivot, np.float64), jaw_axis=np.asarray(fitted.jaw_axis, np.float64),
         eye_centers={k: np.asarray(v, np.float64) for k, v in fitted.eye_centers.items()},
         feature_points=feature_points, muscles=[], scan_transform=np.asarray(fitted.scan_transform),
