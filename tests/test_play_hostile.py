@@ -3,6 +3,7 @@ SIGTERM/SIGINT/SIGKILL mid-run, an output folder that takes no files. Every wait
 
 from __future__ import annotations
 
+import errno
 import os
 import signal
 import subprocess
@@ -13,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from fae.cli import main
-from fae.io.atomic import atomic_path, sweep_stale
+from fae.io.atomic import OutputError, atomic_path, sweep_stale
 
 REPO = Path(__file__).resolve().parents[1]
 LONG_STREAM = REPO / "fap_streams" / "all_faps_sweep.fap"  # 1,656 frames: long enough to interrupt
@@ -179,11 +180,14 @@ def test_the_readers_warnings_are_shown(tmp_path):
 
 @pytest.mark.parametrize("args, expected", [
     (["render", "-o", "x.png", "--size", "5800x5800", "--supersample", "4"], "too large"),
+    (["render", "-o", "x.png", "--size", "100x6000", "--supersample", "8"], "at most 16384 pixels a side"),
+    (["play", str(SHORT_STREAM), "-o", "x.mp4", "--size", "8192x100", "--supersample", "3"], "at most 16384 pixels"),
     (["play", str(SHORT_STREAM), "-o", "x.mp4", "--fps", "0.0001"], "--fps 0.0001: expected a frame rate in"),
     (["bake", "-o", "x.glb", "--faps", "3-300000000"], "expected FAP numbers (1-68)"),
 ])
 def test_settings_out_of_reach_are_one_line_naming_them(tmp_path, capsys, monkeypatch, args, expected):
-    """A 23200x23200 render killed the process (SIGSEGV); a rate of 0.0001 frames/s reached
+    """A 23200x23200 render killed the process (SIGSEGV), and any side past 16384 drew a
+    squashed head (exit 0) or died at 65536; a rate of 0.0001 frames/s reached
     ffmpeg as 0/1 (exit 1); a typo'd range of FAPs built a list of 300 million."""
     monkeypatch.chdir(tmp_path)
     assert main(args) == 2
@@ -230,3 +234,30 @@ def test_a_render_that_runs_out_of_memory_is_one_line_and_writes_nothing(tmp_pat
     err = capsys.readouterr().err.strip().splitlines()
     assert err[-1].startswith(f"fae {command}: --size 4096x4096 with --supersample 2: not enough memory")
     assert not out.exists() and "Traceback" not in "\n".join(err)
+
+
+def test_a_full_disk_names_the_output_and_leaves_nothing(tmp_path):
+    """A write that fails for want of space said only "[Errno 28] No space left on device"
+    (fae export) or ended in a traceback (fae render): which file it was is the message."""
+    with pytest.raises(OutputError, match=r"out\.glb: cannot be written \(No space left on device\)"):
+        with atomic_path(tmp_path / "out.glb") as tmp:
+            tmp.write_bytes(b"half")
+            raise OSError(errno.ENOSPC, "No space left on device")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_render_on_a_full_disk_is_one_line_and_sweeps_dead_temporaries(tmp_path, capsys, monkeypatch):
+    from PIL import Image
+
+    stale = tmp_path / f".x.png.{2**22 + 7}.k3j9_x0q.png"  # a killed render's, no such process
+    stale.write_bytes(b"half written")
+
+    def full(self, *args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(Image.Image, "save", full)
+    out = tmp_path / "x.png"
+    assert main(["render", "-o", str(out), "--size", "64x48"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"{out}: cannot be written (No space left on device)" in err
+    assert list(tmp_path.iterdir()) == []  # nothing half-written, and the dead render's temporary swept

@@ -28,7 +28,7 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from fae.io.frames import MIN_FPS
+from fae.io.fap import MIN_FPS
 
 COLUMNS = ("stream", "head", "view", "size", "fps", "output")
 MAX_SIDE = 8192

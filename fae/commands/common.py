@@ -70,7 +70,7 @@ def output_problem(path: str, suffix: str | None = None) -> str | None:
 
 def timing_problem(fps: float | None, max_hold: float | None = None) -> str | None:
     """Why --fps (frames/s, None: the stream's own) or --max-hold (seconds) cannot be used."""
-    from fae.io.frames import MIN_FPS
+    from fae.io.fap import MIN_FPS
 
     if fps is not None and not (MIN_FPS <= fps <= 1000):
         return f"--fps {fps:g}: expected a frame rate in [{MIN_FPS:g}, 1000]"
@@ -80,14 +80,16 @@ def timing_problem(fps: float | None, max_hold: float | None = None) -> str | No
 
 
 def render_size_problem(size: tuple[int, int], supersample: int) -> str | None:
-    """Why an image of `size` rendered at `supersample` x that size cannot be drawn: its
-    buffer (4 bytes a pixel) must stay under 2 GiB (OpenGL's limit: past it, the process
-    died)."""
+    """Why an image of `size` rendered at `supersample` x that size cannot be drawn: a side
+    past MAX_RENDER_SIDE (which also keeps its buffer, 4 bytes a pixel, under OpenGL's 2 GiB,
+    past which the process died)."""
+    from fae.render.framing import MAX_RENDER_SIDE
+
     width, height = size
-    if width * supersample * height * supersample * 4 >= 2**31:
+    if max(width, height) * supersample > MAX_RENDER_SIDE:
         return (f"--size {width}x{height} with --supersample {supersample}: the image rendered "
-                f"({width * supersample}x{height * supersample}) is too large; expected at most 2 GiB of pixels "
-                "(a smaller --size or --supersample)")
+                f"({width * supersample}x{height * supersample}) is too large; expected at most {MAX_RENDER_SIDE} "
+                "pixels a side (a smaller --size or --supersample)")
     return None
 
 

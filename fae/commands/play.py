@@ -21,7 +21,7 @@ from pathlib import Path
 from fae.commands.common import (add_device_argument, add_view_arguments, fail, load_head, memory_message,
                                  output_problem, overwritten_input, render_size_problem, timing_problem,
                                  video_size_problem, warp_device)
-from fae.io.frames import MAX_HOLD_SECONDS, MIN_FPS
+from fae.io.frames import MAX_HOLD_SECONDS
 
 
 def register(subparsers) -> None:
@@ -110,10 +110,7 @@ def run(args: argparse.Namespace) -> int:
     from fae.render.renderer import FaceRenderer
     from fae.render.video import VideoError
 
-    fps = float(args.fps) if args.fps else float(stream.header.fps)
-    if fps < MIN_FPS:
-        return fail("play", f"{args.stream}: {fps:g} frames/s in its header; expected at least {MIN_FPS:g} "
-                    "(--fps N plays it at another rate)")
+    fps = float(args.fps) if args.fps else float(stream.header.fps)  # the reader keeps a header's rate >= MIN_FPS
     if args.engine == "fdt":
         from fae.animate.bake import has_baked_tables
 

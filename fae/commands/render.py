@@ -40,8 +40,10 @@ def run(args: argparse.Namespace) -> int:
         with FaceRenderer(model, size=args.size, view=args.view, supersample=args.supersample,
                           show_bones=args.show_bones) as renderer:
             image = renderer.render()
-        write_png(args.output, image)
+        write_png(args.output, image, sweep=True)
     except MemoryError:  # a large render holds about five copies of its pixels (8192x8192 x2: 10 GB)
         return fail("render", memory_message(args.size, args.supersample))
+    except OSError as exc:  # the output refused (a full disk): OutputError names the file
+        return fail("render", str(exc))
     print(f"{args.output}: {head.name}, {args.view} view, {args.size[0]}x{args.size[1]}", file=sys.stderr)
     return 0

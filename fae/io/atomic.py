@@ -10,12 +10,16 @@ writer, named by PID, is no longer running.
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import re
 import shutil
 import tempfile
 from pathlib import Path
 from typing import Iterator
+
+
+_WRITE_FAILED = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EIO)
 
 
 class OutputError(OSError):
@@ -104,7 +108,12 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None, sweep: bool 
         umask = os.umask(0)
         os.umask(umask)
         os.chmod(tmp_path, 0o666 & ~umask)
-        yield tmp_path
+        try:
+            yield tmp_path
+        except OSError as exc:  # a full disk says nothing of which file: name the output
+            if isinstance(exc, OutputError) or not (exc.errno in _WRITE_FAILED or exc.filename in (tmp, tmp_path)):
+                raise
+            raise OutputError(f"{target}: cannot be written ({exc.strerror or exc})") from None
         try:
             os.replace(tmp_path, target)
         except OSError as exc:  # a folder where the file should go: name the file, not the temporary one

@@ -70,6 +70,7 @@ SUPPORTED_VERSIONS = ("2.0", "2.1", "2.2")
 WRITE_VERSION = "2.1"
 MAX_LINE_BYTES = 1 << 16  # a values line of 68 FAPs needs ~1 KiB; anything far longer is not a .fap
 _MAX_FPS = 10_000.0
+MIN_FPS = 0.001  # frames/s played or recorded: a video's rate is a fraction whose denominator is at most 1001
 _MAX_NUMBER = 1e15  # larger frame numbers or counts are not real streams (and lose integer precision)
 _VISEME_TOKENS = 4
 _EXPRESSION_TOKENS = 6
@@ -108,7 +109,7 @@ class FapHeader:
 
     version               as written (``"2.0" | "2.1" | "2.2"``)
     name                  free text (may hold spaces; "" when absent)
-    fps                   frames per second, > 0
+    fps                   frames per second, in [MIN_FPS, 10000]
     declared_frame_count  the count the header claims (the body may differ)
     """
 
@@ -261,8 +262,8 @@ class FapParser:
         if version not in SUPPORTED_VERSIONS:
             raise self._error(line, version, f"a .fap version ({', '.join(SUPPORTED_VERSIONS)})")
         fps = self._number(tokens[-2], line, "frames per second")
-        if not 0.0 < fps <= _MAX_FPS:
-            raise self._error(line, tokens[-2], f"frames per second > 0 and <= {_MAX_FPS:g}")
+        if not MIN_FPS <= fps <= _MAX_FPS:  # 1e-300 played for ever and overflowed a glTF's key times
+            raise self._error(line, tokens[-2], f"frames per second in [{MIN_FPS:g}, {_MAX_FPS:g}]")
         count = self._integer(tokens[-1], line, "the declared frame count", 0, _MAX_NUMBER)
         if len(tokens) == 3:
             name = ""

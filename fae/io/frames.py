@@ -47,7 +47,6 @@ from fae.mpeg4.highlevel import Expression, Viseme
 
 __all__ = ["DenseFrame", "FrameState", "DenseFrames", "dense_frames", "MAX_HOLD_SECONDS"]
 
-MIN_FPS = 0.001  # frames/s played or recorded: a video's rate is a fraction whose denominator is at most 1001
 MAX_HOLD_SECONDS = 60.0  # longest hold played by default (a pause in speech is seconds)
 
 

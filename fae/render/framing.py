@@ -23,6 +23,10 @@ _HEAD_DEPTH_PER_HEIGHT = 0.85  # nose tip to back of skull / head height
 _PIVOT_BEHIND_EYES_PER_ES = 1.2  # centre of the skull behind the pupils / ES0
 
 
+# The largest side, in pixels, of an image drawn in one pass (OSMesa's viewport: past it the
+# picture was cut to 16384 px without an error, the head squashed; at 65536 the process died)
+MAX_RENDER_SIDE = 16384
+
 @dataclass
 class CameraView:
     """A perspective camera looking at the head.

@@ -41,7 +41,7 @@ import numpy as np  # noqa: E402
 from OpenGL import GL  # noqa: E402
 
 from fae.io.facemodel import FaceModel, Part  # noqa: E402
-from fae.render.framing import VIEWS, CameraView, camera_view, head_frame  # noqa: E402
+from fae.render.framing import MAX_RENDER_SIDE, VIEWS, CameraView, camera_view, head_frame  # noqa: E402
 from fae.mesh import wrapped_seam  # noqa: E402
 from fae.render.normals import per_vertex_normals  # noqa: E402
 
@@ -359,6 +359,9 @@ class FaceRenderer:
         self.view = view
         self.show_bones = bool(show_bones)
         self._vw, self._vh = width * self.supersample, height * self.supersample
+        if max(self._vw, self._vh) > MAX_RENDER_SIDE:
+            raise ValueError(f"image size {width}x{height} at supersample {self.supersample} is drawn "
+                             f"{self._vw}x{self._vh}: expected at most {MAX_RENDER_SIDE} pixels a side")
         self.camera: CameraView = camera_view(model, view, aspect=width / height) if camera is None else camera
         self._background = tuple(float(c) for c in bg[:3])
 
