@@ -286,6 +286,35 @@ def test_a_textured_mesh_plays_in_its_own_texture(template, tmp_path):
     assert chin[2] > chin[0] + 30 and chin[2] > chin[1] + 30, chin
 
 
+def test_vertices_no_triangle_uses_are_left_alone(template, tmp_path):
+    """A PLY keeps vertices no face uses: one behind the lips was taken for a piece of teeth
+    without a triangle and the process died (a BVH of nothing); thousands at one point asked
+    the welding for every pair of them (killed for memory)."""
+    import trimesh
+
+    mesh, lm, T = make_target(template, tmp_path)
+    head = trimesh.load(mesh, process=False, force="mesh")
+    behind_lips = apply_transform(T, (template.feature_point_positions()["8.1"] + [0.0, -0.005, -0.012])[None])
+    stacked = np.repeat(head.vertices.mean(axis=0)[None], 3000, axis=0)
+    ply = tmp_path / "with_loose_vertices.ply"
+    trimesh.Trimesh(np.vstack([head.vertices, behind_lips, stacked]), head.faces, process=False).export(ply)
+    rt = retarget(template, read_target(ply, lm))
+    assert set(rt.model.parts) == {"eye_l", "eye_r"}
+    values = np.zeros(68)
+    values[2] = 500  # open_jaw
+    assert np.isfinite(RetargetPlayer(rt, Player(playable_head(template))).step(values)).all()
+
+
+def test_close_pairs_join_copies_without_pairing_them_all():
+    from fae.mesh import close_pairs, coincident_groups
+
+    V = np.vstack([np.zeros((5000, 3)), [[1.0, 0, 0], [1.0, 0, 1e-9], [2.0, 0, 0]]])
+    pairs = close_pairs(V, 1e-7)
+    assert len(pairs) == 5000  # 4,999 copies to the first, and the two points 1e-9 apart
+    k, label = coincident_groups(V, 1e-7)
+    assert k == 3 and len(set(label[:5000])) == 1 and label[5000] == label[5001] != label[5002]
+
+
 def test_play_command_on_a_mesh(template, synthetic, tmp_path):
     mesh, lm, _, _ = synthetic
     out = tmp_path / "out.mp4"

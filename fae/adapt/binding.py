@@ -221,12 +221,13 @@ def welded_components(V: np.ndarray, F: np.ndarray, tol: float = 1e-9) -> np.nda
     vertices closer than `tol` (V's unit, relative to the mesh's size) counted as one: texture
     seams split a surface's vertices without making it two pieces."""
     from scipy.sparse.csgraph import connected_components
-    from scipy.spatial import cKDTree
+
+    from fae.mesh import close_pairs
 
     V = np.asarray(V, dtype=np.float64)
     n = len(V)
     size = float(np.max(np.ptp(V, axis=0))) if n else 1.0
-    pairs = cKDTree(V).query_pairs(tol * max(size, 1e-300), output_type="ndarray")
+    pairs = close_pairs(V, tol * max(size, 1e-300))
     E = np.asarray(F, dtype=np.int64)
     rows = np.concatenate([E[:, 0], E[:, 1], E[:, 2], pairs[:, 0]])
     cols = np.concatenate([E[:, 1], E[:, 2], E[:, 0], pairs[:, 1]])

@@ -119,6 +119,8 @@ class MeshQuery:
         init_warp()
         self.V = np.asarray(V, dtype=np.float64)
         self.F = np.asarray(F, dtype=np.int32)
+        if self.F.size == 0 or len(self.V) == 0:  # Warp's BVH of nothing crashed the process when queried
+            raise ValueError("MeshQuery: a mesh without triangles has no surface to query")
         self._points = wp.array(self.V.astype(np.float32), dtype=wp.vec3, device="cpu")
         self._indices = wp.array(self.F.reshape(-1), dtype=wp.int32, device="cpu")
         self._mesh = wp.Mesh(points=self._points, indices=self._indices)

@@ -708,6 +708,8 @@ def retarget(template: FaceModel, target: TargetMesh, say: Callable[[str], None]
     queries = {p: MeshQuery(*fitted.mesh(p)) for p in RIGID_PARTS if p in fitted.parts}
     for c in np.unique(label[candidate]):
         members = label == c
+        if not members[F].all(axis=1).any():  # vertices no triangle uses (a PLY keeps them): nothing to draw
+            continue
         Yc = Y[members]
         size = float(np.linalg.norm(np.ptp(Yc, axis=0)))
         best, best_d = None, np.inf
