@@ -324,7 +324,8 @@ def test_play_command_on_a_mesh(template, synthetic, tmp_path):
     assert out.stat().st_size > 0
 
 
-@pytest.mark.parametrize("case", ["no_landmarks", "few_landmarks", "bad_mesh", "missing_landmarks"])
+@pytest.mark.parametrize("case", ["no_landmarks", "few_landmarks", "bad_mesh", "missing_landmarks", "another_unit",
+                                  "flat_mesh"])
 def test_bad_input_exits_2(template, synthetic, tmp_path, case):
     mesh, lm, _, _ = synthetic
     args = ["--head", str(mesh), "--landmarks", str(lm)]
@@ -341,6 +342,20 @@ def test_bad_input_exits_2(template, synthetic, tmp_path, case):
         bad.write_text("this is not a mesh\n")
         args[1] = str(bad)
         expected = "bad.obj"
+    elif case == "another_unit":  # a million times the mesh's unit: the fit's pose shrank the mesh to a point
+        far = tmp_path / "km.csv"
+        far.write_text("".join(f"{r[0]},{float(r[1]) * 1e6},{float(r[2]) * 1e6},{float(r[3]) * 1e6}\n"
+                               for r in (line.split(",") for line in lm.read_text().splitlines())))
+        args[3] = str(far)
+        expected = "km.csv: the feature points lie"
+    elif case == "flat_mesh":
+        import trimesh
+
+        flat = trimesh.load(mesh, process=False, force="mesh")
+        flat.vertices[:, 2] = 0.0
+        args[1] = str(tmp_path / "flat.obj")
+        flat.export(args[1])
+        expected = "flat.obj: the mesh is flat"
     else:
         args[3] = str(tmp_path / "nowhere.csv")
         expected = "nowhere.csv"

@@ -90,10 +90,17 @@ def run(args: argparse.Namespace) -> int:
         return fail("play", str(exc))
     if args.landmarks:
         from fae.animate.retarget import RetargetError, read_target, retarget
+        from fae.commands.adapt_checks import landmark_problem, scan_problem
 
         try:
-            retargeted = retarget(template, read_target(args.head, args.landmarks),
-                                  say=lambda msg: print(f"fae play: {msg}", file=sys.stderr))
+            target = read_target(args.head, args.landmarks)
+            # as fae adapt checks a scan: a mesh without area, or points in another unit (a
+            # million times the mesh's shrank it to a point before the fit could say so)
+            problem = (scan_problem(target.vertices, target.faces, args.head)
+                       or landmark_problem(target.vertices, target.landmarks, args.landmarks, args.head))
+            if problem:
+                return fail("play", problem)
+            retargeted = retarget(template, target, say=lambda msg: print(f"fae play: {msg}", file=sys.stderr))
         except RetargetError as exc:
             return fail("play", str(exc))
         verdict = retargeted.report["fit"].get("verdict") or []
