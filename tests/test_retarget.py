@@ -195,7 +195,8 @@ def test_eyes_follow_the_gaze(template, synthetic):
 
 def test_a_separate_hat_turns_with_the_head(template, tmp_path):
     """A piece the template does not reach (a hat, a bun of hair standing off the scalp)
-    turns with the head as one body: it stayed where it was while the head turned under it."""
+    turns with the head as one body: it stayed where it was while the head turned under it.
+    A piece that does not touch the head (a prop 30 cm beside it) stays put."""
     import trimesh
 
     mesh, lm, T = make_target(template, tmp_path)
@@ -203,12 +204,17 @@ def test_a_separate_hat_turns_with_the_head(template, tmp_path):
     top = apply_transform(T, np.array([[0.0, template.skin_vertices[:, 1].max() + 0.03, -0.02]]))[0]
     hat = trimesh.creation.icosphere(subdivisions=2, radius=30.0)  # mm, 3 cm above the crown
     hat.apply_translation(top)
+    prop = trimesh.creation.icosphere(subdivisions=2, radius=30.0)  # beside the head, touching nothing
+    prop.apply_translation(top + [300.0, 0.0, 0.0])
     both = tmp_path / "with_hat.obj"
-    trimesh.Trimesh(np.vstack([head.vertices, hat.vertices]), np.vstack([head.faces, hat.faces + len(head.vertices)]),
+    trimesh.Trimesh(np.vstack([head.vertices, hat.vertices, prop.vertices]),
+                    np.vstack([head.faces, hat.faces + len(head.vertices), prop.faces + len(head.vertices) + len(hat.vertices)]),
                     process=False).export(both)
     rt = retarget(template, read_target(both, lm))
-    on_hat = np.isin(rt.skin_index, np.arange(len(head.vertices), len(head.vertices) + len(hat.vertices)))
-    assert on_hat.sum() == len(hat.vertices)  # skin, not taken for an eye
+    first = len(head.vertices)
+    on_hat = np.isin(rt.skin_index, np.arange(first, first + len(hat.vertices)))
+    on_prop = np.isin(rt.skin_index, np.arange(first + len(hat.vertices), first + len(hat.vertices) + len(prop.vertices)))
+    assert on_hat.sum() == len(hat.vertices) and on_prop.sum() == len(prop.vertices)  # skin, not taken for eyes
     player = RetargetPlayer(rt, Player(playable_head(template)))
     values = np.zeros(68)
     values[48] = 10000  # head_yaw: 0.1 rad
@@ -219,6 +225,7 @@ def test_a_separate_hat_turns_with_the_head(template, tmp_path):
     assert np.degrees(np.arccos((np.trace(H[:3, :3]) - 1) / 2)) > 4.0  # the head did turn
     off = np.linalg.norm(skin[on_hat] - (rest @ H[:3, :3].T + H[:3, 3]), axis=1)
     assert off.max() < 1e-4, off.max()  # as one body with the head (it stayed put: 1.5 cm off)
+    assert np.abs(skin[on_prop] - rt.model.skin_vertices[on_prop]).max() < 1e-9  # the prop stays put (it swung 2 cm)
 
 
 def test_eyes_meshed_finer_than_the_head_are_still_eyes(template, tmp_path):

@@ -102,6 +102,7 @@ SETTLE_FRAMES = 30  # frames of 1/25 s to settle each (within 1 % of verify-faps
 SETTLE_THREADS = 4  # at most, settling side by side
 NECK_FADE = (0.02, 0.09)  # metres below the chin (2.1) where the head pose starts and ends fading out
 ABOVE_CHIN = (0.0, 0.02)  # metres below the chin over which the head pose of what the fit does not reach fades out
+PIECE_REACH = 0.03  # metres: a piece that comes this close to the fitted skin sits on the head (a hat) and turns with it
 
 
 class RetargetError(ValueError):
@@ -196,7 +197,8 @@ class Retarget:
                    carried motion's magnitude to the target's FAPU (fapu_gain_field)
     head_weight    (k,) in [0, 1]: how fully each skin vertex turns with the head pose: the
                    coverage, and fully above the chin (2.1; fading over ABOVE_CHIN below it)
-                   wherever the coverage is less (a hat, hair off the scalp), fading down
+                   wherever the coverage is less on a piece that touches the head (a hat,
+                   hair off the scalp; PIECE_REACH), fading down
                    the neck (NECK_FADE below the chin) so that a bust's shoulders and chest
                    stay put
     anchors        bone -> ((3,) template point, (3,) target point) its poses are re-anchored at
@@ -816,8 +818,12 @@ def retarget(template: FaceModel, target: TargetMesh, say: Callable[[str], None]
     neck = coverage_weights(chin - Ys[:, 1], *NECK_FADE)
     # what the template does not reach above the chin (a hat, hair standing off the scalp, a
     # wreath's leaves) turns with the head as one body: held by its coverage alone, it stayed
-    # put while the head turned under it
-    above = coverage_weights(chin - Ys[:, 1], *ABOVE_CHIN)
+    # put while the head turned under it. Only on pieces that touch the head (within
+    # PIECE_REACH of the fitted skin): a second head or a prop beside it swung with this one
+    piece = label[skin_index]
+    nearest = np.full(int(label.max()) + 1, np.inf)
+    np.minimum.at(nearest, piece, dist)
+    above = coverage_weights(chin - Ys[:, 1], *ABOVE_CHIN) * (nearest[piece] <= PIECE_REACH)
     rt = Retarget(model=model, skin_index=skin_index, head_weight=np.maximum(coverage, above) * neck, part_index=part_index, used=used,
                   frame_transform=np.ascontiguousarray(Tv[used]), gather=G, coverage=coverage,
                   anchors=anchors, scale=ratio, report=report, vertex_count=n, normal_groups=seams)
