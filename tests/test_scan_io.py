@@ -26,6 +26,8 @@ def test_json_coordinates_and_vertex_indices(tmp_path):
     ({"9.3": [1, 2]}, "9.3"),
     ({"nose": [1, 2, 3]}, "nose"),
     ({"3.7": 99}, "3.7"),
+    ({"9.3": [1, 2, "abc"]}, "9.3"),  # numpy's "could not convert string to float" named neither
+    ({"9.3": [1, 2, [3]]}, "9.3"),
 ])
 def test_json_errors_name_the_field(tmp_path, content, field):
     p = tmp_path / "bad.json"
@@ -134,6 +136,8 @@ def test_a_face_naming_a_missing_vertex_is_refused_by_the_reader(tmp_path):
 
 @pytest.mark.parametrize("name, text, expected", [
     ("bom.csv", "\ufeff9.3,1,2,3\n3.7,4,5,6\n", None),
+    ("label.csv", "label,x,y,z\n9.3,1,2,3\n", None),  # any header naming x, y, z (only name/fdp/point were)
+    ("id.csv", "id,X,Y,Z\n9.3,1,2,3\n", None),
     ("bom.json", "\ufeff" + json.dumps({"9.3": [1, 2, 3]}), None),
     ("comments.csv", "# my points\n\n# more\n9.3,1,2,x\n", r"comments.csv: line 4: x, y, z must be numbers"),
     ("dup.csv", "9.3,1,2,3\n3.7,4,5,6\n9.3,7,8,9\n", r"dup.csv: line 3: feature point 9.3 is given twice \(first on line 1\)"),

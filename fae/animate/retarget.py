@@ -696,10 +696,11 @@ def retarget(template: FaceModel, target: TargetMesh, say: Callable[[str], None]
     for line in fit_report.get("verdict", []):
         say(f"warning: the template's fit to {target.path}: {line}")
     kept = list(fit_report.get("landmarks_used", names))
-    if len(kept) < MIN_FEATURE_POINTS:  # the fit set aside points that disagree with the others
+    if len(kept) < MIN_FEATURE_POINTS:  # the fit set aside points that disagree with the others or lie off the mesh
         raise RetargetError(
-            f"{target.landmarks_path}: {len(kept)} feature points agree with each other "
-            f"({', '.join(sorted(set(names) - set(kept)))} set aside); at least {MIN_FEATURE_POINTS} expected")
+            f"{target.landmarks_path}: {len(kept)} feature points are usable "
+            f"({', '.join(sorted(set(names) - set(kept)))} set aside: they disagree with the others or lie off the "
+            f"mesh, as said above); at least {MIN_FEATURE_POINTS} expected")
     T = np.linalg.inv(fitted.scan_transform)
     Y = apply_transform(T, V)
 

@@ -169,7 +169,10 @@ def _point(value, name: str, source: str, vertices: Callable[[], np.ndarray | No
         if not 0 <= value < len(vertices):
             raise LandmarkError(f"{source}: field {name!r}: vertex index {value} outside 0..{len(vertices) - 1}")
         return np.asarray(vertices[value], dtype=np.float64)
-    arr = np.asarray(value, dtype=np.float64) if isinstance(value, (list, tuple)) else None
+    try:  # a string or a list inside the list is no coordinate (numpy's own words named neither file nor field)
+        arr = np.asarray(value, dtype=np.float64) if isinstance(value, (list, tuple)) else None
+    except (TypeError, ValueError):
+        arr = None
     if arr is None or arr.shape != (3,) or not np.all(np.isfinite(arr)):
         raise LandmarkError(f"{source}: field {name!r}: expected [x, y, z] (3 finite numbers) or a vertex index, got {value!r}")
     return arr
@@ -264,7 +267,8 @@ def _read_landmarks(path: str, vertices: Callable[[], np.ndarray | None]) -> dic
             reader = csv.reader(fh)
             rows = [(reader.line_num, r) for r in reader if r and any(c.strip() for c in r)
                     and not r[0].lstrip().startswith("#")]
-        if rows and rows[0][1][0].strip().lower() in _CSV_HEADERS:  # a header row
+        if rows and (rows[0][1][0].strip().lower() in _CSV_HEADERS  # a header row: a name's column, or x, y, z
+                     or [c.strip().lower() for c in rows[0][1][-3:]] == ["x", "y", "z"]):
             rows = rows[1:]
         if rows and all(len(r) == 3 for _, r in rows):
             try:
