@@ -279,9 +279,10 @@ def test_a_textured_mesh_plays_in_its_own_texture(template, tmp_path):
                     visual=trimesh.visual.TextureVisuals(uv=uv, image=Image.fromarray(image))).export(textured)
     rt = retarget(template, read_target(textured, lm))
     assert rt.model.skin_texture is not None and rt.model.skin_texture.shape == (64, 64, 3)
-    for eye in ("eye_l", "eye_r"):  # the eyeballs in the texture too (green or blue, never the template's white)
+    for eye in ("eye_l", "eye_r"):  # the eyeballs in the texture too: above the middle, green (not the template's white)
         colors = rt.model.parts[eye].vertex_colors
-        assert colors is not None and colors[:, 0].max() < 0.05 and (colors[:, 1:3].max(axis=1) > 0.3).all()
+        assert colors is not None and colors[:, 0].max() < 0.05 and (colors[:, 1] > colors[:, 2] + 0.3).all()
+        assert np.allclose(rt.model.parts[eye].color, np.median(colors, axis=0))  # its white is its own
     fdp = rt.model.feature_point_positions()
     size = (200, 200)
     with FaceRenderer(rt.model, size=size, view="front") as renderer:
@@ -295,8 +296,9 @@ def test_a_textured_mesh_plays_in_its_own_texture(template, tmp_path):
 
 def test_vertices_no_triangle_uses_are_left_alone(template, tmp_path):
     """A PLY keeps vertices no face uses: one behind the lips was taken for a piece of teeth
-    without a triangle and the process died (a BVH of nothing); thousands at one point asked
-    the welding for every pair of them (killed for memory)."""
+    without a triangle and the process died (a BVH of nothing); thousands at one point are
+    joined without pairing them all (40,000 asked for 800 million pairs and the process was
+    killed for memory: test_close_pairs_join_copies_without_pairing_them_all)."""
     import trimesh
 
     mesh, lm, T = make_target(template, tmp_path)
@@ -424,6 +426,29 @@ def test_a_feature_point_off_the_mesh_is_left_out(template, tmp_path):
     rt = retarget(template, target, say=said.append)
     assert any(line.startswith("ignored feature point 9.3:") and "mm off" in line for line in said), said
     assert "9.3" not in rt.report["landmarks_used"] and len(rt.report["landmarks_used"]) >= 60
+
+
+def test_a_point_on_a_separate_piece_lies_on_the_mesh(template, tmp_path):
+    """The fit sees only a mesh's skin pieces; a feature point on a smaller piece of it (an
+    ear modelled apart) lies on the mesh all the same, and was dropped as 'off' it."""
+    import trimesh
+
+    mesh, lm, T = make_target(template, tmp_path)
+    head = trimesh.load(mesh, process=False, force="mesh")
+    target = read_target(mesh, lm)
+    p = target.landmarks["10.9"]
+    outward = np.sign(p[0] - head.vertices[:, 0].mean()) * np.array([1.0, 0.0, 0.0])
+    ear = trimesh.creation.icosphere(subdivisions=3, radius=5.0)  # mm
+    ear.apply_translation(p + 10.0 * outward)
+    apart = tmp_path / "ear_apart.obj"
+    trimesh.Trimesh(np.vstack([head.vertices, ear.vertices]), np.vstack([head.faces, ear.faces + len(head.vertices)]),
+                    process=False).export(apart)
+    target = read_target(apart, lm)
+    target.landmarks["10.9"] = p + 15.0 * outward  # on the piece's outer side
+    said = []
+    rt = retarget(template, target, say=said.append)
+    assert not any("10.9" in line for line in said), said
+    assert "10.9" in rt.report["landmarks_used"]
 
 
 def test_too_few_points_raise(template, tmp_path):

@@ -35,8 +35,10 @@ output of the last:
 3. No fold, no tear: a round's step may not fold a triangle (turn it more than FOLD_ANGLE
    from the template's) that the last round left whole: around any it does, the step is
    blended back (blend_away_folds), and the scan's pull is let go there (QUIET_RINGS
-   rings) from the next stage on, so that the place then moves smoothly with its
-   neighbours instead of being blended again; a stage may not make the skin cut through itself
+   rings): at once (it is asked to stay), and in the smoothness from the next stage on
+   when let go in a stage's first round, else from the stage after (each stage's matrix is
+   factored a stage ahead), so that the place then moves smoothly with its neighbours
+   instead of being blended again; a stage may not make the skin cut through itself
    (an ear pressed into the scalp): it is blended back to the last stage there
    (fae.adapt.untangle, alternating with the fold blend: `whole`). So the last stage is
    always whole, and so is the result.
@@ -515,7 +517,7 @@ def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray
                 X_next = X + solve(rhs)
                 bad = folded_triangles(P, X_next, F, reference=fold_ref)
                 if bad.any():
-                    # the scan's pull that folds a place is let go there (from the next stage on, the
+                    # the scan's pull that folds a place is let go there (from a later stage on, the
                     # place moves smoothly with its neighbours instead of being blended back again)
                     zone = np.zeros(n, dtype=bool)
                     zone[F[bad].ravel()] = True

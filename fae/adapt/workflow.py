@@ -72,31 +72,35 @@ def _on_scan(V: np.ndarray, F: np.ndarray, scale: float, landmarks: dict[str, np
     in a notice. Raises AdaptRefused when the points as a whole lie off the scan."""
     from fae.adapt.query import MeshQuery
 
-    names = list(landmarks)
+    names = list(landmarks)  # the distances at the template's size (scale: scan units -> metres as fitted)
     off = MeshQuery(V, F).closest_points(np.array([landmarks[n] for n in names]))[1] * scale
     far = off > OFF_SCAN
     median = float(np.median(off))
     if median > OFF_SCAN_MEDIAN or far.mean() > OFF_SCAN_SHARE:
         raise AdaptRefused(
-            f"{landmarks_name}: the feature points lie off {scan_name} (median {median * 1000:.1f} mm, "
-            f"{int(far.sum())} of {len(names)} farther than {OFF_SCAN * 1000:.0f} mm; at most "
+            f"{landmarks_name}: the feature points lie off {scan_name} (median {median * 1000:.1f} mm at the "
+            f"template's size, {int(far.sum())} of {len(names)} farther than {OFF_SCAN * 1000:.0f} mm; at most "
             f"{OFF_SCAN_MEDIAN * 1000:.0f} mm and {OFF_SCAN_SHARE * 100:.0f} % expected): do they belong to this "
             "mesh, in its frame and unit?")
     for n, d in zip(names, off):
         if d > OFF_SCAN:
-            say(f"ignored feature point {n}: {d * 1000:.0f} mm off {scan_name} (wrong placement?)")
+            say(f"ignored feature point {n}: {d * 1000:.0f} mm off {scan_name} at the template's size "
+                "(wrong placement?)")
     return [n for n, d in zip(names, off) if d <= OFF_SCAN]
 
 
 def adapt_scan(template: FaceModel, V: np.ndarray, F: np.ndarray, face_pairs: Callable,
                landmarks: dict[str, np.ndarray] | None = None, scan_name: str = "scan",
                landmarks_name: str = "--landmarks",
-               say: Callable[[str], None] | None = None) -> tuple[FaceModel, dict, np.ndarray]:
+               say: Callable[[str], None] | None = None,
+               landmark_mesh: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[FaceModel, dict, np.ndarray]:
     """See the module docstring. V (n, 3), F (m, 3): the scan in its own frame and unit;
     face_pairs(part_V, part_F): an object with face (k,), bary (k, 3), scan_points (k, 3)
     and report (with "similarity_residual_m"), or None; raises FacePairsUnavailable;
     landmarks: FDP name -> (3,) in the scan's frame; scan_name / landmarks_name: how
-    messages name the two inputs."""
+    messages name the two inputs; landmark_mesh: (V, F) the feature points must lie on
+    (default the scan; motion transfer fits only a mesh's skin pieces, and a point may
+    lie on a separate ear)."""
     from fae.adapt.calibration import apply_transform, outlier_landmarks
     from fae.adapt.from_scan import adapt_to_scan
     from fae.adapt.head_pose import MAX_HEAD_RESIDUAL, MIN_FACE_COVERAGE, find_head, head_from_landmarks, kept_part
@@ -119,7 +123,10 @@ def adapt_scan(template: FaceModel, V: np.ndarray, F: np.ndarray, face_pairs: Ca
             landmarks = {n: landmarks[n] for n in names}
             head = head_from_landmarks(template, V, F, np.array([fdp[n] for n in names]),
                                        np.array([landmarks[n] for n in names]))
-            names = _on_scan(V, F, head.scale, landmarks, scan_name, landmarks_name, say)
+            names = _on_scan(*(landmark_mesh or (V, F)), head.scale, landmarks, scan_name, landmarks_name, say)
+            if len(names) < 4:
+                raise AdaptRefused(f"{landmarks_name}: {len(names)} feature points lie on {scan_name}; at least 4 "
+                                   "are needed")
             if len(names) < len(landmarks):
                 landmarks = {n: landmarks[n] for n in names}
                 head = head_from_landmarks(template, V, F, np.array([fdp[n] for n in names]),

@@ -140,16 +140,18 @@ def _read_surface(path: str, n: int) -> tuple[np.ndarray | None, np.ndarray | No
     try:
         import trimesh
 
-        loaded = trimesh.load(path, force="mesh", process=False)
-        visual = getattr(loaded, "visual", None)
+        visual = getattr(trimesh.load(path, force="mesh", process=False), "visual", None)
         uv = getattr(visual, "uv", None)
+    except Exception:
+        return None, None
+    if uv is None or len(uv) != n:
+        return None, None
+    try:
         material = getattr(visual, "material", None)
         image = getattr(material, "image", None) or getattr(material, "baseColorTexture", None)
         texture = None if image is None else np.asarray(image.convert("RGB"), dtype=np.uint8)
     except Exception:  # a texture that cannot be read leaves the mesh untextured, as one without
-        return None, None
-    if uv is None or len(uv) != n:
-        return None, None
+        texture = None
     if texture is not None and (texture.ndim != 3 or min(texture.shape[:2]) < 1):
         texture = None
     return np.asarray(uv, dtype=np.float32), texture
@@ -613,14 +615,28 @@ def part_colors(target: TargetMesh, index: np.ndarray, V: np.ndarray, template_p
         from fae.adapt.texture import bilinear_samples
 
         H, W = target.texture.shape[:2]
-        uv = np.mod(target.uv[index], 1.0)  # tiled coordinates wrap, as a viewer draws them
-        srgb = bilinear_samples(target.texture, uv[:, 0] * W, (1.0 - uv[:, 1]) * H) / 255.0
+        u = np.mod(target.uv[index, 0], 1.0)  # u wraps and v stops at the edges, as the renderer draws them
+        v = np.clip(target.uv[index, 1], 0.0, 1.0)
+        srgb = bilinear_samples(target.texture, u * W, (1.0 - v) * H) / 255.0
         return np.column_stack([srgb ** 2.2, np.ones(len(index))]).astype(np.float32)  # the renderer's gamma
     if template_part.vertex_colors is None:
         return None
     from scipy.spatial import cKDTree
 
     return np.asarray(template_part.vertex_colors, np.float32)[cKDTree(template_part.vertices).query(V)[1]]
+
+
+def _part(target: TargetMesh, index: np.ndarray, V: np.ndarray, F: np.ndarray, template_part: Part, bone: str) -> Part:
+    """A rigid part of the target (its vertices `index`, at V in the face frame, faces F)
+    sitting on the fitted head's `template_part`, coloured by part_colors. Its base colour
+    is its most common one where the colours are the target's own (the renderer tells an
+    eye's iris from its white by that colour: the template's white took a painted sclera
+    for iris, and a pupil's dilation stretched the whole eyeball)."""
+    colors = part_colors(target, index, V, template_part)
+    own = target.texture is not None and target.uv is not None and colors is not None
+    color = np.median(colors, axis=0) if own else np.asarray(template_part.color, np.float32)
+    return Part(vertices=V, faces=F.astype(np.int32), color=np.asarray(color, np.float32), bone=bone,
+                vertex_colors=colors)
 
 
 def skin_pieces(V: np.ndarray, F: np.ndarray, label: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -673,7 +689,7 @@ def retarget(template: FaceModel, target: TargetMesh, say: Callable[[str], None]
         try:
             fitted, fit_report, _ = adapt_scan(template, V[fit_index], fit_F, no_pairs,
                                                {k: target.landmarks[k] for k in names}, scan_name=target.path,
-                                               landmarks_name=target.landmarks_path, say=say)
+                                               landmarks_name=target.landmarks_path, say=say, landmark_mesh=(V, F))
         except AdaptRefused as exc:
             raise RetargetError(str(exc)) from None
         # the fit pairs the scan's points by their normals: a mesh wound inside out is fitted again, turned
@@ -709,10 +725,10 @@ def retarget(template: FaceModel, target: TargetMesh, say: Callable[[str], None]
     part_index: dict[str, np.ndarray] = {}
     part_bone: dict[str, str] = {}
     queries = {p: MeshQuery(*fitted.mesh(p)) for p in RIGID_PARTS if p in fitted.parts}
-    for c in np.unique(label[candidate]):
+    has_faces = np.bincount(label[F[:, 0]], minlength=int(label.max()) + 1) > 0
+    # (vertices no triangle uses, which a PLY keeps, are pieces of their own with nothing to draw)
+    for c in np.unique(label[candidate & has_faces[label]]):
         members = label == c
-        if not members[F].all(axis=1).any():  # vertices no triangle uses (a PLY keeps them): nothing to draw
-            continue
         Yc = Y[members]
         size = float(np.linalg.norm(np.ptp(Yc, axis=0)))
         best, best_d = None, np.inf
@@ -773,8 +789,7 @@ def retarget(template: FaceModel, target: TargetMesh, say: Callable[[str], None]
         skin_color=np.asarray(template.skin_color, np.float32), skin_mirror=np.arange(len(Ys), dtype=np.int32),
         skin_region=skin_region, region_names=list(template.region_names), skin_thickness=np.zeros(len(Ys)),
         layer_params={},
-        parts={k: Part(vertices=v, faces=f.astype(np.int32), color=np.asarray(fitted.parts[src].color, np.float32),
-                       bone=part_bone[k], vertex_colors=part_colors(target, part_index[k], v, fitted.parts[src]))
+        parts={k: _part(target, part_index[k], v, f, fitted.parts[src], part_bone[k])
                for k, (src, v, f) in parts_at.items()},
         jaw_pivot=np.asarray(fitted.jaw_pivot, np.float64), jaw_axis=np.asarray(fitted.jaw_axis, np.float64),
         eye_centers={k: np.asarray(v, np.float64) for k, v in fitted.eye_centers.items()},
@@ -825,6 +840,8 @@ def retarget(template: FaceModel, target: TargetMesh, say: Callable[[str], None]
     nearest = np.full(int(label.max()) + 1, np.inf)
     np.minimum.at(nearest, piece, dist)
     above = coverage_weights(chin - Ys[:, 1], *ABOVE_CHIN) * (nearest[piece] <= PIECE_REACH)
+    if "2.1" not in fitted_fp:  # no chin to stand above: the coverage alone
+        above[:] = 0.0
     rt = Retarget(model=model, skin_index=skin_index, head_weight=np.maximum(coverage, above) * neck, part_index=part_index, used=used,
                   frame_transform=np.ascontiguousarray(Tv[used]), gather=G, coverage=coverage,
                   anchors=anchors, scale=ratio, report=report, vertex_count=n, normal_groups=seams)

@@ -111,9 +111,12 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None, sweep: bool 
         try:
             yield tmp_path
         except OSError as exc:  # a full disk says nothing of which file: name the output
-            if isinstance(exc, OutputError) or not (exc.errno in _WRITE_FAILED or exc.filename in (tmp, tmp_path)):
+            writing = exc.filename in (tmp, str(tmp_path)) or (exc.filename is None and exc.errno in _WRITE_FAILED)
+            if isinstance(exc, OutputError) or not writing:  # an input's own error names the input
                 raise
-            raise OutputError(f"{target}: cannot be written ({exc.strerror or exc})") from None
+            failed = OutputError(f"{target}: cannot be written ({exc.strerror or exc})")
+            failed.errno = exc.errno  # a caller may still tell a full disk
+            raise failed from None
         try:
             os.replace(tmp_path, target)
         except OSError as exc:  # a folder where the file should go: name the file, not the temporary one
