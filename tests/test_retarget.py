@@ -311,7 +311,11 @@ def test_vertices_no_triangle_uses_are_left_alone(template, tmp_path):
     assert set(rt.model.parts) == {"eye_l", "eye_r"}
     values = np.zeros(68)
     values[2] = 500  # open_jaw
-    assert np.isfinite(RetargetPlayer(rt, Player(playable_head(template))).step(values)).all()
+    player = RetargetPlayer(rt, Player(playable_head(template)))
+    skin = player.step(values)
+    assert np.isfinite(skin).all()
+    everything = rt.target_vertices(skin, player.bone_transforms, frame="file")
+    assert np.allclose(everything[len(head.vertices):], np.vstack([behind_lips, stacked]), atol=1e-6)  # where they were
 
 
 def test_close_pairs_join_copies_without_pairing_them_all():

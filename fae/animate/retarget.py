@@ -208,6 +208,8 @@ class Retarget:
     report         what was found and measured (fit errors, scales, parts, feature points)
     normal_groups  (k,) int64: skin vertices that are one point of the surface split along a
                    texture seam share a label (fae.adapt.binding.seam_groups; FaceRenderer)
+    loose          ((j,) int64 target vertices no triangle uses, (j, 3) their rest in the face
+                   frame): they stay where they are
     """
 
     model: FaceModel
@@ -224,6 +226,7 @@ class Retarget:
     normal_groups: np.ndarray | None = None
     head_weight: np.ndarray | None = None
     fapu_gain: np.ndarray | None = None
+    loose: tuple[np.ndarray, np.ndarray] | None = None
 
     def displacements(self, template_motion: np.ndarray) -> np.ndarray:
         """(k, 3) metres: the target skin's motion for the template skin's motion
@@ -251,6 +254,8 @@ class Retarget:
         from fae.adapt.calibration import apply_transform
 
         out = np.zeros((self.vertex_count, 3))
+        if self.loose is not None:
+            out[self.loose[0]] = self.loose[1]
         out[self.skin_index] = skin
         for name, idx in self.part_index.items():
             part = self.model.parts[name]
@@ -745,6 +750,7 @@ def retarget(template: FaceModel, target: TargetMesh, say: Callable[[str], None]
         part_bone[name] = fitted.parts[best].bone
         parts_at[name] = (best, Y[idx], pf)
     skin_index, skin_F = _sub_mesh(F, ~candidate)
+    loose = np.flatnonzero(np.bincount(F.ravel(), minlength=n) == 0)
     if len(skin_F) == 0:
         raise RetargetError(f"{target.path}: no skin triangles left after the rigid parts (eyes, teeth) were found")
     Ys = Y[skin_index]
@@ -844,7 +850,8 @@ def retarget(template: FaceModel, target: TargetMesh, say: Callable[[str], None]
         above[:] = 0.0
     rt = Retarget(model=model, skin_index=skin_index, head_weight=np.maximum(coverage, above) * neck, part_index=part_index, used=used,
                   frame_transform=np.ascontiguousarray(Tv[used]), gather=G, coverage=coverage,
-                  anchors=anchors, scale=ratio, report=report, vertex_count=n, normal_groups=seams)
+                  anchors=anchors, scale=ratio, report=report, vertex_count=n, normal_groups=seams,
+                  loose=(loose, Y[loose]))
     rt.fapu_gain, report["fapu_gains"] = fapu_gain_field(
         model, lambda motion: rt.displacements(np.broadcast_to(motion, (len(used), 3))), template_fapu, target_fapu,
         fap_motion=_template_fap_motion(template, used))
