@@ -138,8 +138,9 @@ def wrapped_seam(F: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray,
     """Texture coordinates that wrap around in u (a cylindrical map, u in [0, 1]) without
     the seam's triangles interpolating across the whole texture.
 
-    A triangle whose corners' u span more than half the texture crosses the seam: its
-    corners with u < 0.5 are replaced by copies of their vertices with u + 1 (sampled with
+    A triangle whose corners' u span more than half the texture, and that those corners
+    moved by +1 make at least twice as narrow, crosses the seam: its corners with u < 0.5
+    are replaced by copies of their vertices with u + 1 (sampled with
     u wrapping around, GL_REPEAT). F (m, 3) int, uv (n, 2). Returns (F2 (m, 3) int64 into
     the n + k vertices, source (k,) int64: the vertex each copy repeats, uv2 (n + k, 2)
     float32). Nothing changes (k = 0) when no triangle crosses the seam.
@@ -147,7 +148,11 @@ def wrapped_seam(F: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray,
     F = np.asarray(F, dtype=np.int64)
     uv = np.asarray(uv, dtype=np.float32)
     u = uv[F, 0]
-    crossing = (u.max(axis=1) - u.min(axis=1)) > 0.5
+    span = u.max(axis=1) - u.min(axis=1)
+    wrapped = np.where(u < 0.5, u + 1.0, u)
+    # and wrapping it makes it at least twice as narrow: a large triangle of an atlas's chart
+    # (u 0.1, 0.7, 0.75) is drawn where it is
+    crossing = (span > 0.5) & (wrapped.max(axis=1) - wrapped.min(axis=1) < 0.5 * span)
     low = crossing[:, None] & (u < 0.5)
     source = np.unique(F[low])
     F2 = F.copy()

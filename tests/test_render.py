@@ -320,3 +320,15 @@ def test_a_skin_of_loose_triangles_renders_as_the_welded_skin(head):
     for a, b in zip(welded, loose):
         assert np.abs(a.astype(int) - b).max() <= 2
         assert np.mean(np.abs(a.astype(int) - b) > 0) < 0.001
+
+
+def test_an_atlas_triangle_wider_than_half_the_texture_is_not_taken_for_the_seam():
+    """A cylindrical map's seam triangle narrows when its low corners wrap (u 0.02, 0.97,
+    0.98 -> 1.02, 0.97, 0.98); a large triangle of an atlas's chart (u 0.1, 0.7, 0.75) does
+    not, and was drawn from u 0.7 to 1.1, across other charts."""
+    from fae.mesh import wrapped_seam
+
+    uv = np.array([[0.02, 0.5], [0.97, 0.5], [0.98, 0.6], [0.1, 0.2], [0.7, 0.2], [0.75, 0.3]], np.float32)
+    F2, source, uv2 = wrapped_seam(np.array([[0, 1, 2], [3, 4, 5]]), uv)
+    assert list(source) == [0] and np.ptp(uv2[F2[0], 0]) < 0.1
+    assert list(F2[1]) == [3, 4, 5]
