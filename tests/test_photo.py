@@ -297,3 +297,28 @@ def test_a_decompression_bomb_is_refused_not_a_traceback(tmp_path, capsys):
     Image.new("L", (20000, 10000)).save(bomb)  # 200 megapixels of one colour: a few hundred KB
     assert main(["adapt", "--photo", str(bomb), "-o", str(tmp_path / "h.glb")]) == 2
     assert "not an image fae can read" in capsys.readouterr().err
+
+
+def test_a_face_cut_by_the_frame_is_a_head_or_a_reason_never_a_traceback(tmp_path, capsys):
+    """The astronaut cropped through her right eye: the iris's colour was sampled from a
+    window of negative size beyond the photo's edge (a traceback, exit 1)."""
+    photo = save(data.astronaut()[:, 205:], tmp_path / "cut.jpg")
+    out = tmp_path / "head.glb"
+    code = main(["adapt", "--photo", photo, "-o", str(out), "--no-calibrate"])
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    assert (code == 0 and out.exists()) or (code == 2 and not out.exists() and err.strip())
+
+
+def test_a_large_photo_is_read_without_a_warning(tmp_path):
+    """A 90-megapixel photo (past Pillow's warning size, under its refusal) is scaled down
+    like any other; Pillow's two-line warning reached stderr before fae's own words."""
+    import warnings
+
+    from fae.commands.adapt import MAX_PHOTO_SIDE, read_photo
+
+    Image.new("RGB", (10000, 9000), (200, 150, 120)).save(tmp_path / "large.jpg")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        pixels = read_photo(str(tmp_path / "large.jpg"))
+    assert max(pixels.shape[:2]) == MAX_PHOTO_SIDE and pixels.dtype == np.uint8

@@ -311,10 +311,12 @@ def iris_from_photo(model: FaceModel, image: np.ndarray, photo: PhotoPoints, eye
         c = photo.points[list(eye), :2].mean(axis=0)
         x0, x1 = max(int(c[0] - radius) - 1, 0), min(int(c[0] + radius) + 2, w)
         y0, y1 = max(int(c[1] - radius) - 1, 0), min(int(c[1] + radius) + 2, h)
+        if x1 <= x0 or y1 <= y0:  # the eye's centre beyond the photo's edge (a face cut by the frame)
+            continue
         yy, xx = np.mgrid[y0:y1, x0:x1]
         disc = (xx + 0.5 - c[0]) ** 2 + (yy + 0.5 - c[1]) ** 2 <= radius ** 2
         samples.append(image[y0:y1, x0:x1][disc][:, :3].astype(np.float64))
-    pixels = np.vstack(samples)
+    pixels = np.vstack(samples) if samples else np.zeros((0, 3))
     if len(pixels) < 3:
         return None
     luminance = pixels @ np.array([0.2126, 0.7152, 0.0722])

@@ -338,25 +338,39 @@ MAX_RENDER_POINTS_SHARE = 0.1
 MAX_PHOTO_SIDE = 2048
 
 
+def _photo_pixels(image):
+    """read_photo's pixels of an open PIL image (closed here)."""
+    import numpy as np
+    from PIL import Image, ImageOps
+
+    with image:
+        image.draft("RGB", (MAX_PHOTO_SIDE, MAX_PHOTO_SIDE))  # a JPEG decodes at a fraction of its size
+        image = ImageOps.exif_transpose(image)
+        if image.mode in ("I", "I;16", "I;16B", "I;16L", "I;16N"):  # 16-bit grey: keep its range
+            grey = np.asarray(image, dtype=np.float64)
+            image = Image.fromarray(np.clip(grey * 255.0 / max(float(grey.max()), 1.0), 0, 255).astype(np.uint8))
+        image = image.convert("RGB")
+        if max(image.size) > MAX_PHOTO_SIDE:
+            k = MAX_PHOTO_SIDE / max(image.size)
+            image = image.resize((max(1, round(image.size[0] * k)), max(1, round(image.size[1] * k))),
+                                 Image.LANCZOS)
+        return np.asarray(image, dtype=np.uint8).copy()
+
+
 def read_photo(path: str):
     """(h, w, 3) uint8 RGB pixels of an image file, turned upright by its EXIF orientation,
     16-bit images brought to 8 bits, scaled down to MAX_PHOTO_SIDE on its long side;
     ValueError naming the file when it is not an image."""
-    import numpy as np
-    from PIL import Image, ImageOps, UnidentifiedImageError
+    import warnings
+
+    from PIL import Image, UnidentifiedImageError
 
     try:
-        with Image.open(path) as image:
-            image = ImageOps.exif_transpose(image)
-            if image.mode in ("I", "I;16", "I;16B", "I;16L", "I;16N"):  # 16-bit grey: keep its range
-                grey = np.asarray(image, dtype=np.float64)
-                image = Image.fromarray(np.clip(grey * 255.0 / max(float(grey.max()), 1.0), 0, 255).astype(np.uint8))
-            image = image.convert("RGB")
-            if max(image.size) > MAX_PHOTO_SIDE:
-                k = MAX_PHOTO_SIDE / max(image.size)
-                image = image.resize((max(1, round(image.size[0] * k)), max(1, round(image.size[1] * k))),
-                                     Image.LANCZOS)
-            return np.asarray(image, dtype=np.uint8).copy()
+        # a large photo (more than about 89 megapixels) is read like any other, scaled down,
+        # without Pillow's two-line warning about it on stderr; one past twice that is refused
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            return _photo_pixels(Image.open(path))
     except FileNotFoundError:
         raise ValueError(f"{path}: no such file") from None
     except IsADirectoryError:
