@@ -149,6 +149,20 @@ def test_given_feature_points_with_wrong_ones_still_give_a_whole_head(bust, temp
     assert report["errors"]["face_to_scan_rms_rel"] < 0.001
 
 
+@needs_mediapipe
+@pytest.mark.slow
+def test_a_scan_wound_inside_out_is_turned_outward(bust, tmp_path, capsys):
+    """Exporters and mirroring leave scans wound inside out: the fit, pairing by normals,
+    found no face on the turned marble bust and refused it, blaming the feature points."""
+    scan = tmp_path / "inside_out.obj"
+    trimesh.Trimesh(bust.vertices, bust.faces[:, ::-1], process=False).export(scan)
+    out, rep = tmp_path / "head.glb", tmp_path / "r.json"
+    assert main(["adapt", str(scan), "-o", str(out), "--report", str(rep), "--no-calibrate"]) == 0
+    assert "its faces are wound inside out" in capsys.readouterr().err
+    report = json.loads(rep.read_text())
+    assert report["scan_turned_outward"] and report["errors"]["face_to_scan_rms_rel"] < 0.001
+
+
 def test_output_over_the_scan_is_refused(tmp_path, capsys):
     scan = tmp_path / "s.obj"
     trimesh.creation.icosphere().export(scan)

@@ -87,7 +87,7 @@ def write_plot(report: dict, path: str) -> None:
 
 
 def run(args) -> int:
-    from fae.commands.adapt_checks import landmark_problem, scan_problem
+    from fae.commands.adapt_checks import landmark_problem, scan_outward, scan_problem
     from fae.commands.common import overwritten_input
     from fae.commands.common import output_problem
     from fae.io.facemodel_gltf import read_facemodel
@@ -121,6 +121,7 @@ def run(args) -> int:
             problem = landmark_problem(V, landmarks, args.landmarks, args.scan)
         if problem:
             raise ValueError(problem)
+        F, args.turned_outward = scan_outward(V, F, args.scan, _say)
         if not os.path.isfile(args.template):
             print(f"fae adapt: template {args.template} not found (build it with `fae template`)", file=sys.stderr)
             return 2
@@ -175,6 +176,7 @@ def _finish(args, model, report, V, F, keep, started, start_mapping=None) -> int
     from fae.commands.adapt_checks import implausible_fit
 
     verdict = report["verdict"] = report.get("verdict", []) + implausible_fit(report)
+    report["scan_turned_outward"] = bool(getattr(args, "turned_outward", False))
     if _refused(args, args.scan, verdict, report, "; --landmarks may help"):
         return 2
     model = _calibrated_if_whole(args, args.scan, model, report, start_mapping)
