@@ -102,6 +102,9 @@ async def _serve(args, head) -> int:
         await view.close()
     if recorder is not None:
         await recorder.close()
+        if not recorder.frames_written:  # an empty video is not written (it said it wrote 0 frames to it)
+            print(f"fae serve: no frames were played; {args.record} was not written", file=sys.stderr)
+            return 0
         print(f"fae serve: wrote {recorder.frames_written} frames to {args.record}"
               + (f" ({recorder.skipped} frames of concurrent streams not recorded)" if recorder.skipped else "")
               + (f" ({recorder.gaps_cut} gaps between frames cut to {MAX_HOLD_SECONDS:g} s)" if recorder.gaps_cut else ""),
