@@ -548,6 +548,29 @@ def test_fae_send_reports_and_exits_nonzero_when_frames_are_rejected(tmp_path, c
     assert "server: error 3:" in err
 
 
+def test_fae_send_shows_why_a_server_closed_on_its_errors(tmp_path, capsys):
+    """At the default real-time rate, a stream whose every frame the server refuses: the
+    server closes after its 32nd error, and `fae send` said only "Transport endpoint is not
+    connected" (exit 2), its 32 reasons lost."""
+    from fae.cli import main as fae_main
+
+    header, frames = split_fap_text((DATA / "xface_test.fap").read_text())
+    bad = tmp_path / "bad40.fap"
+    bad.write_text("\n".join([header.replace(" 25 ", " 100 ", 1)] + [line for k in range(40)
+                                                                     for line in (frames[0][0], f"{k} 1")]) + "\n")
+
+    async def main():
+        server = await started()
+        code = await asyncio.to_thread(fae_main, ["send", str(bad), "--port", str(server.port)])
+        await server.close()
+        return code
+
+    code = run(main())
+    out, err = capsys.readouterr()
+    assert code == 1, err
+    assert "server: error 3: expected 48 values" in err and "not connected" not in err
+
+
 # -- audio tasks, coalescing, spare faces, the parser's partial frames ------------------
 
 def test_upload_wav_bytes_are_passed_over_and_wav_tasks_are_refused():

@@ -156,21 +156,27 @@ async def send_fap(text: str, host: str = "127.0.0.1", port: int = 50011, *, rat
         # the server's rate paces "realtime"; one beyond any stream's (a reply of 1e-300) is not taken
         fps = report.fps if MIN_REPLY_FPS <= report.fps <= MAX_REPLY_FPS else 25.0
         start[0] = report.started = time.perf_counter()
-        for k, (mask, values) in enumerate(frames):
-            if receiver.done():
-                break
-            if rate == "realtime":
-                delay = start[0] + k / fps - time.perf_counter()
-                if delay > 0:
-                    await asyncio.sleep(delay)
-            number = values.split(maxsplit=1)[0] if values.split() else ""
-            sent_at.setdefault(number, []).append(time.perf_counter())
-            writer.write(f"{mask}\n{values}\n".encode("utf-8"))
-            report.frames_sent += 1
-            await sent()
-        if writer.can_write_eof():
-            writer.write_eof()
-        await asyncio.wait_for(receiver, timeout)
+        try:
+            for k, (mask, values) in enumerate(frames):
+                if receiver.done():
+                    break
+                if rate == "realtime":
+                    delay = start[0] + k / fps - time.perf_counter()
+                    if delay > 0:
+                        await asyncio.sleep(delay)
+                number = values.split(maxsplit=1)[0] if values.split() else ""
+                sent_at.setdefault(number, []).append(time.perf_counter())
+                writer.write(f"{mask}\n{values}\n".encode("utf-8"))
+                report.frames_sent += 1
+                await sent()
+            if writer.can_write_eof():
+                writer.write_eof()
+        except OSError:  # a server that closed on our errors: its own words say why (not "not connected")
+            if not (receiver.done() or report.errors):
+                raise
+        # each reply within `timeout` (the receiver's own wait); the tail as a whole may take
+        # longer (a timeout on it cut a server still answering, or hung as it raced the last read)
+        await receiver
         finished = True
     finally:
         if not receiver.done():
