@@ -554,10 +554,9 @@ def test_fae_send_shows_why_a_server_closed_on_its_errors(tmp_path, capsys):
     connected" (exit 2), its 32 reasons lost."""
     from fae.cli import main as fae_main
 
-    header, frames = split_fap_text((DATA / "xface_test.fap").read_text())
+    mask = " ".join(["0", "0", "1", "1", "1"] + ["0"] * 63)  # jaw and two lip FAPs: each frame needs 3 values
     bad = tmp_path / "bad40.fap"
-    bad.write_text("\n".join([header.replace(" 25 ", " 100 ", 1)] + [line for k in range(40)
-                                                                     for line in (frames[0][0], f"{k} 1")]) + "\n")
+    bad.write_text("2.1 bad 100 40\n" + "".join(f"{mask}\n{k} 1\n" for k in range(40)))
 
     async def main():
         server = await started()
@@ -568,7 +567,7 @@ def test_fae_send_shows_why_a_server_closed_on_its_errors(tmp_path, capsys):
     code = run(main())
     out, err = capsys.readouterr()
     assert code == 1, err
-    assert "server: error 3: expected 48 values" in err and "not connected" not in err
+    assert "server: error 3: expected 3 values" in err and "not connected" not in err
 
 
 # -- audio tasks, coalescing, spare faces, the parser's partial frames ------------------
