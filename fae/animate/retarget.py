@@ -36,15 +36,15 @@ fades to zero where the target extends beyond
 what the template covers (shoulders, plinth, hair: COVERAGE_NEAR..COVERAGE_FAR metres from
 the fitted skin). The target's separate pieces that sit on the fitted head's eyeballs,
 teeth or tongue (pieces under PART_SIZE_SHARE of the size of the face's piece, the one
-the feature points lie on, however finely meshed) become rigid parts moved by the template's eye, head, jaw and tongue
-bones, re-anchored at the fitted head's eye centres, jaw hinge and 7.1.
+the feature points lie on, however finely meshed) become rigid parts moved by the
+template's eye, head, jaw and tongue bones, re-anchored at the fitted head's eye centres, jaw hinge and 7.1.
 
 Per frame (`RetargetPlayer.step`): the head pose is taken off the template's skin, the
 displacement from its neutral skin gathered (one batched 3x3 product over the template
 vertices in use and one sparse (k, u) product), added to the target's rest, and the head
 pose, re-anchored, put back (faded like the motion, except above the chin, where what the
-template does not reach, a hat or hair off the scalp, turns with the head as one body). A neutral frame gives the target's
-rest exactly. tools/bench_retarget.py measures the transfer's frames per second.
+template does not reach, a hat or hair off the scalp, turns with the head as one body). A
+neutral frame gives the target's rest exactly. tools/bench_retarget.py measures the transfer's frames per second.
 
 The target is held as a FaceModel in the face frame (metres; `model.scan_transform` maps
 back to the file's frame and unit), with the template's regions read off the binding and
@@ -102,7 +102,7 @@ SETTLE_FRAMES = 30  # frames of 1/25 s to settle each (within 1 % of verify-faps
 SETTLE_THREADS = 4  # at most, settling side by side
 NECK_FADE = (0.02, 0.09)  # metres below the chin (2.1) where the head pose starts and ends fading out
 ABOVE_CHIN = (0.0, 0.02)  # metres below the chin over which the head pose of what the fit does not reach fades out
-PIECE_REACH = 0.03  # metres: a piece that comes this close to the fitted skin sits on the head (a hat) and turns with it
+PIECE_REACH = 0.03  # metres: a piece this close to the fitted skin sits on the head (a hat) and turns with it
 
 
 class RetargetError(ValueError):
@@ -730,9 +730,9 @@ def retarget(template: FaceModel, target: TargetMesh, say: Callable[[str], None]
     part_index: dict[str, np.ndarray] = {}
     part_bone: dict[str, str] = {}
     queries = {p: MeshQuery(*fitted.mesh(p)) for p in RIGID_PARTS if p in fitted.parts}
-    has_faces = np.bincount(label[F[:, 0]], minlength=int(label.max()) + 1) > 0
+    on_faces = np.bincount(F.ravel(), minlength=n) > 0
     # (vertices no triangle uses, which a PLY keeps, are pieces of their own with nothing to draw)
-    for c in np.unique(label[candidate & has_faces[label]]):
+    for c in np.unique(label[candidate & on_faces]):
         members = label == c
         Yc = Y[members]
         size = float(np.linalg.norm(np.ptp(Yc, axis=0)))
@@ -750,7 +750,7 @@ def retarget(template: FaceModel, target: TargetMesh, say: Callable[[str], None]
         part_bone[name] = fitted.parts[best].bone
         parts_at[name] = (best, Y[idx], pf)
     skin_index, skin_F = _sub_mesh(F, ~candidate)
-    loose = np.flatnonzero(np.bincount(F.ravel(), minlength=n) == 0)
+    loose = np.flatnonzero(~on_faces)
     if len(skin_F) == 0:
         raise RetargetError(f"{target.path}: no skin triangles left after the rigid parts (eyes, teeth) were found")
     Ys = Y[skin_index]
@@ -848,7 +848,8 @@ def retarget(template: FaceModel, target: TargetMesh, say: Callable[[str], None]
     above = coverage_weights(chin - Ys[:, 1], *ABOVE_CHIN) * (nearest[piece] <= PIECE_REACH)
     if "2.1" not in fitted_fp:  # no chin to stand above: the coverage alone
         above[:] = 0.0
-    rt = Retarget(model=model, skin_index=skin_index, head_weight=np.maximum(coverage, above) * neck, part_index=part_index, used=used,
+    rt = Retarget(model=model, skin_index=skin_index, head_weight=np.maximum(coverage, above) * neck,
+                  part_index=part_index, used=used,
                   frame_transform=np.ascontiguousarray(Tv[used]), gather=G, coverage=coverage,
                   anchors=anchors, scale=ratio, report=report, vertex_count=n, normal_groups=seams,
                   loose=(loose, Y[loose]))
