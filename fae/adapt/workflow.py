@@ -34,6 +34,7 @@ from fae.io.facemodel import FaceModel
 MIN_PAIRS = 20
 MIN_HEAD_TRIANGLES = 100
 MAX_PAIR_RESIDUAL_SHARE = 0.2
+MIN_GIVEN_POINTS = 4  # feature points given that place the head (a similarity needs 3, one more to check it)
 # Feature points given lie on the scan they mark: the busts' own (fae adapt's, read back off
 # the fitted skin) within 4.4 mm, the menpo3d mask's iBUG-68 within 0.7 mm. A point farther
 # than OFF_SCAN (metres, at the template's size) is dropped with a notice; when their
@@ -111,9 +112,10 @@ def adapt_scan(template: FaceModel, V: np.ndarray, F: np.ndarray, face_pairs: Ca
             fdp = markup_positions(template)
             names = [n for n in landmarks if n in fdp and template.feature_points[n].part == "skin"
                      and np.all(np.isfinite(landmarks[n]))]
-            if len(names) < 4:
+            if len(names) < MIN_GIVEN_POINTS:
                 raise AdaptRefused(f"{landmarks_name}: {len(names)} usable feature points of the template's skin; at "
-                                   "least 4 are needed (or leave --landmarks out to find the head without them)")
+                                   f"least {MIN_GIVEN_POINTS} are needed (or leave --landmarks out to find the head "
+                                   "without them)")
             A = np.array([fdp[n] for n in names])
             B = np.array([landmarks[n] for n in names])
             wrong = set(outlier_landmarks(B, A, names))
@@ -124,9 +126,9 @@ def adapt_scan(template: FaceModel, V: np.ndarray, F: np.ndarray, face_pairs: Ca
             head = head_from_landmarks(template, V, F, np.array([fdp[n] for n in names]),
                                        np.array([landmarks[n] for n in names]))
             names = _on_scan(*(landmark_mesh or (V, F)), head.scale, landmarks, scan_name, landmarks_name, say)
-            if len(names) < 4:
-                raise AdaptRefused(f"{landmarks_name}: {len(names)} feature points lie on {scan_name}; at least 4 "
-                                   "are needed")
+            if len(names) < MIN_GIVEN_POINTS:
+                raise AdaptRefused(f"{landmarks_name}: {len(names)} feature points lie on {scan_name}; at least "
+                                   f"{MIN_GIVEN_POINTS} are needed")
             if len(names) < len(landmarks):
                 landmarks = {n: landmarks[n] for n in names}
                 head = head_from_landmarks(template, V, F, np.array([fdp[n] for n in names]),

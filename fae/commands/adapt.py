@@ -88,8 +88,7 @@ def write_plot(report: dict, path: str) -> None:
 
 def run(args) -> int:
     from fae.commands.adapt_checks import landmark_problem, scan_outward, scan_problem
-    from fae.commands.common import overwritten_input
-    from fae.commands.common import output_problem
+    from fae.commands.common import output_problem, overwritten_input
     from fae.io.facemodel_gltf import read_facemodel
     from fae.io.scan import LandmarkError, indexed_vertices, read_landmarks, read_scan
 
@@ -449,8 +448,7 @@ def _photo_head_from(template, image, points, on_template, photo_name: str):
 def _run_photo(args) -> int:
     """`fae adapt --photo FACE.jpg -o HEAD.glb`: see fae.adapt.photo."""
     from fae.adapt.photo import PhotoRefused
-    from fae.commands.common import overwritten_input
-    from fae.commands.common import output_problem
+    from fae.commands.common import output_problem, overwritten_input
     from fae.io.facemodel_gltf import read_facemodel
 
     started = time.perf_counter()

@@ -16,7 +16,7 @@ import sys
 import time
 from pathlib import Path
 
-from fae.commands.common import fail, load_head, output_problem
+from fae.commands.common import fail, load_head, os_error_text, output_problem
 
 
 def register(subparsers) -> None:
@@ -79,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         write_facemodel(baked_model(player.face, tables), args.output)
     except OSError as exc:
-        return fail("bake", str(exc) if exc.filename is None else f"{exc.filename}: {exc.strerror}")
+        return fail("bake", os_error_text(exc))
     entries = sum(len(t.vertices) for t in tables)
     print(f"{args.output}: {len(tables)} FaceDefTables ({entries} vertex entries, {intervals} intervals per sign) "
           f"baked from {head.name} in {time.perf_counter() - t0:.0f} s", file=sys.stderr)

@@ -12,7 +12,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from fae.commands.common import fail, parse_size, timing_problem
+from fae.commands.common import fail, os_error_text, parse_size, timing_problem
 
 
 def register(subparsers) -> None:
@@ -90,7 +90,7 @@ def run(args: argparse.Namespace) -> int:
     except ClusterError as exc:
         return fail("batch", str(exc))
     except OSError as exc:  # the output folder refused the manifest
-        return fail("batch", str(exc) if exc.filename is None else f"{exc.filename}: {exc.strerror}")
+        return fail("batch", os_error_text(exc))
     counts = result.counts
     print(f"{result.manifest}: {counts['done']} rendered, {counts['skipped']} kept from an earlier run, "
           f"{counts['failed']} failed, in {result.seconds:.1f} s ({result.scheduler})", file=sys.stderr)

@@ -202,6 +202,12 @@ def overwritten_input(outputs: dict[str, str | None], inputs: dict[str, str | No
     return None
 
 
+def os_error_text(exc: OSError) -> str:
+    """One line for an OSError: its own words when it names the file itself (OutputError,
+    messages written for the user), else the file it names and what went wrong."""
+    return str(exc) if exc.filename is None else f"{exc.filename}: {exc.strerror}"
+
+
 def json_safe(value):
     """`value` (dicts, lists, numbers, numpy scalars and arrays) with non-finite floats as
     null: JSON has no Infinity or NaN, and strict readers (JavaScript's JSON.parse) refuse them."""

@@ -17,7 +17,7 @@ import contextlib
 import sys
 from pathlib import Path
 
-from fae.commands.common import drawn_skin_colors, fail, load_head, output_problem, timing_problem
+from fae.commands.common import drawn_skin_colors, fail, load_head, os_error_text, output_problem, timing_problem
 from fae.io.frames import MAX_HOLD_SECONDS
 
 
@@ -86,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
         write_scene(args.output, player.face, targets=targets, skin_colors=drawn_skin_colors(player.face),
                     keyframes=animation, name=head.stem)
     except OSError as exc:
-        return fail("export", str(exc) if exc.filename is None else f"{exc.filename}: {exc.strerror}")
+        return fail("export", os_error_text(exc))
     if frames is not None:
         for warning in stream.warnings + frames.warnings:
             print(f"fae export: warning: {warning}", file=sys.stderr)

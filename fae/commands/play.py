@@ -19,8 +19,8 @@ import sys
 from pathlib import Path
 
 from fae.commands.common import (add_device_argument, add_view_arguments, fail, load_head, memory_message,
-                                 output_problem, overwritten_input, render_size_problem, timing_problem,
-                                 video_size_problem, warp_device)
+                                 os_error_text, output_problem, overwritten_input, render_size_problem,
+                                 timing_problem, video_size_problem, warp_device)
 from fae.io.frames import MAX_HOLD_SECONDS
 
 
@@ -163,7 +163,7 @@ def run(args: argparse.Namespace) -> int:
     except MemoryError:  # most likely the render's buffers (the simulation's arrays are small)
         return fail("play", memory_message(args.size, args.supersample) + " (no video written)")
     except OSError as exc:  # the output folder refused the file (OutputError names it)
-        return fail("play", str(exc) if exc.filename is None else f"{exc.filename}: {exc.strerror}")
+        return fail("play", os_error_text(exc))
     finally:
         if progress is not None:
             progress.close()

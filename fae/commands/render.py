@@ -8,8 +8,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from fae.commands.common import (add_view_arguments, fail, load_head, memory_message, output_problem,
-                                 render_size_problem)
+from fae.commands.common import (add_view_arguments, fail, load_head, memory_message, os_error_text,
+                                 output_problem, render_size_problem)
 
 
 def register(subparsers) -> None:
@@ -32,7 +32,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         model, head = load_head(args.head)
     except FaceModelError as exc:
-        return fail("render", str(exc))
+        return fail("render", os_error_text(exc))
     from fae.render.png import write_png
     from fae.render.renderer import FaceRenderer
 
@@ -44,6 +44,6 @@ def run(args: argparse.Namespace) -> int:
     except MemoryError:  # a large render holds about five copies of its pixels (8192x8192 x2: 10 GB)
         return fail("render", memory_message(args.size, args.supersample))
     except OSError as exc:  # the output refused (a full disk): OutputError names the file
-        return fail("render", str(exc))
+        return fail("render", os_error_text(exc))
     print(f"{args.output}: {head.name}, {args.view} view, {args.size[0]}x{args.size[1]}", file=sys.stderr)
     return 0

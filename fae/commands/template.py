@@ -12,7 +12,7 @@ check  validates any FaceModel file: structure (fae.io.facemodel_gltf) and geome
 from __future__ import annotations
 
 
-from fae.commands.common import fail, json_text, output_problem
+from fae.commands.common import fail, json_text, os_error_text, output_problem
 
 
 def register(subparsers) -> None:
@@ -53,7 +53,7 @@ def _build(output: str | None) -> int:
     try:
         write_facemodel(model, path)
     except OSError as exc:
-        return fail("template build", str(exc) if exc.filename is None else f"{exc.filename}: {exc.strerror}")
+        return fail("template build", os_error_text(exc))
     print(f"wrote {path}: {model.skin_vertex_count} skin vertices, {len(model.muscles)} muscles, "
           f"{len(model.feature_points)} feature points")
     return 0
