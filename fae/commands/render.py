@@ -32,7 +32,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         model, head = load_head(args.head)
     except FaceModelError as exc:
-        return fail("render", os_error_text(exc))
+        return fail("render", str(exc))
     from fae.render.png import write_png
     from fae.render.renderer import FaceRenderer
 
