@@ -210,6 +210,7 @@ def adapt_to_scan(template: FaceModel, scan_V: np.ndarray, scan_F: np.ndarray, h
         "ears": ear_report,
         "errors": errors,
         "folded_triangles": {"visible": int(folded[visible_faces].sum()), "all": int(folded.sum())},
+        "scan_covers_part_of_head": fit.partial_scan,
         "fit_stages": fit.stages,
         "fit_seconds": t_fit,
         "seconds": time.perf_counter() - t0,

@@ -9,6 +9,11 @@ output of the last:
 1. Start (affine_to_scan): trimmed ICP of the template's visible skin onto the scan, one
    scale, rotation and translation (a full affine map would also stretch the neck that
    the scan cuts short); feature points, where given, start it and count in every step.
+   A scan that covers only part of the head (a face, the front half: more than
+   PARTIAL_EDGE_SHARE of the closest pairs land by its edge) pairs nothing with its edge:
+   the template's back of the head, all paired with the rim of a face scan, pulled the
+   start into it (the marble bust's front half: scale 0.84 where the whole bust is 1.0),
+   and the crown then stayed small and was pulled into ridges towards the rim.
    Parts found on the scan apart from the face (the ears) are then carried there with the
    skin around them (`carry`), and placed by their feature points alone in the stiff
    stages (`placed`): the nearest scan to an ear that sits centimetres off is scalp.
@@ -76,6 +81,7 @@ from fae.mesh import coincident_groups, group_means
 STIFFNESS = (30.0, 12.0, 5.0, 2.0, 1.0, 0.5)  # a per stage, coarse to fine
 NEIGHBOUR_RADIUS = 0.006  # m: vertices this close are neighbours in the smoothness term
 SIMILARITY_START = True  # the start: one scale (True) or a full affine map
+PARTIAL_EDGE_SHARE = 0.4  # of the start's closest pairs by the scan's edge: more, and the scan covers part of the head
 BLEND_RINGS = 1  # rings around a fold blended back to the last fold-free surface
 BLEND_ROUNDS = 12  # rounds at most (the zone widens every second)
 DETAIL_STIFFNESS = 5.0  # stages below this stiffness match only the `detail` skin
@@ -101,12 +107,13 @@ DEGENERATE_SHARE = 1e-4  # of the median triangle area: smaller triangles have n
 class SurfaceFit:
     """Result of fit_to_scan: vertices (n, 3) metres (the template's vertex order, seams
     unwelded again); affine (4, 4) the start (a similarity unless SIMILARITY_START is
-    off); stages: a report per stage (stiffness, reach, pairs, their RMS, folds left, skin
+    off); partial_scan: the scan covers only part of the head (affine_to_scan); stages: a report per stage (stiffness, reach, pairs, their RMS, folds left, skin
     let go, vertices blended and untangled, seconds since the start); folded: triangles
     folded against the template in the result (0 unless a blend ran out of rounds)."""
 
     vertices: np.ndarray
     affine: np.ndarray
+    partial_scan: bool = False
     stages: list[dict] = field(default_factory=list)
     folded: int = 0
 
@@ -242,13 +249,19 @@ def _scan_normals(scan: Surface, face: np.ndarray, bary: np.ndarray) -> np.ndarr
 
 def affine_to_scan(X: np.ndarray, scan: Surface, use: np.ndarray, iterations: int = 15, keep: float = 0.8,
                    points: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
-                   similarity: bool = False) -> np.ndarray:
-    """(4, 4) affine map taking the vertices X[use] onto the scan by trimmed ICP (closest
-    scan vertices; the closest `keep` share of pairs). points: fixed pairs (template
+                   similarity: bool = False) -> tuple[np.ndarray, bool]:
+    """((4, 4) affine map taking the vertices X[use] onto the scan by trimmed ICP (closest
+    scan vertices; the closest `keep` share of pairs), partial): points: fixed pairs (template
     points (k, 3), scan points (k, 3), weights (k,)) that start it and count in every step,
     all k of them together as much as all the surface pairs, each in proportion to its
     weight. similarity: rotation, translation and
-    one scale only (the neck below a scan's cut then keeps the template's proportions)."""
+    one scale only (the neck below a scan's cut then keeps the template's proportions).
+    partial: more than PARTIAL_EDGE_SHARE of the first step's kept pairs lie on faces by
+    the scan's edge (near_edge): the scan covers only part of the head (a face, a front
+    half; the busts, cut below the neck: 16-26 %, a face 58-65 %), and no pair by its edge
+    is kept, since the skin the scan lacks would pull the start into its rim. On a
+    whole head those pairs are left in: the busts' faces fit 0.01-0.03 % of the diagonal
+    worse without them."""
     A = np.eye(4)
     P = X[use]
 
@@ -273,16 +286,24 @@ def affine_to_scan(X: np.ndarray, scan: Surface, use: np.ndarray, iterations: in
         share = np.asarray(points[2], dtype=np.float64) / np.sum(points[2])
     if points is not None and len(points[0]) >= 4:
         A = solve(points[0], points[1], np.sqrt(share))
-    for _ in range(iterations):
+    by_edge = np.zeros(len(scan.V), dtype=bool)
+    by_edge[scan.F[near_edge(scan)].ravel()] = True
+    partial = False
+    for step in range(iterations):
         Y = apply_transform(A, P)
         d, j = scan.tree.query(Y)
-        good = d <= np.quantile(d, keep)
+        if step == 0:
+            partial = bool(np.mean(by_edge[j[d <= np.quantile(d, keep)]]) > PARTIAL_EDGE_SHARE)
+        inner = ~by_edge[j] if partial else np.ones(len(j), dtype=bool)
+        if not inner.any():  # the whole template nearest the scan's rim: nothing else to go by
+            inner[:] = True
+        good = inner & (d <= np.quantile(d[inner], keep))
         src, dst, wt = P[good], scan.V[j[good]], np.ones(int(good.sum()))
         if points is not None and len(points[0]):
             src, dst = np.vstack([src, points[0]]), np.vstack([dst, points[1]])
             wt = np.r_[wt, np.sqrt(good.sum() * share)]
         A = solve(src, dst, wt)
-    return A
+    return A, partial
 
 
 def blend_away_folds(P: np.ndarray, X_safe: np.ndarray, X: np.ndarray, F: np.ndarray,
@@ -485,7 +506,7 @@ def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray
     # the fit 15-25 % faster, no longer waiting for its factors)
     with ThreadPoolExecutor(1) as factoring:
         ahead = factoring.submit(stage_factors, STIFFNESS[0], stage_matched(STIFFNESS[0]))
-        A = affine_to_scan(P, scan, movable if head is None else head, points=fixed, similarity=SIMILARITY_START)
+        A, partial = affine_to_scan(P, scan, movable if head is None else head, points=fixed, similarity=SIMILARITY_START)
         X = apply_transform(A, P)
         ring = adjacency_matrix(F, n)
         fold_ref = fold_reference(P, F)  # every round tests its step against the template
@@ -564,4 +585,4 @@ def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray
                    "seconds": time.perf_counter() - t0})
     Y = Y[label]
     folded = int(folded_triangles(P_in, Y, F_in).sum())
-    return SurfaceFit(Y, A, stages, folded)
+    return SurfaceFit(Y, A, partial, stages, folded)

@@ -200,6 +200,9 @@ def _finish(args, model, report, V, F, keep, started, start_mapping=None) -> int
           f"covered; without the neck {e['head_to_skin_rms_rel'] * 100:.3f} %), "
           f"{e['scan_to_skin_all_rms_rel'] * 100:.3f} % counting every point; "
           f"{report['folded_triangles']['visible']} folded triangles; {report['total_seconds']:.1f} s")
+    if report.get("scan_covers_part_of_head"):
+        print(f"{args.output}: the scan covers only part of the head: where it has no surface, the head "
+              "keeps the template's shape")
     return 0
 
 
