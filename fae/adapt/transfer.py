@@ -165,6 +165,8 @@ def push_under_skin(model: FaceModel, part: str, min_depth: float = MIN_BONE_DEP
     skin: surface(model.skin_vertices, model.skin_faces), when already prepared.
     Changes `model` in place; returns how many bone vertices moved."""
 
+    from scipy.spatial import cKDTree
+
     bone = model.parts[part]
     V = bone.vertices.copy()
     BF = np.asarray(bone.faces, dtype=np.int64)
@@ -192,13 +194,15 @@ def push_under_skin(model: FaceModel, part: str, min_depth: float = MIN_BONE_DEP
         drift[check] = 0.0
         inside = gap < 0.0
         need = np.maximum(min_depth - depth, 0.0)
-        if np.any(inside):  # skin inside the bone: the corners of the bone's face it is under go below it
-            # (not the nearest bone vertex: the cranium's faces over the neck are 2 cm across, and
-            # skin 2.5 mm inside one lay 10 mm from every corner, out of reach)
+        if np.any(inside):  # skin inside the bone: its nearest bone vertices go below it, and so do
+            # the corners of the bone's face it is under (the cranium's faces over the neck are 2 cm
+            # across: skin 2.5 mm inside one lay 10 mm from every corner, out of the nearest's reach)
+            d, j = cKDTree(V).query(S[inside], distance_upper_bound=inside_reach)
+            close = np.isfinite(d)
+            np.maximum.at(need, j[close], d[close] + min_depth)
             _, d, face, _ = bone_q.closest_points(S[inside], inside_reach)
             close = face >= 0
-            corners = BF[face[close]]
-            np.maximum.at(need, corners.ravel(), np.repeat(d[close] + min_depth, 3))
+            np.maximum.at(need, BF[face[close]].ravel(), np.repeat(d[close] + min_depth, 3))
         need = np.minimum(need, MAX_PUSH)
         at = np.flatnonzero(need > PUSH_TOLERANCE)
         if len(at) == 0:
