@@ -29,6 +29,7 @@ from fae.adapt.synthetic import template_bust
 from fae.anatomy.checks import facemodel_problems
 from fae.animate.verify import passed_fraction, verify_faps
 from fae.data import shipped_head_path
+from fae.linalg import turn_between
 from fae.cli import main
 from fae.io.facemodel_gltf import read_facemodel
 
@@ -79,6 +80,67 @@ def test_the_head_is_found_in_a_turned_bust_and_the_plinth_left_out(template, bu
     R_found = head.template_to_scan[:3, :3] / np.cbrt(np.linalg.det(head.template_to_scan[:3, :3]))
     angle = np.degrees(np.arccos(np.clip((np.trace(R_true.T @ R_found) - 1) / 2, -1, 1)))
     assert angle < 5.0  # turned 180 degrees, the centroid test alone would pass at 2.3 cm
+
+
+def test_the_head_is_found_on_a_bust_standing_on_a_tall_column(template, bust):
+    """A bust on a column three times its height: the head is a ninth of the scan's extent
+    along its up, below the smallest share the pose search started from (a third); its
+    starts, too large to shrink onto the head, ended upside down (173 degrees off, the face
+    pressed to the column, 77 % of it 'covered'; 91 degrees on a column half as tall)."""
+    V = np.asarray(bust.vertices, np.float64)
+    up = bust.to_scan[:3, 1] / np.linalg.norm(bust.to_scan[:3, 1])  # the face frame's +y in the scan
+    along = V @ up
+    height = float(np.ptp(along))
+    column = trimesh.creation.cylinder(radius=0.25 * height, height=3.0 * height, sections=48)
+    cv = np.asarray(column.vertices) @ turn_between(np.array([0.0, 0.0, 1.0]), up).T
+    cv += V.mean(axis=0) - up * (np.dot(V.mean(axis=0), up) - along.min() + 1.5 * height)
+    scan_V = np.vstack([V, cv])
+    scan_F = np.vstack([bust.faces, np.asarray(column.faces) + len(V)])
+    head = find_head(template, scan_V, scan_F)
+    assert head.trusted
+    R_true = bust.to_scan[:3, :3] / np.cbrt(np.linalg.det(bust.to_scan[:3, :3]))
+    R_found = head.template_to_scan[:3, :3] / np.cbrt(np.linalg.det(head.template_to_scan[:3, :3]))
+    assert np.degrees(np.arccos(np.clip((np.trace(R_true.T @ R_found) - 1) / 2, -1, 1))) < 5.0
+    assert not head.keep[len(V):].any()  # nothing of the column
+
+
+@pytest.mark.parametrize("other", ["a ball 50 m away", "a second bust beside it"])
+def test_the_head_is_found_in_a_scan_with_a_far_piece(template, bust, other):
+    """A scan whose extent a far piece sets: the pose search sized its starts to the whole
+    scan and found no head (a ball 50 m off: face covered 37 %; two busts 15 cm apart:
+    55 %). The pieces far apart are searched alone; of two heads, one is fitted and the
+    count reported."""
+    V = np.asarray(bust.vertices, np.float64)
+    size = float(np.linalg.norm(np.ptp(V, axis=0)))
+    if other == "a ball 50 m away":
+        ball = trimesh.creation.icosphere(subdivisions=3, radius=0.5 * size)
+        extra_V, extra_F = np.asarray(ball.vertices) + V.mean(axis=0) + [80.0 * size, 0.0, 0.0], np.asarray(ball.faces)
+    else:
+        extra_V, extra_F = V + [np.ptp(V[:, 0]) + 0.25 * size, 0.0, 0.0], np.asarray(bust.faces)
+    scan_V = np.vstack([V, extra_V])
+    scan_F = np.vstack([bust.faces, extra_F + len(V)])
+    head = find_head(template, scan_V, scan_F)
+    assert head.trusted
+    assert head.heads == (2 if other == "a second bust beside it" else 1)
+    kept = np.flatnonzero(head.keep)
+    assert kept.max() < len(V) + (len(V) if other == "a second bust beside it" else 0)
+    assert (kept < len(V)).all() or (kept >= len(V)).all()  # one head, not a piece of each
+    assert head.report(scan_V)["heads_found"] == head.heads
+
+
+@needs_mediapipe
+@pytest.mark.slow
+def test_fae_adapt_says_which_of_two_busts_it_fitted(bust, tmp_path, capsys):
+    V = np.asarray(bust.vertices, np.float64)
+    shift = np.ptp(V[:, 0]) + 0.25 * float(np.linalg.norm(np.ptp(V, axis=0)))
+    path, out, rep = tmp_path / "two.ply", tmp_path / "head.glb", tmp_path / "r.json"
+    trimesh.Trimesh(np.vstack([V, V + [shift, 0.0, 0.0]]), np.vstack([bust.faces, np.asarray(bust.faces) + len(V)]),
+                    process=False).export(path)
+    assert main(["adapt", str(path), "-o", str(out), "--report", str(rep), "--no-calibrate"]) == 0
+    assert "2 heads found in the scan" in capsys.readouterr().err
+    report = json.loads(rep.read_text())
+    assert report["head_part"]["heads_found"] == 2
+    assert report["errors"]["face_to_scan_rms_rel"] < 0.001
 
 
 @needs_mediapipe

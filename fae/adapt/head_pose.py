@@ -28,7 +28,9 @@ may pull its skin.
    seams split the scan) that holds the face. The report names its vertex count and
    bounds.
    A scan whose pose this does not trust (a face without the rest of the head) is
-   searched again with the template's face alone.
+   searched again with the template's face alone; then, when the scan is in pieces far
+   apart (scan_clusters: a stray object metres away, two busts side by side), each of
+   the largest is searched alone and the best head found is taken, its count reported.
 3. Confidence: the share of the template's face that the scan covers within
    FACE_NEAR metres after the rigid fit, and the trimmed residual over the face. Below
    MIN_FACE_COVERAGE, or above MAX_HEAD_RESIDUAL, the pose is not to be trusted and
@@ -60,7 +62,7 @@ COARSE_ITERATIONS, SCREEN_ITERATIONS = 5, 2
 SCREEN_KEEP, SCREEN_MIN = 1.0 / 6.0, 12
 COARSE_SCAN, COARSE_HEAD = 3000, 400  # points (about) of scan and template that score the starts
 YAW_STEPS = 8  # starts turned about each up direction (45 degrees apart)
-HEAD_SHARES = (0.35, 0.6, 0.95)  # starting head height (chin to crown) / scan extent along up
+HEAD_SHARES = (0.1, 0.2, 0.35, 0.6, 0.95)  # starting head height (chin to crown) / scan extent along up (0.1, 0.2: a bust on a column)
 KEEP = 0.85  # trimmed ICP: share of pairs kept
 FACE_WEIGHT = 2.0  # of the face's distance in a start's score
 CHIN_MARGIN = 0.03  # m: the neck rule starts this far below the chin
@@ -70,6 +72,9 @@ FACE_NEAR = 0.008  # m: a face sample is covered when the scan is this close aft
 MIN_FACE_COVERAGE = 0.6  # below this share of the face covered, the pose is not trusted
 UNIT_SNAP = 1.3  # a fitted scale within this factor of a length unit is taken as that unit
 MAX_HEAD_RESIDUAL = 0.012  # m: trimmed mean template head -> scan distance beyond which it is not
+CLUSTER_GAP_SHARE = 0.1  # of the largest piece's diagonal: pieces farther apart are searched apart
+MAX_CLUSTERS = 4  # the largest clusters searched alone
+MIN_CLUSTER_VERTICES = 100
 
 
 @dataclass
@@ -83,6 +88,7 @@ class HeadInScan:
     residual    trimmed mean distance, template face -> scan, metres, after the rigid fit
     scale       scan units -> metres as fitted (before snapping to a unit)
     template_to_scan  (4, 4) the similarity found, the template's face frame -> the scan's
+    heads       how many of the scan's clusters held a head found (1 unless it had several)
     """
 
     transform: np.ndarray
@@ -92,6 +98,7 @@ class HeadInScan:
     residual: float
     scale: float
     template_to_scan: np.ndarray
+    heads: int = 1
 
     @property
     def trusted(self) -> bool:
@@ -104,7 +111,7 @@ class HeadInScan:
                 "head_bounds_min": part.min(axis=0).tolist() if len(part) else None,
                 "head_bounds_max": part.max(axis=0).tolist() if len(part) else None,
                 "scan_unit": self.unit, "face_coverage": self.face_coverage,
-                "pose_residual_m": self.residual, "trusted": self.trusted}
+                "pose_residual_m": self.residual, "trusted": self.trusted, "heads_found": self.heads}
 
 
 @dataclass
@@ -346,17 +353,78 @@ def find_head(template: FaceModel, scan_V: np.ndarray, scan_F: np.ndarray) -> He
     if len(V) < 100:
         raise ValueError(f"the scan has {len(V)} vertices: too few to find a head in")
     head = template_head(template)
+    found = _searched(head, V, scan_F)
+    if found.trusted:
+        return found
+    # pieces far apart (a stray object metres off, two busts side by side) are searched alone
+    F = np.asarray(scan_F, dtype=np.int64)
+    heads = []
+    for idx in [c for c in scan_clusters(V, F) if len(c) >= MIN_CLUSTER_VERTICES][:MAX_CLUSTERS]:
+        if len(idx) == len(V):
+            break
+        inside = np.zeros(len(V), dtype=bool)
+        inside[idx] = True
+        renumber = np.cumsum(inside) - 1
+        alone = _searched(head, V[idx], renumber[F[inside[F].all(axis=1)]])
+        if alone.trusted:
+            keep = np.zeros(len(V), dtype=bool)
+            keep[idx[alone.keep]] = True
+            heads.append(replace(alone, keep=keep))
+    if not heads:
+        return found
+    best = min(heads, key=lambda h: h.residual)
+    return replace(best, heads=len(heads))
+
+
+def _searched(head: TemplateHead, V: np.ndarray, F: np.ndarray) -> HeadInScan:
+    """The head found in V (n, 3), F (m, 3) by head_pose, and again with the template's face
+    alone when that is not trusted (a face without the rest of the head: a face scan, a mask)."""
     s, R, t, _ = head_pose(head, V)
-    found = _head_in_scan(head, V, scan_F, s, R, t)
-    if not found.trusted:  # a face without the rest of the head (a face scan, a mask)
+    found = _head_in_scan(head, V, F, s, R, t)
+    if not found.trusted:
         pad = 0.1 * np.ptp(head.face, axis=0)
         face_only = replace(head, head=head.face, box_min=head.face.min(axis=0) - pad,
                             box_max=head.face.max(axis=0) + pad)
         s2, R2, t2, _ = head_pose(face_only, V)
-        second = _head_in_scan(head, V, scan_F, s2, R2, t2)
+        second = _head_in_scan(head, V, F, s2, R2, t2)
         if second.residual < found.residual:
             found = second
     return found
+
+
+def scan_clusters(V: np.ndarray, F: np.ndarray, gap_share: float = CLUSTER_GAP_SHARE) -> list[np.ndarray]:
+    """Vertex indices (k_i,) of each cluster of the scan V (n, 3), F (m, 3), most vertices
+    first: space is cut into cubes of gap_share x the diagonal of the largest connected
+    piece (welded where texture seams split it), and cubes that hold vertices and touch
+    (corners included) are one cluster. So pieces closer than about a cube are together
+    (a bust's separate wreath, its plinth), farther ones apart."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    V = np.asarray(V, dtype=np.float64)
+    F = np.asarray(F, dtype=np.int64)
+    _, weld = coincident_groups(V)
+    n = len(V)
+    G = weld[F]
+    graph = coo_matrix((np.ones(2 * len(G)), (np.r_[G[:, 0], G[:, 1]], np.r_[G[:, 1], G[:, 2]])), shape=(n, n))
+    _, label = connected_components(graph, directed=False)
+    piece = label[weld]
+    lo = np.full((piece.max() + 1, 3), np.inf)
+    hi = np.full((piece.max() + 1, 3), -np.inf)
+    np.minimum.at(lo, piece, V)
+    np.maximum.at(hi, piece, V)
+    size = float(np.max(np.linalg.norm(hi - lo, axis=1)))
+    if not np.isfinite(size) or size <= 0.0:
+        return [np.arange(n)]
+    cube = gap_share * size
+    keys, cell = np.unique(np.floor((V - V.min(axis=0)) / cube).astype(np.int64), axis=0, return_inverse=True)
+    cell = cell.ravel()
+    pairs = cKDTree(keys.astype(np.float64)).query_pairs(np.sqrt(3.0) + 1e-6, output_type="ndarray")
+    touching = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(keys), len(keys)))
+    _, cluster = connected_components(touching, directed=False)
+    of_vertex = cluster[cell]
+    order = np.argsort(-np.bincount(of_vertex))
+    return [np.flatnonzero(of_vertex == c) for c in order if np.any(of_vertex == c)]
 
 
 def _head_in_scan(head: TemplateHead, V: np.ndarray, scan_F: np.ndarray, s: float, R: np.ndarray,

@@ -141,6 +141,11 @@ def adapt_scan(template: FaceModel, V: np.ndarray, F: np.ndarray, face_pairs: Ca
                     f"{head.face_coverage * 100:.0f} %, at least {MIN_FACE_COVERAGE * 100:.0f} % needed; "
                     f"residual {head.residual * 1000:.1f} mm, at most {MAX_HEAD_RESIDUAL * 1000:.0f} mm); "
                     "give feature points with --landmarks")
+            if head.heads > 1:
+                lo, hi = V[head.keep].min(axis=0), V[head.keep].max(axis=0)
+                say(f"{scan_name}: {head.heads} heads found in the scan; fitting the one whose face lies closest "
+                    f"to the template's, between {np.round(lo, 3).tolist()} and {np.round(hi, 3).tolist()} "
+                    "(cut the scan to the head you want, or give its feature points with --landmarks)")
         part_V, part_F = kept_part(apply_transform(head.transform, V), F, head.keep)
         if len(part_F) < MIN_HEAD_TRIANGLES:
             raise AdaptRefused(
