@@ -79,6 +79,25 @@ def accessor_values(gltf: pygltflib.GLTF2, blob: bytes, index: int) -> np.ndarra
     return out
 
 
+def played_scene(path: Path) -> tuple[dict, np.ndarray, dict, np.ndarray, np.ndarray, np.ndarray]:
+    """What a scene's animation holds: (node name -> index, key times (N,), (node, path) ->
+    key values, the skin's rest (V, 3), its morph targets (T, V, 3), weights (N, T))."""
+    gltf = pygltflib.GLTF2.load(str(path))
+    blob = gltf.binary_blob()
+    nodes = {n.name: i for i, n in enumerate(gltf.nodes)}
+    anim = gltf.animations[0]
+    keys = {}
+    for ch in anim.channels:
+        sampler = anim.samplers[ch.sampler]
+        times = accessor_values(gltf, blob, sampler.input)[:, 0]
+        keys[(ch.target.node, ch.target.path)] = accessor_values(gltf, blob, sampler.output)
+    prim = gltf.meshes[gltf.nodes[nodes["skin"]].mesh].primitives[0]
+    rest = accessor_values(gltf, blob, prim.attributes.POSITION)
+    targets = np.stack([accessor_values(gltf, blob, t["POSITION"]) for t in prim.targets])  # (T, V, 3)
+    weights = keys[(nodes["skin"], "weights")].reshape(len(times), len(targets))
+    return nodes, times, keys, rest, targets, weights
+
+
 def node_matrix(node) -> np.ndarray:
     from scipy.spatial.transform import Rotation
 
@@ -137,21 +156,8 @@ def test_the_animation_matches_the_players_fdt_output(exported, baked_file):
 
     path, stream = exported
     gltf = pygltflib.GLTF2.load(str(path))
-    blob = gltf.binary_blob()
-    nodes = {n.name: i for i, n in enumerate(gltf.nodes)}
-    anim = gltf.animations[0]
-    keys = {}
-    for ch in anim.channels:
-        sampler = anim.samplers[ch.sampler]
-        times = accessor_values(gltf, blob, sampler.input)[:, 0]
-        keys[(ch.target.node, ch.target.path)] = accessor_values(gltf, blob, sampler.output)
+    nodes, times, keys, rest, targets, weights = played_scene(path)
     assert np.allclose(times, np.arange(len(times)) / FPS)
-    skin_node = nodes["skin"]
-    skin_mesh = gltf.meshes[gltf.nodes[skin_node].mesh]
-    prim = skin_mesh.primitives[0]
-    rest = accessor_values(gltf, blob, prim.attributes.POSITION)
-    targets = np.stack([accessor_values(gltf, blob, t["POSITION"]) for t in prim.targets])  # (T, V, 3)
-    weights = keys[(skin_node, "weights")].reshape(len(times), len(targets))
 
     player = Player(playable_head(read_facemodel(baked_file), engine="fdt"))
     played = list(player.play(dense_frames(read_fap(stream))))

@@ -337,6 +337,39 @@ def test_play_command_on_a_mesh(template, synthetic, tmp_path):
     assert out.stat().st_size > 0
 
 
+def test_a_mesh_plays_into_a_gltf_scene_that_rebuilds_every_frame(template, synthetic, tmp_path):
+    """`fae play ... --landmarks LM -o OUT.glb`: the mesh in a glTF scene whose morph weights
+    and head node, sampled at a frame, give the skin the motion transfer gives (within the
+    shapes' 0.1 mm and float32), and whose eye nodes follow the gaze."""
+    import pygltflib
+
+    from fae.cli import main
+    from test_export_gltf import node_matrix, played_scene
+
+    mesh, lm, _, rt = synthetic
+    stream, out = f"{STREAMS}/expressions.fap", tmp_path / "out.glb"
+    assert main(["play", stream, "--head", str(mesh), "--landmarks", str(lm), "-o", str(out)]) == 0
+    nodes, times, keys, rest, targets, weights = played_scene(out)
+    assert np.allclose(rest, rt.model.skin_vertices, atol=1e-6)
+    player = RetargetPlayer(rt, Player(playable_head(template)))
+    played = list(player.play(read_fap(stream)))
+    assert len(played) == len(times) and len(targets) <= 64
+    moved = 0.0
+    for i in range(0, len(played), 37):
+        head = node_matrix(pygltflib.Node(translation=keys[(nodes["head_bone"], "translation")][i].tolist(),
+                                          rotation=keys[(nodes["head_bone"], "rotation")][i].tolist()))
+        skin = (rest + np.tensordot(weights[i], targets, axes=1)) @ head[:3, :3].T + head[:3, 3]
+        assert np.abs(skin - played[i].skin_vertices).max() < 2e-4, i
+        moved = max(moved, float(np.abs(played[i].skin_vertices - rest).max()))
+    assert moved > 0.003  # the expressions move the face
+    eye = keys[(nodes["eye_l_bone"], "rotation")]
+    assert np.ptp(eye, axis=0).max() > 0.01 or np.ptp(keys[(nodes["head_bone"], "rotation")], axis=0).max() > 0.01
+    from test_facemodel_gltf import validate
+
+    report = validate(out)  # last: it skips where the Khronos validator is not installed
+    assert report["issues"]["numErrors"] == 0, report["issues"]["messages"][:5]
+
+
 @pytest.mark.parametrize("case", ["no_landmarks", "few_landmarks", "bad_mesh", "missing_landmarks", "another_unit",
                                   "flat_mesh"])
 def test_bad_input_exits_2(template, synthetic, tmp_path, case):

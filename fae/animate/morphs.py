@@ -114,3 +114,47 @@ def keyframes(player, targets: list[MorphTarget], frames, fps: float) -> Keyfram
     player.reset()
     return Keyframes(np.asarray(times, dtype=np.float64), np.asarray(weights).reshape(len(times), len(targets)),
                      {k: np.asarray(v) for k, v in bones.items()})
+
+
+SHAPE_TOLERANCE = 1e-4  # m: the largest vertex error of a frame rebuilt from shape_targets
+MAX_SHAPE_TARGETS = 64
+
+
+def shape_targets(offsets: np.ndarray, tolerance: float = SHAPE_TOLERANCE,
+                  max_targets: int = MAX_SHAPE_TARGETS) -> tuple[list[MorphTarget], np.ndarray, float]:
+    """A played mesh's frames as a few morph targets, for a mesh without FaceDefTables (a
+    target of motion transfer): offsets (N, k, 3) metres of its k vertices from their rest,
+    one row per frame -> (targets, weights (N, K), error). The targets are the frames'
+    principal shapes (the SVD of the (N, 3k) offsets, not centred: a frame at rest has all
+    weights 0), as few as rebuild every frame within `tolerance` metres at every vertex,
+    at most max_targets; error: the largest vertex error of any frame rebuilt (metres)."""
+    D = np.asarray(offsets, dtype=np.float64)
+    N, k = D.shape[0], D.shape[1]
+    M = D.reshape(N, 3 * k)
+    if N == 0 or not np.any(M):
+        return [], np.zeros((N, 0)), 0.0
+    U, s, Vt = np.linalg.svd(M, full_matrices=False)
+    s_max = float(s[0])
+    s = s[s > 1e-12 * s_max]  # shapes no frame has: dropped
+    cap = min(len(s), max_targets)
+
+    def error(K: int) -> float:
+        R = M - (U[:, :K] * s[:K]) @ Vt[:K]
+        return float(np.sqrt(np.max(np.sum(R.reshape(N, k, 3) ** 2, axis=2))))
+
+    lo, hi = 1, cap  # the fewest K within tolerance, by bisection (the error falls with K)
+    if error(hi) > tolerance:
+        lo = hi
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if error(mid) <= tolerance:
+            hi = mid
+        else:
+            lo = mid + 1
+    K = lo
+    targets = []
+    for j in range(K):
+        shape = Vt[j].reshape(k, 3) * s_max  # scaled so that weights stay within about [-1, 1]
+        moved = np.flatnonzero(np.any(shape != 0.0, axis=1)).astype(np.int32)
+        targets.append(MorphTarget(f"shape {j + 1}", 0, 0.0, 1.0, moved, shape[moved]))
+    return targets, U[:, :K] * (s[:K] / s_max), error(K)

@@ -3,7 +3,11 @@
 With --landmarks, --head is any mesh (OBJ, PLY, STL, OFF, glTF: an artist's head, a scan)
 and LM its MPEG-4 feature points (FDP JSON or CSV, menpo .ljson or CSV with iBUG-68): the
 template is played and its motion carried over to the mesh, which keeps its own topology
-(fae.animate.retarget; a few seconds of set-up for the template's fit to it).
+(fae.animate.retarget; a few seconds of set-up for the template's fit to it). With
+`-o OUT.glb` the mesh and its animation are written as a glTF scene instead of a video:
+the mesh with its own UVs and texture, eyes and jaw parts on nodes that move, and the
+frames' shapes as morph targets (their principal shapes, as few as rebuild every frame
+within 0.1 mm: fae.animate.morphs.shape_targets) with one key per frame.
 
 The shipped generic head is used when --head is absent; `--engine fdt` moves the skin by
 the head's FaceDefTables baked from its physics (`fae bake`) instead of simulating it. The video has the stream's frame
@@ -18,7 +22,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from fae.commands.common import (add_device_argument, add_view_arguments, fail, load_head, memory_message,
+from fae.commands.common import (add_device_argument, add_view_arguments, drawn_skin_colors, fail, load_head,
+                                 memory_message,
                                  os_error_text, output_problem, overwritten_input, render_size_problem,
                                  timing_problem, video_size_problem, warp_device)
 from fae.io.frames import MAX_HOLD_SECONDS
@@ -35,7 +40,8 @@ def register(subparsers) -> None:
     parser.add_argument("--landmarks", metavar="LM", help="feature points of the --head mesh (JSON {\"9.3\": [x, y, z] "
                         "or vertex index}, CSV name,x,y,z, or 68 iBUG points as menpo .ljson or CSV): the template's "
                         "motion is carried over to the mesh, which keeps its own topology")
-    parser.add_argument("-o", "--output", required=True, metavar="OUT.mp4", help="the video to write")
+    parser.add_argument("-o", "--output", required=True, metavar="OUT.mp4", help="the video to write; with "
+                        "--landmarks, OUT.glb writes the mesh and its animation as a glTF scene instead")
     add_view_arguments(parser, "640x480")
     parser.add_argument("--fps", type=float, default=None, help="resample to this frame rate (default: the stream's)")
     parser.add_argument("--max-hold", type=float, default=MAX_HOLD_SECONDS, metavar="SECONDS",
@@ -62,7 +68,12 @@ def run(args: argparse.Namespace) -> int:
     problem = timing_problem(args.fps, args.max_hold)
     if problem:
         return fail("play", problem)
-    problem = output_problem(args.output, ".mp4") or overwritten_input(
+    scene = Path(args.output).suffix.lower() == ".glb"
+    if scene and not args.landmarks:
+        return fail("play", f"{args.output}: a glTF scene of a FaceModel head is written by `fae export "
+                    f"{args.head or 'HEAD.glb'} {args.stream} -o {args.output}`; `fae play` writes it only for a mesh "
+                    "animated by motion transfer (--head MESH --landmarks LM)")
+    problem = output_problem(args.output, ".glb" if scene else ".mp4") or overwritten_input(
         {"-o": args.output}, {"stream": args.stream, "--head": args.head, "--landmarks file": args.landmarks})
     if problem:
         return fail("play", problem)
@@ -134,6 +145,8 @@ def run(args: argparse.Namespace) -> int:
     except (RuntimeError, ValueError) as exc:  # data the engine cannot use (fae template check says which)
         which = "the template" if retargeted is not None else args.head or "the shipped head"
         return fail("play", f"{which}: cannot animate it: {exc}")
+    if scene:
+        return _write_scene(args, player, stream, fps)
     made_frames_dir = frames_dir is not None and not frames_dir.exists()
     if frames_dir is not None:  # made once the inputs are known to be good
         try:
@@ -173,6 +186,45 @@ def run(args: argparse.Namespace) -> int:
         print(f"fae play: warning: {warning}", file=sys.stderr)
     print(f"{args.output}: {timings.frames} frames at {fps:g} fps, {width}x{height} "
           f"({timings.fps:.1f} frames/s)", file=sys.stderr)
+    return 0
+
+
+def _write_scene(args: argparse.Namespace, player, stream, fps: float) -> int:
+    """`-o OUT.glb` with --landmarks: play the stream on the target and write it as a glTF
+    scene (module docstring). The skin's shapes are taken in the head node's frame, which
+    carries the head's turn (the neck's partial turn is in the shapes)."""
+    import numpy as np
+
+    from fae.animate.morphs import Keyframes, shape_targets
+    from fae.io.export_gltf import write_scene
+    from fae.io.fap import FapFormatError
+    from fae.io.frames import dense_frames
+
+    rest = np.asarray(player.face.skin_vertices, dtype=np.float64)
+    offsets, bones = [], {}
+    try:
+        frames = dense_frames(stream, fps=args.fps, max_hold=args.max_hold)
+        for f in player.play(frames, fps=fps):
+            H = f.bone_transforms["head"]
+            offsets.append(((f.skin_vertices - H[:3, 3]) @ H[:3, :3] - rest).astype(np.float32))
+            for name, T in f.bone_transforms.items():
+                bones.setdefault(name, []).append(T)
+    except FapFormatError as exc:
+        return fail("play", f"{exc} (nothing written)")
+    if not offsets:
+        return fail("play", f"{args.stream}: no frames to play; expected at least one frame after the header "
+                    "(nothing written)")
+    targets, weights, error = shape_targets(np.stack(offsets))
+    animation = Keyframes(np.arange(len(offsets)) / fps, weights, {k: np.asarray(v) for k, v in bones.items()})
+    try:
+        write_scene(args.output, player.face, targets=targets, skin_colors=drawn_skin_colors(player.face),
+                    keyframes=animation, name=Path(args.head).stem)
+    except OSError as exc:
+        return fail("play", os_error_text(exc))
+    for warning in stream.warnings + frames.warnings:
+        print(f"fae play: warning: {warning}", file=sys.stderr)
+    print(f"{args.output}: glTF scene of {args.head}, {len(offsets)} frames at {fps:g} fps, {len(targets)} "
+          f"morph targets (every frame within {error * 1000:.3f} mm)", file=sys.stderr)
     return 0
 
 
