@@ -432,6 +432,35 @@ def test_a_scanned_bust_becomes_a_head(shared_data, name, tmp_path):
 
 
 @needs_mediapipe
+@pytest.mark.slow
+def test_a_bearded_face_cut_to_a_mask_is_not_fitted_upside_down(shared_data, tmp_path, capsys):
+    """Demosthenes' face cut out with its brow and the top of its beard: the head search
+    matched the template's face to it upside down (the beard as a brow, 70 % of the face
+    covered: trusted) and the face-landmark model found no face on that pose's render, so
+    the scan was refused. The pose found by the face alone, or the first one turned over,
+    is tried when no face shows; the head comes out right way up."""
+    mesh = trimesh.load(shared_data / "heads" / "busts" / "demosthenes" / "demosthenes.obj", force="mesh",
+                        process=False)
+    V, F = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    # the bust's face frame, as `fae adapt` finds it on the whole bust: origin, scale, +y, +z
+    origin, scale = np.array([0.1872, 1.5321, 0.2762]), 6.583
+    up, forward = np.array([0.0214, 0.96, 0.279]), np.array([0.0026, -0.2791, 0.9602])
+    c = (V[F].mean(axis=1) - origin) / scale
+    keep = (c @ forward > 0.0215) & (c @ up > -0.1385) & (c @ up < 0.0998)
+    path, out, rep = tmp_path / "mask.obj", tmp_path / "head.glb", tmp_path / "r.json"
+    trimesh.Trimesh(V, F[keep], process=False).export(path)
+    assert main(["adapt", str(path), "-o", str(out), "--report", str(rep), "--no-calibrate"]) == 0
+    assert "found it in another" in capsys.readouterr().err
+    report = json.loads(rep.read_text())
+    assert report["scan_covers_part_of_head"] is True
+    assert report["errors"]["face_to_scan_rms_rel"] < 0.0025  # 0.17 %
+    model = read_facemodel(out)
+    head_up = model.scan_transform[:3, 1] / np.linalg.norm(model.scan_transform[:3, 1])
+    assert np.degrees(np.arccos(np.clip(head_up @ up, -1.0, 1.0))) < 25.0
+    assert facemodel_problems(model) == []
+
+
+@needs_mediapipe
 def test_a_head_that_is_not_whole_is_not_written(bust, tmp_path, capsys, monkeypatch):
     """fae adapt checks the head it made as `fae template check` does (skin inside a bone,
     a bone through the skin, the skin through itself) and writes none that fails, unless

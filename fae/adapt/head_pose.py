@@ -40,6 +40,7 @@ may pull its skin.
 from __future__ import annotations
 
 import itertools
+from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 
@@ -376,20 +377,55 @@ def find_head(template: FaceModel, scan_V: np.ndarray, scan_F: np.ndarray) -> He
     return replace(best, heads=len(heads))
 
 
+def turned_over(template: FaceModel, scan_V: np.ndarray, scan_F: np.ndarray, found: HeadInScan) -> HeadInScan:
+    """The head `found` turned upside down about the face's forward axis through its middle,
+    then fitted by the face alone (similarity ICP): the other pose a face scan leaves open
+    (see other_poses)."""
+    V = np.asarray(scan_V, dtype=np.float64)
+    head = template_head(template)
+    M = found.template_to_scan
+    s = float(np.cbrt(np.linalg.det(M[:3, :3])))
+    R, t = M[:3, :3] / s, M[:3, 3]
+    centre = head.face.mean(axis=0)
+    R0 = R @ np.diag([-1.0, -1.0, 1.0])  # half a turn about the face frame's +z
+    t0 = s * R @ centre + t - s * R0 @ centre
+    S = V[:: max(1, len(V) // SCAN_SAMPLES)]
+    s, R, t, _ = similarity_icp(head.face, cKDTree(S), S, s, R0, t0, iterations=30, keep=0.8)
+    return _head_in_scan(head, V, scan_F, s, R, t)
+
+
 def _searched(head: TemplateHead, V: np.ndarray, F: np.ndarray) -> HeadInScan:
     """The head found in V (n, 3), F (m, 3) by head_pose, and again with the template's face
     alone when that is not trusted (a face without the rest of the head: a face scan, a mask)."""
     s, R, t, _ = head_pose(head, V)
     found = _head_in_scan(head, V, F, s, R, t)
     if not found.trusted:
-        pad = 0.1 * np.ptp(head.face, axis=0)
-        face_only = replace(head, head=head.face, box_min=head.face.min(axis=0) - pad,
-                            box_max=head.face.max(axis=0) + pad)
-        s2, R2, t2, _ = head_pose(face_only, V)
-        second = _head_in_scan(head, V, F, s2, R2, t2)
+        second = _face_searched(head, V, F)
         if second.residual < found.residual:
             found = second
     return found
+
+
+def _face_searched(head: TemplateHead, V: np.ndarray, F: np.ndarray) -> HeadInScan:
+    """The head found in V (n, 3), F (m, 3) by head_pose with the template's face alone."""
+    pad = 0.1 * np.ptp(head.face, axis=0)
+    face_only = replace(head, head=head.face, box_min=head.face.min(axis=0) - pad, box_max=head.face.max(axis=0) + pad)
+    s, R, t, _ = head_pose(face_only, V)
+    return _head_in_scan(head, V, F, s, R, t)
+
+
+def other_poses(template: FaceModel, scan_V: np.ndarray, scan_F: np.ndarray, found: HeadInScan) -> Iterator[HeadInScan]:
+    """Other trusted poses of the head in a scan, for when the face-landmark model finds no
+    face on the render of the pose `found`: a face scan leaves up and down open, and a
+    bearded face cut to a mask matched the template's face upside down (brow on beard, 70 %
+    of the face covered: trusted). In turn: the pose found by the face alone, and `found`
+    turned over (turned_over)."""
+    V = np.asarray(scan_V, dtype=np.float64)
+    head = template_head(template)
+    for make in (lambda: _face_searched(head, V, scan_F), lambda: turned_over(template, V, scan_F, found)):
+        other = make()
+        if other.trusted:
+            yield other
 
 
 def scan_clusters(V: np.ndarray, F: np.ndarray, gap_share: float = CLUSTER_GAP_SHARE) -> list[np.ndarray]:

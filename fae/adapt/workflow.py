@@ -104,7 +104,8 @@ def adapt_scan(template: FaceModel, V: np.ndarray, F: np.ndarray, face_pairs: Ca
     lie on a separate ear)."""
     from fae.adapt.calibration import apply_transform, outlier_landmarks
     from fae.adapt.from_scan import adapt_to_scan
-    from fae.adapt.head_pose import MAX_HEAD_RESIDUAL, MIN_FACE_COVERAGE, find_head, head_from_landmarks, kept_part
+    from fae.adapt.head_pose import (MAX_HEAD_RESIDUAL, MIN_FACE_COVERAGE, find_head, head_from_landmarks, kept_part,
+                                     other_poses)
 
     say = say or (lambda msg: None)
     try:
@@ -146,20 +147,41 @@ def adapt_scan(template: FaceModel, V: np.ndarray, F: np.ndarray, face_pairs: Ca
                 say(f"{scan_name}: {head.heads} heads found in the scan; fitting the one whose face lies closest "
                     f"to the template's, between {np.round(lo, 3).tolist()} and {np.round(hi, 3).tolist()} "
                     "(cut the scan to the head you want, or give its feature points with --landmarks)")
-        part_V, part_F = kept_part(apply_transform(head.transform, V), F, head.keep)
-        if len(part_F) < MIN_HEAD_TRIANGLES:
-            raise AdaptRefused(
-                f"{scan_name}: the part of the scan where the head should be holds {len(part_F)} triangles "
-                f"(at least {MIN_HEAD_TRIANGLES} expected): "
-                + ("do the feature points belong to this scan, in its unit?" if landmarks
-                   else "give feature points with --landmarks"))
+
+        def looked_at(head):
+            """The head part of the scan in the face frame and the feature pairs found on it."""
+            part_V, part_F = kept_part(apply_transform(head.transform, V), F, head.keep)
+            if len(part_F) < MIN_HEAD_TRIANGLES:
+                raise AdaptRefused(
+                    f"{scan_name}: the part of the scan where the head should be holds {len(part_F)} triangles "
+                    f"(at least {MIN_HEAD_TRIANGLES} expected): "
+                    + ("do the feature points belong to this scan, in its unit?" if landmarks
+                       else "give feature points with --landmarks"))
+            try:
+                return face_pairs(part_V, part_F)
+            except FacePairsUnavailable as exc:
+                if exc.fatal or not landmarks:
+                    raise AdaptRefused(str(exc)) from exc
+                return None
+
+        def usable(found) -> bool:
+            return found is not None and len(found.face) >= MIN_PAIRS and \
+                found.report["similarity_residual_m"] <= MAX_PAIR_RESIDUAL_SHARE * eye_distance(template)
+
         pairs = None
-        try:
-            found = face_pairs(part_V, part_F)
-        except FacePairsUnavailable as exc:
-            if exc.fatal or not landmarks:
-                raise AdaptRefused(str(exc)) from exc
-            found = None
+        found = looked_at(head)
+        if not landmarks and not usable(found):
+            # a face scan leaves up and down open: its face upside down may match the template's
+            # (a beard taken for a brow); the face-landmark model tells, on the other poses' renders
+            for other in other_poses(template, V, F, head):
+                try:
+                    found_other = looked_at(other)
+                except AdaptRefused:
+                    continue
+                if usable(found_other):
+                    head, found = other, found_other
+                    say(f"{scan_name}: no face showed in the head's first pose; found it in another")
+                    break
         if found is None or len(found.face) < MIN_PAIRS:
             if not landmarks:
                 raise AdaptRefused(f"{scan_name}: no face found on the head part of the scan (eyes, nose and "
