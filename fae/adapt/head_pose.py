@@ -204,6 +204,8 @@ def _icp(head: TemplateHead, A: np.ndarray, S: np.ndarray, tree: cKDTree, s: flo
             src.append(A[j2[good2]])
             dst.append(S[inbox[good2]])
         s, R, t = similarity_transform(np.vstack(src), np.vstack(dst))
+        if not (np.isfinite(s) and s > 0.0):  # every pair on one scan vertex (a start in a hole): no pose
+            break
     return s, R, t
 
 
@@ -232,12 +234,15 @@ def head_pose(head: TemplateHead, scan_V: np.ndarray) -> tuple[float, np.ndarray
 
     def score(s, R, t, cloud=S, cloud_tree=tree) -> float:
         # in the template's frame: template head -> scan, and scan in the head's box -> head
+        if not (np.isfinite(s) and s > 0.0):  # a start in a hole paired every point with one vertex
+            return np.inf
         d1 = cloud_tree.query(s * probe @ R.T + t)[0] / s
         d3 = cloud_tree.query(s * face_probe @ R.T + t)[0] / s
         X = (cloud - t) @ R / s
         inbox = np.all((X >= head.box_min) & (X <= head.box_max), axis=1)
         d2 = head_tree.query(X[inbox])[0] if inbox.sum() > 10 else np.full(1, np.inf)
-        return _trimmed_mean(d1) + _trimmed_mean(d2) + FACE_WEIGHT * _trimmed_mean(d3, 0.95)
+        e = _trimmed_mean(d1) + _trimmed_mean(d2) + FACE_WEIGHT * _trimmed_mean(d3, 0.95)
+        return e if np.isfinite(e) else np.inf  # sorted() cannot order a NaN: it would crowd out the best
 
     starts = []
     for up in _up_candidates(S):
@@ -459,8 +464,9 @@ def scan_clusters(V: np.ndarray, F: np.ndarray, gap_share: float = CLUSTER_GAP_S
     touching = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(keys), len(keys)))
     _, cluster = connected_components(touching, directed=False)
     of_vertex = cluster[cell]
-    order = np.argsort(-np.bincount(of_vertex))
-    return [np.flatnonzero(of_vertex == c) for c in order if np.any(of_vertex == c)]
+    by_cluster = np.argsort(of_vertex, kind="stable")  # one sort, not a pass over the scan per cluster
+    groups = np.split(by_cluster, np.cumsum(np.bincount(of_vertex))[:-1])
+    return sorted((g for g in groups if len(g)), key=len, reverse=True)
 
 
 def _head_in_scan(head: TemplateHead, V: np.ndarray, scan_F: np.ndarray, s: float, R: np.ndarray,

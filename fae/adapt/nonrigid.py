@@ -81,7 +81,8 @@ from fae.mesh import coincident_groups, group_means
 STIFFNESS = (30.0, 12.0, 5.0, 2.0, 1.0, 0.5)  # a per stage, coarse to fine
 NEIGHBOUR_RADIUS = 0.006  # m: vertices this close are neighbours in the smoothness term
 SIMILARITY_START = True  # the start: one scale (True) or a full affine map
-PARTIAL_EDGE_SHARE = 0.4  # of the start's closest pairs by the scan's edge: more, and the scan covers part of the head
+PARTIAL_EDGE_SHARE = 0.4  # of the start's closest pairs by the scan's rim: more, and the scan covers part of the head
+RIM_SHARE = 0.25  # boundary loops at least this share of the longest one's length are the scan's rim (not holes)
 BLEND_RINGS = 1  # rings around a fold blended back to the last fold-free surface
 BLEND_ROUNDS = 12  # rounds at most (the zone widens every second)
 DETAIL_STIFFNESS = 5.0  # stages below this stiffness match only the `detail` skin
@@ -176,6 +177,30 @@ def near_edge(scan: Surface, reach: float = EDGE_REACH) -> np.ndarray:
     return near
 
 
+def near_rim(scan: Surface, reach: float = EDGE_REACH) -> np.ndarray:
+    """(m,) bool: faces of the scan within `reach` metres of its rim: its boundary loops at
+    least RIM_SHARE of the longest one's length (a face scan's outline, the head part's cut
+    below the neck), not its holes (a bust with a hundred 5 mm holes behind is whole)."""
+    from scipy.sparse.csgraph import connected_components
+
+    F = np.asarray(scan.F, dtype=np.int64)
+    E = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
+    edges, count = np.unique(E, axis=0, return_counts=True)
+    edges = edges[count == 1]
+    near = np.zeros(len(F), dtype=bool)
+    if len(edges) == 0:
+        return near
+    n = len(scan.V)
+    _, loop = connected_components(sp.coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n)),
+                                   directed=False)
+    length = np.bincount(loop[edges[:, 0]], weights=np.linalg.norm(scan.V[edges[:, 0]] - scan.V[edges[:, 1]], axis=1))
+    rim = length[loop[edges[:, 0]]] >= RIM_SHARE * length.max()
+    on_rim = np.zeros(n, dtype=bool)
+    on_rim[edges[rim].ravel()] = True
+    d, _ = cKDTree(scan.V[on_rim]).query(scan.V[F].mean(axis=1))
+    return on_rim[F].any(axis=1) | (d < reach)  # as near_edge, with the rim's vertices only
+
+
 def scan_pairs(X: np.ndarray, NX: np.ndarray, scan: Surface, reach: float, candidates: np.ndarray,
                along_normal: bool = False, rays: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Vertices (k,) of X (n, 3) among `candidates` (n,) bool paired with their closest
@@ -257,9 +282,10 @@ def affine_to_scan(X: np.ndarray, scan: Surface, use: np.ndarray, iterations: in
     weight. similarity: rotation, translation and
     one scale only (the neck below a scan's cut then keeps the template's proportions).
     partial: more than PARTIAL_EDGE_SHARE of the first step's kept pairs lie on faces by
-    the scan's edge (near_edge): the scan covers only part of the head (a face, a front
-    half; the busts, cut below the neck: 16-26 %, a face 58-65 %), and no pair by its edge
-    is kept, since the skin the scan lacks would pull the start into its rim. On a
+    the scan's rim (near_rim: not its holes): the scan covers only part of the head (a
+    face, a front half; the busts, cut below the neck: 16-26 %, a face 58-65 %), and no
+    pair by its edge (near_edge) is kept, since the skin the scan lacks would pull the
+    start into its rim. On a
     whole head those pairs are left in: the busts' faces fit 0.01-0.03 % of the diagonal
     worse without them."""
     A = np.eye(4)
@@ -288,13 +314,18 @@ def affine_to_scan(X: np.ndarray, scan: Surface, use: np.ndarray, iterations: in
         A = solve(points[0], points[1], np.sqrt(share))
     by_edge = np.zeros(len(scan.V), dtype=bool)
     by_edge[scan.F[near_edge(scan)].ravel()] = True
+    rim = near_rim(scan)
+    by_rim = np.zeros(len(scan.V), dtype=bool)
+    by_rim[scan.F[rim].ravel()] = True
+    by_hole = np.zeros(len(scan.V), dtype=bool)  # by an edge, not by the rim: a hole's
+    by_hole[scan.F[near_edge(scan) & ~rim].ravel()] = True
     partial = False
     for step in range(iterations):
         Y = apply_transform(A, P)
         d, j = scan.tree.query(Y)
         if step == 0:
-            partial = bool(np.mean(by_edge[j[d <= np.quantile(d, keep)]]) > PARTIAL_EDGE_SHARE)
-        inner = ~by_edge[j] if partial else np.ones(len(j), dtype=bool)
+            partial = bool(np.mean(by_rim[j[d <= np.quantile(d, keep)]]) > PARTIAL_EDGE_SHARE)
+        inner = ~(by_edge if partial else by_hole)[j]
         if not inner.any():  # the whole template nearest the scan's rim: nothing else to go by
             inner[:] = True
         good = inner & (d <= np.quantile(d[inner], keep))
