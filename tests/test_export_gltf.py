@@ -226,3 +226,24 @@ def test_the_shipped_head_exports_expressions_for_the_validator(tmp_path):
     report = validate(out)
     assert report["issues"]["numErrors"] == 0, report["issues"]["messages"][:5]
     assert report["info"]["animationCount"] == 1
+
+
+def test_a_played_meshs_frames_become_the_fewest_shapes_that_rebuild_them():
+    """shape_targets: frames made of five shapes come back as five targets that rebuild every
+    frame (float32 offsets, as `fae play -o OUT.glb` holds them); still frames need none; with
+    too few targets allowed, the error it reports is the rebuild's real worst."""
+    from fae.animate.morphs import shape_targets
+
+    rng = np.random.default_rng(3)
+    shapes = rng.normal(scale=2e-3, size=(5, 3000, 3))
+    frames = np.einsum("nk,kvd->nvd", rng.normal(size=(60, 5)), shapes).astype(np.float32)
+    frames[7] = 0.0  # a frame at rest
+    targets, weights, error = shape_targets(frames)
+    assert len(targets) == 5 and weights.shape == (60, 5) and error <= 1e-4
+    rebuilt = np.stack([displacement(targets, w, 3000) for w in weights])
+    assert np.abs(rebuilt - frames).max() < 1e-5 and np.abs(weights[7]).max() < 1e-9
+    assert shape_targets(np.zeros((4, 3000, 3), np.float32))[0] == []
+    few, w3, worst = shape_targets(frames, max_targets=3)
+    rebuilt = np.stack([displacement(few, w, 3000) for w in w3])
+    assert len(few) == 3 and worst > 1e-4
+    assert abs(np.sqrt(np.max(np.sum((rebuilt - frames) ** 2, axis=2))) - worst) < 1e-6

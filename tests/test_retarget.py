@@ -370,6 +370,25 @@ def test_a_mesh_plays_into_a_gltf_scene_that_rebuilds_every_frame(template, synt
     assert report["issues"]["numErrors"] == 0, report["issues"]["messages"][:5]
 
 
+def test_a_scene_is_refused_where_it_cannot_be_what_was_asked(synthetic, tmp_path, capsys):
+    """A fae head given as the mesh (its skull and jaw would be played as skin), a .gltf
+    name, and --frames-dir with a scene: exit 2, saying what to do instead; nothing written."""
+    from fae.cli import main
+    from fae.data import shipped_head_path
+
+    mesh, lm, _, _ = synthetic
+    stream = f"{STREAMS}/visemes.fap"
+    cases = [(["--head", str(shipped_head_path()), "--landmarks", str(lm), "-o", str(tmp_path / "a.glb")],
+              "is a fae head"),
+             (["--head", str(mesh), "--landmarks", str(lm), "-o", str(tmp_path / "a.gltf")], ".glb (glTF scene)"),
+             (["--head", str(mesh), "--landmarks", str(lm), "-o", str(tmp_path / "a.glb"), "--frames-dir",
+               str(tmp_path / "f")], "not with a glTF scene")]
+    for argv, said in cases:
+        assert main(["play", stream, *argv]) == 2
+        assert said in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []
+
+
 @pytest.mark.parametrize("case", ["no_landmarks", "few_landmarks", "bad_mesh", "missing_landmarks", "another_unit",
                                   "flat_mesh"])
 def test_bad_input_exits_2(template, synthetic, tmp_path, case):

@@ -28,9 +28,10 @@ may pull its skin.
    seams split the scan) that holds the face. The report names its vertex count and
    bounds.
    A scan whose pose this does not trust (a face without the rest of the head) is
-   searched again with the template's face alone; then, when the scan is in pieces far
-   apart (scan_clusters: a stray object metres away, two busts side by side), each of
-   the largest is searched alone and the best head found is taken, its count reported.
+   searched again with the template's face alone. A scan in pieces far apart
+   (scan_clusters: a stray object metres away, two busts side by side) has each of its
+   largest searched alone as well, and the best head found is taken, their count
+   reported.
 3. Confidence: the share of the template's face that the scan covers within
    FACE_NEAR metres after the rigid fit, and the trimmed residual over the face. Below
    MIN_FACE_COVERAGE, or above MAX_HEAD_RESIDUAL, the pose is not to be trusted and
@@ -89,7 +90,8 @@ class HeadInScan:
     residual    trimmed mean distance, template face -> scan, metres, after the rigid fit
     scale       scan units -> metres as fitted (before snapping to a unit)
     template_to_scan  (4, 4) the similarity found, the template's face frame -> the scan's
-    heads       how many of the scan's clusters held a head found (1 unless it had several)
+    heads       how many of the scan's clusters (pieces far apart) held a head found (1 when
+                the scan is one cluster)
     """
 
     transform: np.ndarray
@@ -360,14 +362,14 @@ def find_head(template: FaceModel, scan_V: np.ndarray, scan_F: np.ndarray) -> He
         raise ValueError(f"the scan has {len(V)} vertices: too few to find a head in")
     head = template_head(template)
     found = _searched(head, V, scan_F)
-    if found.trusted:
+    # pieces far apart (a stray object metres off, two busts side by side: the search over
+    # the whole scan may trust a pose between them) are searched alone
+    F = np.asarray(scan_F, dtype=np.int64).reshape(-1, 3)
+    clusters = [c for c in scan_clusters(V, F) if len(c) >= MIN_CLUSTER_VERTICES][:MAX_CLUSTERS]
+    if len(clusters) < 2:
         return found
-    # pieces far apart (a stray object metres off, two busts side by side) are searched alone
-    F = np.asarray(scan_F, dtype=np.int64)
     heads = []
-    for idx in [c for c in scan_clusters(V, F) if len(c) >= MIN_CLUSTER_VERTICES][:MAX_CLUSTERS]:
-        if len(idx) == len(V):
-            break
+    for idx in clusters:
         inside = np.zeros(len(V), dtype=bool)
         inside[idx] = True
         renumber = np.cumsum(inside) - 1

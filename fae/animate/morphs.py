@@ -118,31 +118,50 @@ def keyframes(player, targets: list[MorphTarget], frames, fps: float) -> Keyfram
 
 SHAPE_TOLERANCE = 1e-4  # m: the largest vertex error of a frame rebuilt from shape_targets
 MAX_SHAPE_TARGETS = 64
+_CHUNK = 3 * 4096  # columns (4096 vertices) of the (N, 3k) offsets handled at a time
 
 
 def shape_targets(offsets: np.ndarray, tolerance: float = SHAPE_TOLERANCE,
                   max_targets: int = MAX_SHAPE_TARGETS) -> tuple[list[MorphTarget], np.ndarray, float]:
     """A played mesh's frames as a few morph targets, for a mesh without FaceDefTables (a
-    target of motion transfer): offsets (N, k, 3) metres of its k vertices from their rest,
-    one row per frame -> (targets, weights (N, K), error). The targets are the frames'
-    principal shapes (the SVD of the (N, 3k) offsets, not centred: a frame at rest has all
-    weights 0), as few as rebuild every frame within `tolerance` metres at every vertex,
-    at most max_targets; error: the largest vertex error of any frame rebuilt (metres)."""
-    D = np.asarray(offsets, dtype=np.float64)
-    N, k = D.shape[0], D.shape[1]
-    M = D.reshape(N, 3 * k)
-    if N == 0 or not np.any(M):
+    target of motion transfer): offsets (N, k, 3) metres (float32 will do) of its k vertices
+    from their rest, one row per frame -> (targets, weights (N, K), error). The targets are
+    the frames' principal shapes (the SVD of the (N, 3k) offsets, not centred: a frame at
+    rest has all weights 0), found from the N x N Gram matrix and vertex blocks at a time
+    (a 1,656-frame stream on a 53k-vertex mesh: a full SVD took 12 GB); K is the fewest,
+    found by bisection, whose rebuild lies within `tolerance` metres of every frame at every
+    vertex (0 when the frames do), at most max_targets; error: the largest vertex error of
+    any frame rebuilt (metres), which exceeds `tolerance` only when max_targets do not do."""
+    D = np.asarray(offsets)
+    M = D.reshape(D.shape[0], 3 * D.shape[1])
+    N, width = M.shape
+    if N == 0 or width == 0:
         return [], np.zeros((N, 0)), 0.0
-    U, s, Vt = np.linalg.svd(M, full_matrices=False)
-    s_max = float(s[0])
-    s = s[s > 1e-12 * s_max]  # shapes no frame has: dropped
-    cap = min(len(s), max_targets)
+    k = width // 3
+    blocks = [slice(a, min(a + _CHUNK, width)) for a in range(0, width, _CHUNK)]
+    G = np.zeros((N, N))
+    for b in blocks:
+        block = M[:, b].astype(np.float64)
+        G += block @ block.T
+    lam, U = np.linalg.eigh(G)
+    order = np.argsort(lam)[::-1]
+    s = np.sqrt(np.maximum(lam[order], 0.0))
+    U = U[:, order]
+    cap = int(min(max_targets, np.sum(s > 1e-7 * s[0]))) if N and s[0] > 0.0 else 0
+    # the shapes (cap, 3k): U^T M / s, block by block
+    B = np.zeros((cap, width))
+    for b in blocks:
+        B[:, b] = (U[:, :cap].T @ M[:, b].astype(np.float64)) / s[:cap, None]
+    W = U[:, :cap] * s[:cap]  # weights of the unit shapes
 
     def error(K: int) -> float:
-        R = M - (U[:, :K] * s[:K]) @ Vt[:K]
-        return float(np.sqrt(np.max(np.sum(R.reshape(N, k, 3) ** 2, axis=2))))
+        worst = 0.0
+        for b in blocks:
+            R = M[:, b].astype(np.float64) - W[:, :K] @ B[:K, b]
+            worst = max(worst, float(np.max(np.sum(R.reshape(N, -1, 3) ** 2, axis=2), initial=0.0)))
+        return float(np.sqrt(worst))
 
-    lo, hi = 1, cap  # the fewest K within tolerance, by bisection (the error falls with K)
+    lo, hi = 0, cap  # bisection: the error falls (near enough) as K grows
     if error(hi) > tolerance:
         lo = hi
     while lo < hi:
@@ -152,9 +171,10 @@ def shape_targets(offsets: np.ndarray, tolerance: float = SHAPE_TOLERANCE,
         else:
             lo = mid + 1
     K = lo
+    scale = float(s[0]) if K else 1.0  # shapes scaled so that the weights stay within about [-1, 1]
     targets = []
     for j in range(K):
-        shape = Vt[j].reshape(k, 3) * s_max  # scaled so that weights stay within about [-1, 1]
+        shape = B[j].reshape(k, 3) * scale
         moved = np.flatnonzero(np.any(shape != 0.0, axis=1)).astype(np.int32)
         targets.append(MorphTarget(f"shape {j + 1}", 0, 0.0, 1.0, moved, shape[moved]))
-    return targets, U[:, :K] * (s[:K] / s_max), error(K)
+    return targets, W[:, :K] / scale, error(K)

@@ -157,6 +157,20 @@ def _read_surface(path: str, n: int) -> tuple[np.ndarray | None, np.ndarray | No
     return np.asarray(uv, dtype=np.float32), texture
 
 
+def _is_facemodel(path: str) -> bool:
+    """Whether `path` is a .glb that fae wrote as a FaceModel (its extension declared)."""
+    if not path.lower().endswith(".glb"):
+        return False
+    try:
+        import pygltflib
+
+        from fae.io.facemodel_gltf import EXTENSION
+
+        return EXTENSION in (pygltflib.GLTF2.load(path).extensionsUsed or [])
+    except Exception:  # not readable as glTF: read_scan says why
+        return False
+
+
 def read_target(mesh_path: str | os.PathLike, landmarks_path: str | os.PathLike) -> TargetMesh:
     """The mesh (any format fae.io.scan.read_scan reads) and its feature points (any format
     fae.io.scan.read_landmarks reads: FDP JSON or CSV, menpo .ljson / CSV with iBUG-68).
@@ -164,6 +178,9 @@ def read_target(mesh_path: str | os.PathLike, landmarks_path: str | os.PathLike)
     from fae.io.scan import LandmarkError, indexed_vertices, read_landmarks, read_scan
 
     mesh_path, landmarks_path = os.fspath(mesh_path), os.fspath(landmarks_path)
+    if _is_facemodel(mesh_path):
+        raise RetargetError(f"{mesh_path}: is a fae head (FaceModel); play it with --head {mesh_path} and no "
+                            "--landmarks (motion transfer would take its skull and jaw for skin)")
     try:
         V, F = read_scan(mesh_path)
     except (OSError, ValueError) as exc:

@@ -69,6 +69,11 @@ def run(args: argparse.Namespace) -> int:
     if problem:
         return fail("play", problem)
     scene = Path(args.output).suffix.lower() == ".glb"
+    if args.landmarks and Path(args.output).suffix.lower() not in (".mp4", ".glb"):
+        return fail("play", f"{args.output}: expected a .mp4 (video) or .glb (glTF scene) file name")
+    if scene and args.frames_dir:
+        return fail("play", f"--frames-dir {args.frames_dir}: frames are written with a video (-o OUT.mp4), not "
+                    "with a glTF scene")
     if scene and not args.landmarks:
         return fail("play", f"{args.output}: a glTF scene of a FaceModel head is written by `fae export "
                     f"{args.head or 'HEAD.glb'} {args.stream} -o {args.output}`; `fae play` writes it only for a mesh "
@@ -146,6 +151,13 @@ def run(args: argparse.Namespace) -> int:
         which = "the template" if retargeted is not None else args.head or "the shipped head"
         return fail("play", f"{which}: cannot animate it: {exc}")
     if scene:
+        expected = round(stream.header.declared_frame_count * fps / stream.header.fps)
+        need = expected * player.face.skin_vertices.size * 4
+        if need > MAX_SCENE_FRAMES_BYTES:
+            return fail("play", f"{args.stream}: {expected} frames at {fps:g} fps of a {len(player.face.skin_vertices)}"
+                        f"-vertex mesh would hold {need / 2 ** 30:.1f} GiB of shapes while the scene is made (at most "
+                        f"{MAX_SCENE_FRAMES_BYTES / 2 ** 30:.0f} GiB); play fewer frames (--fps) or write a video "
+                        "(-o OUT.mp4)")
         return _write_scene(args, player, stream, fps)
     made_frames_dir = frames_dir is not None and not frames_dir.exists()
     if frames_dir is not None:  # made once the inputs are known to be good
@@ -195,7 +207,7 @@ def _write_scene(args: argparse.Namespace, player, stream, fps: float) -> int:
     carries the head's turn (the neck's partial turn is in the shapes)."""
     import numpy as np
 
-    from fae.animate.morphs import Keyframes, shape_targets
+    from fae.animate.morphs import SHAPE_TOLERANCE, Keyframes, shape_targets
     from fae.io.export_gltf import write_scene
     from fae.io.fap import FapFormatError
     from fae.io.frames import dense_frames
@@ -207,6 +219,10 @@ def _write_scene(args: argparse.Namespace, player, stream, fps: float) -> int:
         for f in player.play(frames, fps=fps):
             H = f.bone_transforms["head"]
             offsets.append(((f.skin_vertices - H[:3, 3]) @ H[:3, :3] - rest).astype(np.float32))
+            if len(offsets) * rest.size * 4 > MAX_SCENE_FRAMES_BYTES:  # more frames than the header said
+                return fail("play", f"{args.stream}: more than {len(offsets) - 1} frames of this mesh's shapes do not "
+                            f"fit in {MAX_SCENE_FRAMES_BYTES / 2 ** 30:.0f} GiB while the scene is made; play fewer "
+                            "frames (--fps, --max-hold) or write a video (-o OUT.mp4) (nothing written)")
             for name, T in f.bone_transforms.items():
                 bones.setdefault(name, []).append(T)
     except FapFormatError as exc:
@@ -215,6 +231,10 @@ def _write_scene(args: argparse.Namespace, player, stream, fps: float) -> int:
         return fail("play", f"{args.stream}: no frames to play; expected at least one frame after the header "
                     "(nothing written)")
     targets, weights, error = shape_targets(np.stack(offsets))
+    if error > SHAPE_TOLERANCE:
+        print(f"fae play: warning: {len(targets)} morph targets rebuild the frames only within {error * 1000:.2f} mm "
+              f"(at most {SHAPE_TOLERANCE * 1000:g} mm sought): the stream moves in more ways than they hold; a "
+              "video (-o OUT.mp4) shows every frame as played", file=sys.stderr)
     animation = Keyframes(np.arange(len(offsets)) / fps, weights, {k: np.asarray(v) for k, v in bones.items()})
     try:
         write_scene(args.output, player.face, targets=targets, skin_colors=drawn_skin_colors(player.face),
@@ -229,6 +249,7 @@ def _write_scene(args: argparse.Namespace, player, stream, fps: float) -> int:
 
 
 MESH_SUFFIXES = (".obj", ".ply", ".stl", ".off")
+MAX_SCENE_FRAMES_BYTES = 2 * 2 ** 30  # the played shapes (float32) held to make a glTF scene
 
 
 def _mesh_without_landmarks(head: str | None) -> str | None:

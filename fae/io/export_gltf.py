@@ -15,7 +15,7 @@ The skull and mandible (inside the skin, never seen) are left out. Bone nodes ca
 Player's bone transforms (rest -> now, face frame) made local to their parent; at rest
 every node is the identity and the meshes sit where the head has them (metres, +Y up,
 the face looking along +Z: glTF's own axes). Morph targets are sparse accessors (only
-the vertices a target moves are stored), named in `mesh.extras.targetNames`. With
+the vertices a target moves are stored; whole ones where it moves most of them), named in `mesh.extras.targetNames`. With
 keyframes, one animation holds the skin's morph weights and every bone node's
 translation, rotation (and scale where it ever differs from 1), LINEAR, one key per frame.
 
@@ -124,8 +124,14 @@ class _SceneWriter:
         return len(self.gltf.accessors) - 1
 
     def sparse_target(self, vertex_count: int, vertices: np.ndarray, displacement: np.ndarray) -> int:
-        """A POSITION morph target: zero except `displacement` (k, 3) at `vertices` (k,)."""
+        """A POSITION morph target: zero except `displacement` (k, 3) at `vertices` (k,);
+        stored sparse, or whole where it moves most vertices (a sparse entry costs 16 bytes,
+        a whole one 12: a played mesh's principal shapes move every vertex)."""
         values = np.asarray(displacement, dtype=np.float32)
+        if len(values) > 0.75 * vertex_count:
+            whole = np.zeros((vertex_count, 3), np.float32)
+            whole[np.asarray(vertices, dtype=np.int64)] = values
+            return self.accessor(whole, pygltflib.FLOAT, pygltflib.VEC3, _ARRAY_BUFFER, True)
         # bounds of the whole accessor: the vertices not listed are 0
         every = np.concatenate([values, np.zeros((1 if len(values) < vertex_count else 0, 3), np.float32)])
         full_min, full_max = every.min(axis=0), every.max(axis=0)
