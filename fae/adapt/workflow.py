@@ -43,6 +43,9 @@ MIN_GIVEN_POINTS = 4  # feature points given that place the head (a similarity n
 # the marble bust's points scaled 1.2x about their middle lay a median 8 mm off it and
 # played with a hole in the cheek at rest and the mouth torn open.
 OFF_SCAN = 0.01
+# a face found this many degrees turned from the head's pose places the head again (the busts:
+# 1-4 degrees; a wreath face cut out, posed by the face alone: 37)
+MAX_PAIRS_TURN = 15.0
 OFF_SCAN_MEDIAN = 0.003
 OFF_SCAN_SHARE = 0.25
 
@@ -102,7 +105,7 @@ def adapt_scan(template: FaceModel, V: np.ndarray, F: np.ndarray, face_pairs: Ca
     messages name the two inputs; landmark_mesh: (V, F) the feature points must lie on
     (default the scan; motion transfer fits only a mesh's skin pieces, and a point may
     lie on a separate ear)."""
-    from fae.adapt.calibration import apply_transform, outlier_landmarks
+    from fae.adapt.calibration import apply_transform, outlier_landmarks, similarity_transform
     from fae.adapt.from_scan import adapt_to_scan
     from fae.adapt.head_pose import (MAX_HEAD_RESIDUAL, MIN_FACE_COVERAGE, find_head, head_from_landmarks, kept_part,
                                      other_poses)
@@ -164,6 +167,17 @@ def adapt_scan(template: FaceModel, V: np.ndarray, F: np.ndarray, face_pairs: Ca
                     raise AdaptRefused(str(exc)) from exc
                 return None
 
+        def skin_points(found) -> np.ndarray:
+            """(k, 3) the template's skin points of the pairs, metres."""
+            P = np.asarray(template.skin_vertices, np.float64)
+            T = P[np.asarray(template.skin_faces, np.int64)[found.face]]
+            return np.einsum("kj,kjd->kd", found.bary, T)
+
+        def pairs_turn(found) -> float:
+            """Degrees the pairs' similarity turns the template's face to the scan's (face frame)."""
+            _, R, _ = similarity_transform(skin_points(found), found.scan_points)
+            return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
+
         def usable(found) -> bool:
             return found is not None and len(found.face) >= MIN_PAIRS and \
                 found.report["similarity_residual_m"] <= MAX_PAIR_RESIDUAL_SHARE * eye_distance(template)
@@ -182,6 +196,19 @@ def adapt_scan(template: FaceModel, V: np.ndarray, F: np.ndarray, face_pairs: Ca
                     head, found = other, found_other
                     say(f"{scan_name}: no face showed in the head's first pose; found it in another")
                     break
+        if not landmarks and usable(found):
+            # the face found may say the pose is turned (a face scan's pose from the face alone
+            # can be 30-40 degrees off about up, and the face is then fitted turned on its skull):
+            # the head is placed again by the face's own points, and looked at again
+            turn = pairs_turn(found)
+            if turn > MAX_PAIRS_TURN:
+                placed = head_from_landmarks(template, V, F, skin_points(found),
+                                             apply_transform(np.linalg.inv(head.transform), found.scan_points))
+                found_placed = looked_at(placed) if placed.trusted else None
+                if usable(found_placed) and pairs_turn(found_placed) < turn:
+                    head, found = placed, found_placed
+                    say(f"{scan_name}: the face found was turned {turn:.0f} degrees from the head's pose; the head "
+                        "is placed by the face")
         if found is None or len(found.face) < MIN_PAIRS:
             if not landmarks:
                 raise AdaptRefused(f"{scan_name}: no face found on the head part of the scan (eyes, nose and "
