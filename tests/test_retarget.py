@@ -709,3 +709,12 @@ def test_a_target_finer_than_the_template_is_given_a_smooth_motion():
     assert np.allclose(np.asarray(S.sum(axis=1)).ravel(), coverage)
     assert S[coverage == 0].nnz == 0
     assert np.allclose(S[seam].toarray(), S[copies].toarray(), rtol=0.0, atol=1e-15)  # the seam does not open
+
+
+def test_a_texture_the_material_names_but_that_cannot_be_read_is_reported(tmp_path):
+    (tmp_path / "m.mtl").write_text("newmtl skin\nmap_Kd gone.png\n")
+    (tmp_path / "m.obj").write_text("mtllib m.mtl\nv 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nvt 0 0\nvt 1 0\nvt 0 1\nvt 1 1\n"
+                                    "usemtl skin\nf 1/1 2/2 3/3\nf 1/1 3/3 4/4\nf 1/1 4/4 2/2\nf 2/2 4/4 3/3\n")
+    (tmp_path / "lm.csv").write_text("9.3,0,0,1\n")
+    target = read_target(tmp_path / "m.obj", tmp_path / "lm.csv")
+    assert target.texture is None and target.texture_missing.endswith("gone.png")

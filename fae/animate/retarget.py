@@ -121,6 +121,8 @@ class TargetMesh:
     landmarks  MPEG-4 feature point name -> (3,) in the file's frame and unit
     landmarks_path  the feature points' file (for messages)
     texture    (H, W, 3) uint8 sRGB colour image of its material, or None
+    texture_missing  the colour image an OBJ's material names but that could not be read
+               (missing, corrupt), or None: the mesh is drawn untextured
     """
 
     path: str
@@ -130,6 +132,25 @@ class TargetMesh:
     landmarks: dict[str, np.ndarray]
     landmarks_path: str = "--landmarks"
     texture: np.ndarray | None = None
+    texture_missing: str | None = None
+
+
+def _named_texture(path: str) -> str | None:
+    """The colour image (map_Kd) an OBJ's material library names, as a path, or None."""
+    if not path.lower().endswith(".obj"):
+        return None
+    folder = os.path.dirname(os.path.abspath(path))
+    try:
+        with open(path, "r", errors="replace") as f:
+            libraries = [line.split(None, 1)[1].strip() for line in f if line.startswith("mtllib ")]
+        for lib in libraries:
+            with open(os.path.join(folder, lib), "r", errors="replace") as f:
+                for line in f:
+                    if line.strip().startswith("map_Kd "):
+                        return os.path.join(folder, line.strip().split()[-1])
+    except (OSError, IndexError):
+        return None
+    return None
 
 
 def _read_surface(path: str, n: int) -> tuple[np.ndarray | None, np.ndarray | None]:
@@ -190,7 +211,8 @@ def read_target(mesh_path: str | os.PathLike, landmarks_path: str | os.PathLike)
     except (OSError, LandmarkError, ValueError) as exc:
         raise RetargetError(str(exc)) from None
     uv, texture = _read_surface(mesh_path, len(V))
-    return TargetMesh(mesh_path, V, F, uv, landmarks, landmarks_path, texture)
+    named = _named_texture(mesh_path) if texture is None and uv is not None else None
+    return TargetMesh(mesh_path, V, F, uv, landmarks, landmarks_path, texture, named)
 
 
 def usable_landmarks(template: FaceModel, landmarks: dict[str, np.ndarray]) -> list[str]:

@@ -110,6 +110,9 @@ def run(args: argparse.Namespace) -> int:
 
         try:
             target = read_target(args.head, args.landmarks)
+            if target.texture_missing:
+                print(f"fae play: warning: {args.head}: its material names the texture {target.texture_missing}, "
+                      "which cannot be read (missing or not an image); the mesh is drawn untextured", file=sys.stderr)
             # as fae adapt checks a scan: a mesh without area, or points in another unit (a
             # million times the mesh's shrank it to a point before the fit could say so)
             problem = (scan_problem(target.vertices, target.faces, args.head)
