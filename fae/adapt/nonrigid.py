@@ -516,12 +516,15 @@ def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray
             matched = matched & ~placed
         return matched
 
-    def stage_factors(a: float, rows: np.ndarray):
-        """SuperLU factors of a stage's matrix; rows (n,) bool: vertices with a data row."""
+    def stage_factors(a: float, rows: np.ndarray) -> list:
+        """[SuperLU factors] of a stage's matrix; rows (n,) bool: vertices with a data row. In
+        a list that the factoring thread empties when the stage is done: SciPy's SuperLU
+        frees its memory only in the thread that made it (scipy#15921; let go on the main
+        thread, every fit left 1.9 GB of address space and about 170 MB behind)."""
         M = a * a * LtL + sp.diags(rows.astype(np.float64))
         if B is not None:
             M = M + (a / STIFFNESS[0]) ** LANDMARK_FADE * BtB
-        return symmetric_splu(M)
+        return [symmetric_splu(M)]
 
     stages = []
     reaches = np.geomspace(REACH[0], REACH[1], len(STIFFNESS))
@@ -556,7 +559,7 @@ def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray
                 NX = per_vertex_normals(X, F)
                 idx_all, Q_all = scan_pairs(X, NX, scan, reach, matched, along_normal=True, rays=rays)
                 if solve is None:
-                    solve = factors.result().solve
+                    solve = factors.result()[0].solve
                 keep = ~quiet[idx_all]
                 idx, Q = idx_all[keep], Q_all[keep]
                 rhs = np.zeros((n, 3))
@@ -581,6 +584,8 @@ def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray
                 if round_ == 0 and stage + 1 < len(STIFFNESS):
                     a_next = STIFFNESS[stage + 1]
                     ahead = factoring.submit(stage_factors, a_next, stage_matched(a_next) & ~quiet)
+            solve = None  # the factors are let go in the thread that made them
+            factoring.submit(factors.result().clear)
             rms = float(np.sqrt(np.mean(np.sum((X[idx] - Q) ** 2, axis=1)))) if len(idx) else np.inf
             # nor may a stage cut through itself (an ear pressed into the scalp, the mouth's lining
             # through a lip): blended back to the last stage wherever it does
