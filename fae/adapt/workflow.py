@@ -204,7 +204,10 @@ def adapt_scan(template: FaceModel, V: np.ndarray, F: np.ndarray, face_pairs: Ca
             if turn > MAX_PAIRS_TURN:
                 placed = head_from_landmarks(template, V, F, skin_points(found),
                                              apply_transform(np.linalg.inv(head.transform), found.scan_points))
-                found_placed = looked_at(placed) if placed.trusted else None
+                try:
+                    found_placed = looked_at(placed) if placed.trusted else None
+                except AdaptRefused:  # too little of the scan where the face places it: keep the pose
+                    found_placed = None
                 if usable(found_placed) and pairs_turn(found_placed) < turn:
                     head, found = placed, found_placed
                     say(f"{scan_name}: the face found was turned {turn:.0f} degrees from the head's pose; the head "
