@@ -169,11 +169,18 @@ def near_edge(scan: Surface, reach: float = EDGE_REACH) -> np.ndarray:
     cached = getattr(scan, "_near_edge", None)
     if cached is not None and cached[0] == reach:
         return cached[1]
-    near = scan.face_on_boundary.copy()
-    if scan.boundary.any():
-        d, _ = cKDTree(scan.V[scan.boundary]).query(scan.V[scan.F].mean(axis=1))
-        near |= d < reach
+    near = _faces_near(scan, scan.boundary, reach)
     scan._near_edge = (reach, near)
+    return near
+
+
+def _faces_near(scan: Surface, at: np.ndarray, reach: float) -> np.ndarray:
+    """(m,) bool: faces of the scan with a corner among `at` (n,) bool, or whose middle lies
+    within `reach` metres of one of those vertices."""
+    near = at[scan.F].any(axis=1)
+    if at.any():
+        d, _ = cKDTree(scan.V[at]).query(scan.V[scan.F].mean(axis=1))
+        near |= d < reach
     return near
 
 
@@ -197,8 +204,7 @@ def near_rim(scan: Surface, reach: float = EDGE_REACH) -> np.ndarray:
     rim = length[loop[edges[:, 0]]] >= RIM_SHARE * length.max()
     on_rim = np.zeros(n, dtype=bool)
     on_rim[edges[rim].ravel()] = True
-    d, _ = cKDTree(scan.V[on_rim]).query(scan.V[F].mean(axis=1))
-    return on_rim[F].any(axis=1) | (d < reach)  # as near_edge, with the rim's vertices only
+    return _faces_near(scan, on_rim, reach)
 
 
 def scan_pairs(X: np.ndarray, NX: np.ndarray, scan: Surface, reach: float, candidates: np.ndarray,
