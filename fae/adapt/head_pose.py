@@ -384,12 +384,10 @@ def find_head(template: FaceModel, scan_V: np.ndarray, scan_F: np.ndarray) -> He
     return replace(best, heads=len(heads))
 
 
-def turned_over(template: FaceModel, scan_V: np.ndarray, scan_F: np.ndarray, found: HeadInScan) -> HeadInScan:
-    """The head `found` turned upside down about the face's forward axis through its middle,
-    then fitted by the face alone (similarity ICP): the other pose a face scan leaves open
-    (see other_poses)."""
-    V = np.asarray(scan_V, dtype=np.float64)
-    head = template_head(template)
+def _turned_over(head: TemplateHead, V: np.ndarray, scan_F: np.ndarray, found: HeadInScan) -> HeadInScan:
+    """The head `found` in V (n, 3), F (m, 3) turned upside down about the face's forward
+    axis through its middle, then fitted by the face alone (similarity ICP): the other pose
+    a face scan leaves open (see other_poses)."""
     M = found.template_to_scan
     s = float(np.cbrt(np.linalg.det(M[:3, :3])))
     R, t = M[:3, :3] / s, M[:3, 3]
@@ -426,10 +424,10 @@ def other_poses(template: FaceModel, scan_V: np.ndarray, scan_F: np.ndarray, fou
     face on the render of the pose `found`: a face scan leaves up and down open, and a
     bearded face cut to a mask matched the template's face upside down (brow on beard, 70 %
     of the face covered: trusted). In turn: the pose found by the face alone, and `found`
-    turned over (turned_over)."""
+    turned over (_turned_over)."""
     V = np.asarray(scan_V, dtype=np.float64)
     head = template_head(template)
-    for make in (lambda: _face_searched(head, V, scan_F), lambda: turned_over(template, V, scan_F, found)):
+    for make in (lambda: _face_searched(head, V, scan_F), lambda: _turned_over(head, V, scan_F, found)):
         other = make()
         if other.trusted:
             yield other

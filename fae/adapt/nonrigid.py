@@ -76,7 +76,7 @@ from fae.adapt.errors import Surface
 from fae.adapt.query import MeshQuery
 from fae.adapt.untangle import mesh_edges, untangle
 from fae.adapt.geometry import adjacency_matrix, face_normal_vectors, per_vertex_normals
-from fae.mesh import coincident_groups, group_means
+from fae.mesh import boundary_edges, coincident_groups, group_means
 
 STIFFNESS = (30.0, 12.0, 5.0, 2.0, 1.0, 0.5)  # a per stage, coarse to fine
 NEIGHBOUR_RADIUS = 0.006  # m: vertices this close are neighbours in the smoothness term
@@ -190,13 +190,9 @@ def near_rim(scan: Surface, reach: float = EDGE_REACH) -> np.ndarray:
     below the neck), not its holes (a bust with a hundred 5 mm holes behind is whole)."""
     from scipy.sparse.csgraph import connected_components
 
-    F = np.asarray(scan.F, dtype=np.int64)
-    E = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
-    edges, count = np.unique(E, axis=0, return_counts=True)
-    edges = edges[count == 1]
-    near = np.zeros(len(F), dtype=bool)
+    edges = boundary_edges(scan.F)
     if len(edges) == 0:
-        return near
+        return np.zeros(len(scan.F), dtype=bool)
     n = len(scan.V)
     _, loop = connected_components(sp.coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n)),
                                    directed=False)

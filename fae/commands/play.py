@@ -153,8 +153,8 @@ def run(args: argparse.Namespace) -> int:
     except (RuntimeError, ValueError) as exc:  # data the engine cannot use (fae template check says which)
         which = "the template" if retargeted is not None else args.head or "the shipped head"
         return fail("play", f"{which}: cannot animate it: {exc}")
+    expected = round(stream.header.declared_frame_count * fps / stream.header.fps)  # as the header says
     if scene:
-        expected = round(stream.header.declared_frame_count * fps / stream.header.fps)
         need = expected * player.face.skin_vertices.size * 4
         if need > MAX_SCENE_FRAMES_BYTES:
             return fail("play", f"{args.stream}: {expected} frames at {fps:g} fps of a {len(player.face.skin_vertices)}"
@@ -168,7 +168,6 @@ def run(args: argparse.Namespace) -> int:
             frames_dir.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             return fail("play", f"{frames_dir}: cannot create the frames folder ({exc.strerror or exc})")
-    expected = round(stream.header.declared_frame_count * fps / stream.header.fps)
     progress = None
     if sys.stderr.isatty():
         from tqdm import tqdm
