@@ -56,7 +56,7 @@ from fae.adapt.geometry import per_face_normals, per_vertex_normals, within
 from fae.adapt.multilevel import fit_template
 from fae.adapt.query import MeshQuery
 from fae.adapt.rbf import RBF, rbf_interpolant, rbf_weights
-from fae.adapt.untangle import mesh_edges, untangle
+from fae.adapt.untangle import edge_crossings, folded_pairs, mesh_edges, untangle
 from fae.anatomy.surface_points import markup_positions
 from fae.io.facemodel import FaceModel
 from fae.linalg import turn_between
@@ -124,11 +124,37 @@ def carried_affinely(field: RBF, X: np.ndarray) -> np.ndarray:
     return X + X @ field.affine[:3] + field.affine[3]
 
 
+def polynomial_fit(V: np.ndarray, Y: np.ndarray, degree: int) -> np.ndarray:
+    """(n, 3): the least-squares polynomial map of `degree` (1: affine, 2: quadratic) in the
+    coordinates of V (n, 3) that best takes V to Y (n, 3), evaluated at V."""
+    U = (V - V.mean(axis=0)) / max(float(np.max(np.abs(V - V.mean(axis=0)))), 1e-12)  # conditioned
+    columns = [np.ones(len(V))] + [U[:, i] for i in range(3)]
+    if degree >= 2:
+        columns += [U[:, i] * U[:, j] for i in range(3) for j in range(i, 3)]
+    A = np.stack(columns, axis=1)
+    return A @ np.linalg.lstsq(A, Y, rcond=None)[0]
+
+
 def carry_bone(field: RBF, V: np.ndarray, F: np.ndarray) -> np.ndarray:
     """(n, 3) metres: bone V (n, 3), F (m, 3) moved by `field`; wherever that makes it cut
-    through itself or fold against its template shape V, it is blended towards the affinely
-    moved bone (fae.adapt.untangle)."""
-    X, _ = untangle(F, carried(field, V), carried_affinely(field, V), reference=V)
+    through itself or fold against its template shape V, it is blended towards a safe bone:
+    the smoothest of the field's quadratic and affine least-squares fits over this bone that
+    neither folds nor crosses, else the field's global affine part (fae.adapt.untangle).
+    Why fits over the bone: the mandible's ramus has faces 2-3 cm long, across which a field
+    that folds nothing in space still collapses a triangle; blending towards the global
+    affine part moved the whole mandible there (the blend's own transition folded those
+    faces, and the zone grew round by round) and left it 2-3 cm from the jaw the skin was
+    fitted to, the mouth's lining through it."""
+    F = np.asarray(F, dtype=np.int64)
+    V = np.asarray(V, dtype=np.float64)
+    X = carried(field, V)
+    safe = carried_affinely(field, V)
+    for degree in (2, 1):
+        candidate = polynomial_fit(V, X, degree)
+        if len(folded_pairs(V, candidate, F)) == 0 and len(edge_crossings(candidate, F)[0]) == 0:
+            safe = candidate
+            break
+    X, _ = untangle(F, X, safe, reference=V)
     return X
 
 
