@@ -138,6 +138,52 @@ def test_refining_long_triangles_keeps_the_surface_closed_and_oriented():
     assert np.all(on_input < 1e-4)  # every vertex lies on the input surface (float32 queries)
 
 
+def _patch_with_a_cap(lift: float):
+    """A flat patch of 4 mm squares, each split along its diagonal, with one cap: the vertex
+    above the middle square's diagonal slid to within 0.4 mm of it in the patch's plane,
+    and `lift` mm out of it. Returns (V (n, 3) mm, F (m, 3), the cap's face)."""
+    n = 9
+    x, y = np.meshgrid(np.arange(n, dtype=float), np.arange(n, dtype=float), indexing="ij")
+    V = np.column_stack([x.ravel(), y.ravel(), np.zeros(n * n)]) * 4.0
+    F = []
+    for i in range(n - 1):
+        for j in range(n - 1):
+            a, b, c, d = i * n + j, (i + 1) * n + j, (i + 1) * n + j + 1, i * n + j + 1
+            F += [(a, b, c), (a, c, d)]
+    F = np.array(F)
+    apex = 4 * n + 5  # (16, 20) mm, above the diagonal (16, 16)-(20, 20)
+    V[apex] = [18.0 - 0.4 / np.sqrt(2.0), 18.0 + 0.4 / np.sqrt(2.0), lift]
+    cap = int(np.flatnonzero((F == apex).any(axis=1) & (F == 4 * n + 4).any(axis=1) & (F == 5 * n + 5).any(axis=1))[0])
+    return V, F, cap
+
+
+def test_a_cap_is_flipped_away_only_where_that_keeps_the_shape():
+    """flip_caps (the upper lids' caps, which turned over as the lids closed): a cap in a
+    flat patch loses its long edge, no vertex moves and the patch stays oriented; the same
+    cap lifted 0.8 mm off the patch (a ridge the flip would cut off) keeps it, and so does
+    a cap in faces not allowed."""
+    from fae.anatomy.geometry import _corner_angle, flip_caps
+
+    def widest(V, F):
+        return np.degrees(np.max([_corner_angle(V, F[:, k], F[:, (k + 1) % 3], F[:, (k + 2) % 3])
+                                  for k in range(3)], axis=0))
+
+    V, F, cap = _patch_with_a_cap(0.0)
+    assert widest(V, F)[cap] > 160.0
+    F2 = flip_caps(V, F, np.ones(len(F), dtype=bool))
+    assert widest(V, F2).max() < 130.0 and np.sum(np.any(F2 != F, axis=1)) == 2
+    normals = np.cross(V[F2[:, 1]] - V[F2[:, 0]], V[F2[:, 2]] - V[F2[:, 0]])
+    assert np.all(normals[:, 2] > 0.0)  # still one sheet, all faces up
+    _, counts, same_direction = edge_counts(F2)
+    assert np.all(counts <= 2) and not np.any(same_direction)
+    assert np.sum(counts == 1) == np.sum(edge_counts(F)[1] == 1)  # the same border
+    assert np.array_equal(flip_caps(V, F, np.zeros(len(F), dtype=bool)), F)
+
+    V, F, cap = _patch_with_a_cap(0.8)
+    assert widest(V, F)[cap] > 130.0
+    assert np.array_equal(flip_caps(V, F, np.ones(len(F), dtype=bool), max_change=0.5), F)
+
+
 def test_skin_is_mirror_symmetric(head):
     V = head.skin_vertices
     reflected = V[head.skin_mirror] * np.array([-1.0, 1.0, 1.0])

@@ -377,6 +377,86 @@ def flip_to_delaunay(V: np.ndarray, F: np.ndarray, allowed: np.ndarray, max_dihe
     return F
 
 
+def _segment_distance(p0: np.ndarray, p1: np.ndarray, q0: np.ndarray, q1: np.ndarray) -> np.ndarray:
+    """(k,) distances between the segments p0-p1 and q0-q1 (each (k, 3)), sampled finely
+    enough for the short segments of a mesh edge pair (0.5 % of their length)."""
+    t = np.linspace(0.0, 1.0, 201)
+    P = p0[:, None, :] + t[None, :, None] * (p1 - p0)[:, None, :]  # (k, 201, 3)
+    Q = q0[:, None, :] + t[None, :, None] * (q1 - q0)[:, None, :]
+    d = np.linalg.norm(P[:, :, None, :] - Q[:, None, :, :], axis=3)
+    return d.reshape(len(p0), -1).min(axis=1)
+
+
+def flip_caps(V: np.ndarray, F: np.ndarray, allowed: np.ndarray, cap_angle: float = 130.0,
+              max_change: float = 0.5, min_valence: int = 5, severe_angle: float = 150.0,
+              rounds: int = 10) -> np.ndarray:
+    """F' (m, 3): caps among the allowed faces (m,) bool of mesh V (n, 3), F (m, 3) removed
+    by flipping the long edge facing their widest corner (> cap_angle degrees), where the
+    face across it is allowed too and the flip
+    - narrows: the widest corner of the two new faces is smaller than of the two old ones;
+    - keeps the shape: the new edge passes within max_change (V's unit) of the old one,
+      however curved the skin (unlike flip_to_delaunay's limit on the faces' dihedral: a
+      lid's margin is curved, and its caps are exactly where the two faces are not flat);
+    - keeps the quad convex (the new edge crosses the old one as seen along the normal);
+    - leaves both ends of the old edge with at least min_valence edges, unless the corner
+      is wider than severe_angle (a vertex of three or four edges makes a spike).
+    No vertex moves."""
+    F = np.asarray(F, dtype=np.int64).copy()
+    V = np.asarray(V, dtype=np.float64)
+    allowed = np.asarray(allowed, dtype=bool)
+    cap = np.radians(cap_angle)
+    severe = np.radians(severe_angle)
+    for _ in range(rounds):
+        E, EF = _edge_faces(F)
+        index = {(int(a), int(b)): i for i, (a, b) in enumerate(E)}
+        valence = np.bincount(E.ravel(), minlength=len(V))
+        corners = np.stack([_corner_angle(V, F[:, k], F[:, (k + 1) % 3], F[:, (k + 2) % 3]) for k in range(3)], 1)
+        widest = corners.max(axis=1)
+        faces = np.flatnonzero(allowed & (widest > cap))
+        faces = faces[np.argsort(-widest[faces], kind="stable")]
+        candidates = []
+        for f in faces:
+            k = int(np.argmax(corners[f]))
+            c, a, b = F[f, k], F[f, (k + 1) % 3], F[f, (k + 2) % 3]
+            e = index[(min(a, b), max(a, b))]
+            g = EF[e, 1] if EF[e, 0] == f else EF[e, 0]
+            if g < 0 or not allowed[g]:
+                continue
+            d = int(F[g].sum() - a - b)
+            if (min(c, d), max(c, d)) in index:
+                continue
+            if widest[f] <= severe and min(valence[a], valence[b]) - 1 < min_valence:
+                continue
+            new = np.array([[c, a, d], [c, d, b]])
+            new_widest = max(float(_corner_angle(V, new[:, j], new[:, (j + 1) % 3], new[:, (j + 2) % 3]).max())
+                             for j in range(3))
+            if new_widest >= max(widest[f], widest[g]):
+                continue
+            at_a = _corner_angle(V, np.array([a]), np.array([c]), np.array([b]))[0] + \
+                _corner_angle(V, np.array([a]), np.array([d]), np.array([b]))[0]
+            at_b = _corner_angle(V, np.array([b]), np.array([c]), np.array([a]))[0] + \
+                _corner_angle(V, np.array([b]), np.array([d]), np.array([a]))[0]
+            if at_a >= np.pi or at_b >= np.pi:
+                continue
+            if _segment_distance(V[[a]], V[[b]], V[[c]], V[[d]])[0] > max_change:
+                continue
+            candidates.append(e)
+        chosen = _independent(EF, np.array(candidates, dtype=np.int64), len(F))
+        if len(chosen) == 0:
+            break
+        for e in chosen:
+            g0, g1 = EF[e]
+            a, b = E[e]
+            tri = F[g0]
+            k = next(k for k in range(3) if {tri[k], tri[(k + 1) % 3]} == {a, b})
+            u, w = tri[k], tri[(k + 1) % 3]  # face g0 runs u -> w; face g1 runs w -> u
+            c = int(tri.sum() - u - w)
+            d = int(F[g1].sum() - u - w)
+            F[g0] = (u, d, c)
+            F[g1] = (w, c, d)
+    return F
+
+
 def refine_long_triangles(V: np.ndarray, F: np.ndarray, max_edge: float, allowed: np.ndarray,
                           cycles: int = 3, relax: int = 3) -> tuple[np.ndarray, np.ndarray]:
     """(V', F'): the allowed faces (m,) bool of mesh V (n, 3), F (m, 3) without edges longer

@@ -21,6 +21,7 @@ from fae.anatomy.geometry import (
     decimate,
     largest_component,
     mesh_from_sdf,
+    flip_caps,
     flip_to_delaunay,
     mirror_half,
     ray_hits,
@@ -50,6 +51,17 @@ MAX_EDGE = 10.0
 FLIP_DIHEDRAL = 35.0
 FLIP_KEPT_REGIONS = ("lip_upper", "lip_lower", "mouth_cavity", "eyelid_upper_l", "eyelid_upper_r",
                      "eyelid_lower_l", "eyelid_lower_r")
+# The upper lids keep their edges (above) but not their caps: a cap (a corner over
+# CAP_ANGLE, its apex 0.2-0.4 mm off the long edge) turns over as the lid closes and showed
+# as a crease on every blink. Their long edge is flipped where that changes the lid's shape
+# by at most CAP_FLIP_CHANGE (fae.anatomy.geometry.flip_caps). From 120 degrees, the
+# flipped lid's short edges compressed to 0.25 of their length as it closed.
+# Not in the lips: flipped there, the lower lip's inner band shaded jagged when the mouth
+# opened; not in the lower lids: the brows' calibration then drove a frightened face's
+# forehead into folds.
+CAP_FLIPPED_REGIONS = ("eyelid_upper_l", "eyelid_upper_r")
+CAP_ANGLE = 130.0  # degrees
+CAP_FLIP_CHANGE = 0.5  # mm
 NEEDLE_GAP = 0.05  # mm
 THICKNESS_CAP = 0.025  # m, soft-tissue depth reported where no bone lies below
 LAYER_DEPTH_FRACTIONS = [0.0, 0.35, 1.0]
@@ -91,6 +103,11 @@ def _unflipped(V: np.ndarray) -> np.ndarray:
     kept = np.isin(region, [REGION_NAMES.index(r) for r in FLIP_KEPT_REGIONS])
     kept[cKDTree(V).query_pairs(NEEDLE_GAP, output_type="ndarray").ravel()] = True
     return kept
+
+
+def _cap_flipped(V: np.ndarray) -> np.ndarray:
+    """(n,) bool: skin vertices (mm) whose faces lose their caps (CAP_FLIPPED_REGIONS)."""
+    return np.isin(skin_regions(V, None), [REGION_NAMES.index(r) for r in CAP_FLIPPED_REGIONS])
 
 
 # --- meshes ----------------------------------------------------------------------------------
@@ -152,14 +169,16 @@ def nape_moved(V: np.ndarray, F: np.ndarray, region: np.ndarray, relax: int = 8)
 
 
 def symmetric_mesh(sdf, lo, hi, step: float, half_faces: int, refine_below: float | None = None,
-                   kept_edges=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                   kept_edges=None, cap_flipped=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Mirror-symmetric closed mesh of `sdf < 0` (mm): (V (n, 3) mm, F (m, 3), mirror (n,)).
 
     refine_below: faces whose centre lies below this height (mm) get no edge longer than
     MAX_EDGE (the decimation leaves centimetre-long slivers where the surface is straight);
     kept_edges: None, or a function of the vertices V (n, 3) mm giving (n,) bool: the edges
     between faces within FLIP_DIHEDRAL of flat are flipped to Delaunay (caps removed),
-    except in faces with a corner it marks."""
+    except in faces with a corner it marks; cap_flipped: None, or such a function marking
+    vertices whose faces (two corners marked or more: the lid's crease runs along its
+    border with the forehead) lose their caps (flip_caps) after that."""
     V, F = mesh_from_sdf(sdf, lo, hi, step, pad=False)
     V, F = largest_component(V, F)
     V, F = decimate(V, F, half_faces)
@@ -167,6 +186,8 @@ def symmetric_mesh(sdf, lo, hi, step: float, half_faces: int, refine_below: floa
         V, F = refine_long_triangles(V, F, MAX_EDGE, V[F].mean(axis=1)[:, 1] < refine_below)
     if kept_edges is not None:
         F = flip_to_delaunay(V, F, ~kept_edges(V)[F].any(axis=1), max_dihedral=FLIP_DIHEDRAL)
+    if cap_flipped is not None:
+        F = flip_caps(V, F, cap_flipped(V)[F].sum(axis=1) >= 2, cap_angle=CAP_ANGLE, max_change=CAP_FLIP_CHANGE)
     return mirror_half(V, F, tol=1e-9)
 
 
@@ -408,7 +429,8 @@ def skin_thickness(V: np.ndarray, bones: list[tuple[np.ndarray, np.ndarray]], ca
 def build_template() -> FaceModel:
     """Build the generic head (about 15 s on one core). Deterministic."""
     V, F, mirror = symmetric_mesh(S.skin_sdf, (0.0, -240.0, -125.0), (100.0, 130.0, 130.0), SKIN_STEP, SKIN_HALF_FACES,
-                                  refine_below=NECK_REFINE_BELOW, kept_edges=_unflipped)
+                                  refine_below=NECK_REFINE_BELOW, kept_edges=_unflipped,
+                                  cap_flipped=_cap_flipped)
     region = skin_regions(V, F)
     V = nape_moved(V, F, region)
     V = 0.5 * (V + V[mirror] * np.array([-1.0, 1.0, 1.0]))  # exactly symmetric again
