@@ -138,9 +138,9 @@ def test_refining_long_triangles_keeps_the_surface_closed_and_oriented():
     assert np.all(on_input < 1e-4)  # every vertex lies on the input surface (float32 queries)
 
 
-def _patch_with_a_cap(lift: float):
+def _patch_with_a_cap(lift: float, off: float = 0.4):
     """A flat patch of 4 mm squares, each split along its diagonal, with one cap: the vertex
-    above the middle square's diagonal slid to within 0.4 mm of it in the patch's plane,
+    above the middle square's diagonal slid to within `off` mm of it in the patch's plane,
     and `lift` mm out of it. Returns (V (n, 3) mm, F (m, 3), the cap's face)."""
     n = 9
     x, y = np.meshgrid(np.arange(n, dtype=float), np.arange(n, dtype=float), indexing="ij")
@@ -152,7 +152,7 @@ def _patch_with_a_cap(lift: float):
             F += [(a, b, c), (a, c, d)]
     F = np.array(F)
     apex = 4 * n + 5  # (16, 20) mm, above the diagonal (16, 16)-(20, 20)
-    V[apex] = [18.0 - 0.4 / np.sqrt(2.0), 18.0 + 0.4 / np.sqrt(2.0), lift]
+    V[apex] = [18.0 - off / np.sqrt(2.0), 18.0 + off / np.sqrt(2.0), lift]
     cap = int(np.flatnonzero((F == apex).any(axis=1) & (F == 4 * n + 4).any(axis=1) & (F == 5 * n + 5).any(axis=1))[0])
     return V, F, cap
 
@@ -161,7 +161,8 @@ def test_a_cap_is_flipped_away_only_where_that_keeps_the_shape():
     """flip_caps (the upper lids' caps, which turned over as the lids closed): a cap in a
     flat patch loses its long edge, no vertex moves and the patch stays oriented; the same
     cap lifted 0.8 mm off the patch (a ridge the flip would cut off) keeps it, and so does
-    a cap in faces not allowed."""
+    a cap in faces not allowed. A cap of 140 degrees is flipped only while both ends of its
+    edge keep min_valence edges; one over severe_angle (160) whatever they keep."""
     from fae.anatomy.geometry import _corner_angle, flip_caps
 
     def widest(V, F):
@@ -178,6 +179,12 @@ def test_a_cap_is_flipped_away_only_where_that_keeps_the_shape():
     assert np.all(counts <= 2) and not np.any(same_direction)
     assert np.sum(counts == 1) == np.sum(edge_counts(F)[1] == 1)  # the same border
     assert np.array_equal(flip_caps(V, F, np.zeros(len(F), dtype=bool)), F)
+    assert np.sum(np.any(flip_caps(V, F, np.ones(len(F), dtype=bool), min_valence=99) != F, axis=1)) == 2
+
+    V, F, cap = _patch_with_a_cap(0.0, off=1.0)  # 140 degrees; the edge's ends have 6 edges
+    assert 135.0 < widest(V, F)[cap] < 150.0
+    assert np.sum(np.any(flip_caps(V, F, np.ones(len(F), dtype=bool), min_valence=5) != F, axis=1)) == 2
+    assert np.array_equal(flip_caps(V, F, np.ones(len(F), dtype=bool), min_valence=6), F)
 
     V, F, cap = _patch_with_a_cap(0.8)
     assert widest(V, F)[cap] > 130.0

@@ -371,7 +371,9 @@ def test_the_projects_own_streams_keep_the_skin_nearly_whole(name, most_folded, 
     no lining out and no skin's back seen. Not 0 yet: the upper lids' margins as blinks
     close them (6 a lid in eyes_head; 16 before their caps were flipped away, 38 in all
     and 4 turned over), the lower lip's inner rim as the lips press, the mouth corners of
-    the visemes, the forehead under fear's raised brows."""
+    the visemes (all on the lips: 46 and 2 turned over before the lids' flips, which shift
+    the calibration a little; the limit of 6 leaves that room), the forehead under fear's
+    raised brows."""
     from fae.animate.player import Player, playable_head
     from fae.io.fap import read_fap
 

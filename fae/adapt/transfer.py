@@ -127,34 +127,52 @@ def carried_affinely(field: RBF, X: np.ndarray) -> np.ndarray:
 def polynomial_fit(V: np.ndarray, Y: np.ndarray, degree: int) -> np.ndarray:
     """(n, 3): the least-squares polynomial map of `degree` (1: affine, 2: quadratic) in the
     coordinates of V (n, 3) that best takes V to Y (n, 3), evaluated at V."""
-    U = (V - V.mean(axis=0)) / max(float(np.max(np.abs(V - V.mean(axis=0)))), 1e-12)  # conditioned
+    if degree not in (1, 2):
+        raise ValueError(f"polynomial_fit: degree 1 or 2, got {degree}")
+    centred = V - V.mean(axis=0)
+    U = centred / max(float(np.max(np.abs(centred))), 1e-12)  # (unit box: well conditioned)
     columns = [np.ones(len(V))] + [U[:, i] for i in range(3)]
-    if degree >= 2:
+    if degree == 2:
         columns += [U[:, i] * U[:, j] for i in range(3) for j in range(i, 3)]
     A = np.stack(columns, axis=1)
     return A @ np.linalg.lstsq(A, Y, rcond=None)[0]
 
 
+def _whole_like(V0: np.ndarray, X: np.ndarray, F: np.ndarray, query: MeshQuery) -> bool:
+    """Whether bone X (n, 3) has no face turned over against its template shape V0 (n, 3)
+    (not even gradually, over many faces), no fold (folded_pairs) and no crossing."""
+    n0, n1 = per_face_normals(V0, F), per_face_normals(X, F)
+    return (bool(np.all(np.einsum("ij,ij->i", n0, n1) > 0.0)) and len(folded_pairs(V0, X, F)) == 0
+            and len(edge_crossings(X, F, query=query)[0]) == 0)
+
+
 def carry_bone(field: RBF, V: np.ndarray, F: np.ndarray) -> np.ndarray:
     """(n, 3) metres: bone V (n, 3), F (m, 3) moved by `field`; wherever that makes it cut
     through itself or fold against its template shape V, it is blended towards a safe bone:
-    the smoothest of the field's quadratic and affine least-squares fits over this bone that
-    neither folds nor crosses, else the field's global affine part (fae.adapt.untangle).
+    the closer of the field's quadratic and affine least-squares fits over this bone
+    (quadratic, else affine) that neither folds nor crosses, else the field's global affine
+    part (fae.adapt.untangle).
     Why fits over the bone: the mandible's ramus has faces 2-3 cm long, across which a field
     that folds nothing in space still collapses a triangle; blending towards the global
     affine part moved the whole mandible there (the blend's own transition folded those
     faces, and the zone grew round by round) and left it 2-3 cm from the jaw the skin was
-    fitted to, the mouth's lining through it."""
+    fitted to, the mouth's lining through it. On the marble bust with holes the quadratic
+    fit leaves 89 % of the mandible on the field, the rest at most 4.7 mm off it (0.2 mm
+    on average); the affine fit 85 %, 8.1 mm (0.6 mm); the global affine part none, 28.5 mm
+    (16.7 mm)."""
     F = np.asarray(F, dtype=np.int64)
     V = np.asarray(V, dtype=np.float64)
     X = carried(field, V)
+    query = MeshQuery(X, F)
+    if len(folded_pairs(V, X, F)) == 0 and len(edge_crossings(X, F, query=query)[0]) == 0:
+        return X
     safe = carried_affinely(field, V)
     for degree in (2, 1):
         candidate = polynomial_fit(V, X, degree)
-        if len(folded_pairs(V, candidate, F)) == 0 and len(edge_crossings(candidate, F)[0]) == 0:
+        if _whole_like(V, candidate, F, query):
             safe = candidate
             break
-    X, _ = untangle(F, X, safe, reference=V)
+    X, _ = untangle(F, X, safe, reference=V, query=query)
     return X
 
 

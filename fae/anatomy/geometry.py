@@ -396,17 +396,19 @@ def _segment_distance(p0: np.ndarray, p1: np.ndarray, q0: np.ndarray, q1: np.nda
 def flip_caps(V: np.ndarray, F: np.ndarray, allowed: np.ndarray, cap_angle: float = 130.0,
               max_change: float = 0.5, min_valence: int = 5, severe_angle: float = 150.0,
               rounds: int = 10) -> np.ndarray:
-    """F' (m, 3): caps among the allowed faces (m,) bool of mesh V (n, 3), F (m, 3) removed
-    by flipping the long edge facing their widest corner (> cap_angle degrees), where the
-    face across it is allowed too and the flip
+    """F' (m, 3): caps among the allowed faces (m,) bool of mesh V (n, 3), F (m, 3) flipped
+    away where that is safe: the long edge facing a face's widest corner (> cap_angle
+    degrees) is flipped where the face across it is allowed too and the flip
     - narrows: the widest corner of the two new faces is smaller than of the two old ones;
     - keeps the shape: the new edge passes within max_change (V's unit) of the old one,
       however curved the skin (unlike flip_to_delaunay's limit on the faces' dihedral: a
       lid's margin is curved, and its caps are exactly where the two faces are not flat);
-    - keeps the quad convex (the new edge crosses the old one as seen along the normal);
+    - keeps the quad convex: at both ends of the old edge, the two faces' corners sum to
+      less than 180 degrees;
     - leaves both ends of the old edge with at least min_valence edges, unless the corner
-      is wider than severe_angle (a vertex of three or four edges makes a spike).
-    No vertex moves."""
+      is wider than severe_angle (a vertex of three or four edges makes a spike), counting
+      the flips made before it in the same round.
+    A cap that no flip may remove stays. No vertex moves."""
     F = np.asarray(F, dtype=np.int64).copy()
     V = np.asarray(V, dtype=np.float64)
     allowed = np.asarray(allowed, dtype=bool)
@@ -421,6 +423,7 @@ def flip_caps(V: np.ndarray, F: np.ndarray, allowed: np.ndarray, cap_angle: floa
         faces = np.flatnonzero(allowed & (widest > cap))
         faces = faces[np.argsort(-widest[faces], kind="stable")]
         candidates = []
+        spiky = {}  # candidate edge -> whether its ends must keep min_valence
         for f in faces:
             k = int(np.argmax(corners[f]))
             c, a, b = F[f, k], F[f, (k + 1) % 3], F[f, (k + 2) % 3]
@@ -430,8 +433,6 @@ def flip_caps(V: np.ndarray, F: np.ndarray, allowed: np.ndarray, cap_angle: floa
                 continue
             d = int(F[g].sum() - a - b)
             if (min(c, d), max(c, d)) in index:
-                continue
-            if widest[f] <= severe and min(valence[a], valence[b]) - 1 < min_valence:
                 continue
             new = np.array([[c, a, d], [c, d, b]])
             new_widest = max(float(_corner_angle(V, new[:, j], new[:, (j + 1) % 3], new[:, (j + 2) % 3]).max())
@@ -444,12 +445,13 @@ def flip_caps(V: np.ndarray, F: np.ndarray, allowed: np.ndarray, cap_angle: floa
                 _corner_angle(V, np.array([b]), np.array([d]), np.array([a]))[0]
             if at_a >= np.pi or at_b >= np.pi:
                 continue
-            if _segment_distance(V[[a]], V[[b]], V[[c]], V[[d]])[0] > max_change:
+            if not _segment_distance(V[[a]], V[[b]], V[[c]], V[[d]])[0] <= max_change:  # (NaN: degenerate)
                 continue
             candidates.append(e)
+            spiky[e] = widest[f] <= severe
         chosen = _independent(EF, np.array(candidates, dtype=np.int64), len(F))
-        if len(chosen) == 0:
-            break
+        made = set()  # edges the round's flips made
+        flipped = 0
         for e in chosen:
             g0, g1 = EF[e]
             a, b = E[e]
@@ -458,8 +460,16 @@ def flip_caps(V: np.ndarray, F: np.ndarray, allowed: np.ndarray, cap_angle: floa
             u, w = tri[k], tri[(k + 1) % 3]  # face g0 runs u -> w; face g1 runs w -> u
             c = int(tri.sum() - u - w)
             d = int(F[g1].sum() - u - w)
+            if (min(c, d), max(c, d)) in made or (spiky[e] and min(valence[a], valence[b]) - 1 < min_valence):
+                continue
             F[g0] = (u, d, c)
             F[g1] = (w, c, d)
+            made.add((min(c, d), max(c, d)))
+            valence[[a, b]] -= 1
+            valence[[c, d]] += 1
+            flipped += 1
+        if flipped == 0:
+            break
     return F
 
 
