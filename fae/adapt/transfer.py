@@ -8,8 +8,9 @@
 - cranium, mandible: through interior_field, a global biharmonic RBF through the fitted
   skin's displacement (the local step included, which on a real face moves the skin by
   centimetres at the jaw: the fit's level functions alone would leave the bone outside a
-  thinner chin); blended towards the field's affine part wherever that would fold them or
-  make them cut through themselves (fae.adapt.untangle), then pushed under the skin where
+  thinner chin); blended towards the field's quadratic or affine fit over the bone
+  wherever that would fold them or make them cut through themselves (carry_bone,
+  fae.adapt.untangle), then pushed under the skin where
   the new soft tissue is thinner than MIN_BONE_DEPTH, by pushes spread in space so both
   sides of a thin bone move together (push_under_skin);
 - teeth, tongue: rigid (eq. 25-28): moved with interior_field at their centre and scaled
