@@ -163,11 +163,10 @@ def test_a_cap_is_flipped_away_only_where_that_keeps_the_shape():
     cap lifted 0.8 mm off the patch (a ridge the flip would cut off) keeps it, and so does
     a cap in faces not allowed. A cap of 140 degrees is flipped only while both ends of its
     edge keep min_valence edges; one over severe_angle (160) whatever they keep."""
-    from fae.anatomy.geometry import _corner_angle, flip_caps
+    from fae.anatomy.geometry import _corner_angles, flip_caps
 
     def widest(V, F):
-        return np.degrees(np.max([_corner_angle(V, F[:, k], F[:, (k + 1) % 3], F[:, (k + 2) % 3])
-                                  for k in range(3)], axis=0))
+        return np.degrees(_corner_angles(V, F).max(axis=1))
 
     V, F, cap = _patch_with_a_cap(0.0)
     assert widest(V, F)[cap] > 160.0

@@ -393,6 +393,11 @@ def _segment_distance(p0: np.ndarray, p1: np.ndarray, q0: np.ndarray, q1: np.nda
     return np.linalg.norm(p0 + d1 * s[:, None] - q0 - d2 * t[:, None], axis=1)
 
 
+def _corner_angles(V: np.ndarray, F: np.ndarray) -> np.ndarray:
+    """(m, 3) radians: each face's corner angles, in the order of its corners."""
+    return np.stack([_corner_angle(V, F[:, k], F[:, (k + 1) % 3], F[:, (k + 2) % 3]) for k in range(3)], axis=1)
+
+
 def flip_caps(V: np.ndarray, F: np.ndarray, allowed: np.ndarray, cap_angle: float = 130.0,
               max_change: float = 0.5, min_valence: int = 5, severe_angle: float = 150.0,
               rounds: int = 10) -> np.ndarray:
@@ -418,7 +423,7 @@ def flip_caps(V: np.ndarray, F: np.ndarray, allowed: np.ndarray, cap_angle: floa
         E, EF = _edge_faces(F)
         index = {(int(a), int(b)): i for i, (a, b) in enumerate(E)}
         valence = np.bincount(E.ravel(), minlength=len(V))
-        corners = np.stack([_corner_angle(V, F[:, k], F[:, (k + 1) % 3], F[:, (k + 2) % 3]) for k in range(3)], 1)
+        corners = _corner_angles(V, F)
         widest = corners.max(axis=1)
         faces = np.flatnonzero(allowed & (widest > cap))
         faces = faces[np.argsort(-widest[faces], kind="stable")]
@@ -434,16 +439,11 @@ def flip_caps(V: np.ndarray, F: np.ndarray, allowed: np.ndarray, cap_angle: floa
             d = int(F[g].sum() - a - b)
             if (min(c, d), max(c, d)) in index:
                 continue
-            new = np.array([[c, a, d], [c, d, b]])
-            new_widest = max(float(_corner_angle(V, new[:, j], new[:, (j + 1) % 3], new[:, (j + 2) % 3]).max())
-                             for j in range(3))
-            if new_widest >= max(widest[f], widest[g]):
+            if _corner_angles(V, np.array([[c, a, d], [c, d, b]])).max() >= max(widest[f], widest[g]):
                 continue
-            at_a = _corner_angle(V, np.array([a]), np.array([c]), np.array([b]))[0] + \
-                _corner_angle(V, np.array([a]), np.array([d]), np.array([b]))[0]
-            at_b = _corner_angle(V, np.array([b]), np.array([c]), np.array([a]))[0] + \
-                _corner_angle(V, np.array([b]), np.array([d]), np.array([a]))[0]
-            if at_a >= np.pi or at_b >= np.pi:
+            # the quad's angles at a and at b: each the two old faces' corners there
+            quad = _corner_angle(V, np.array([a, a, b, b]), np.array([c, d, c, d]), np.array([b, b, a, a]))
+            if quad[0] + quad[1] >= np.pi or quad[2] + quad[3] >= np.pi:
                 continue
             if not _segment_distance(V[[a]], V[[b]], V[[c]], V[[d]])[0] <= max_change:  # (NaN: degenerate)
                 continue
