@@ -69,18 +69,21 @@ def test_neck_has_no_long_slivers(head):
     assert np.linalg.norm(V[e[:, 0]] - V[e[:, 1]], axis=1).max() <= MAX_EDGE * MM * 1.001
 
 
-def _midline_back(V: np.ndarray, F: np.ndarray, heights: np.ndarray) -> np.ndarray:
-    """z (m) of the back of the skin's midsagittal outline at each height (m): the rearmost
-    point where the plane x = 0 cuts the skin at that height."""
+def _outline_z(V: np.ndarray, F: np.ndarray, axis: int, at: float, along: int, positions, pick) -> np.ndarray:
+    """z (m) of the skin's outline in the plane where coordinate `axis` equals `at` (m), at
+    each position (m) along coordinate `along`: `pick` (np.min: the rearmost, np.max: the
+    foremost) of the outline's crossings there."""
     import trimesh
 
-    segments = trimesh.intersections.mesh_plane(trimesh.Trimesh(V, F, process=False), [1.0, 0.0, 0.0], [0.0, 0.0, 0.0])
+    normal = np.zeros(3)
+    normal[axis] = 1.0
+    segments = trimesh.intersections.mesh_plane(trimesh.Trimesh(V, F, process=False), normal, normal * at)
     a, b = segments[:, 0], segments[:, 1]
     out = []
-    for y in heights:
-        cross = (a[:, 1] - y) * (b[:, 1] - y) <= 0.0
-        t = (y - a[cross, 1]) / np.where(b[cross, 1] != a[cross, 1], b[cross, 1] - a[cross, 1], 1.0)
-        out.append(np.min(a[cross, 2] + t * (b[cross, 2] - a[cross, 2])))
+    for u in positions:
+        cross = (a[:, along] - u) * (b[:, along] - u) <= 0.0
+        t = (u - a[cross, along]) / np.where(b[cross, along] != a[cross, along], b[cross, along] - a[cross, along], 1.0)
+        out.append(pick(a[cross, 2] + t * (b[cross, 2] - a[cross, 2])))
     return np.array(out)
 
 
@@ -90,7 +93,7 @@ def test_back_of_the_neck_rises_into_the_skull_without_a_notch(head, fdp):
     crease across the nape, since no scan point lies near its floor."""
     occiput_y = 0.0  # the skull's back is farthest back near the eyes' height
     heights = np.arange(occiput_y, fdp["2.1"][1] - 0.03, -0.002)
-    z = _midline_back(head.skin_vertices, head.skin_faces, heights)
+    z = _outline_z(head.skin_vertices, head.skin_faces, 0, 0.0, 1, heights, np.min)  # the midline's back
     # a gentle curve: the nape's deepest point within 2 cm of the line from the skull's
     # back to the neck's (a person's: 1-2 cm; the notch this replaced: 4.7 cm)
     skull, neck = z[0], z[-1]
@@ -115,6 +118,17 @@ def test_corners_microns_apart_do_not_count_as_the_skin_cutting_itself(head, fdp
     tip = np.argmin(np.linalg.norm(V - fdp["9.3"], axis=1))
     V[tip] -= [0.0, 0.05, 0.0]  # the nose tip 5 cm down, through the upper lip
     assert len(self_intersections(V, F)) > 0
+
+
+def test_the_philtrum_is_a_groove_not_a_keel(head, fdp):
+    """Between the nose and the upper lip a person has a shallow groove between two low
+    columns. One ridge down the middle (the template had a keel 4 mm high) shades as dark
+    streaks under the nose in every render: across the philtrum the midline lies no
+    farther forward than the skin 3 mm to either side."""
+    top, bottom = fdp["9.15"][1], fdp["8.1"][1]
+    for y in np.linspace(top - 0.003, bottom + 0.003, 5):
+        mid, left, right = _outline_z(head.skin_vertices, head.skin_faces, 1, y, 0, [0.0, 0.003, -0.003], np.max)
+        assert mid <= max(left, right) + 0.0005, f"a ridge {(mid - max(left, right)) * 1000:.1f} mm high at y = {y * 1000:.0f} mm"
 
 
 def test_refining_long_triangles_keeps_the_surface_closed_and_oriented():

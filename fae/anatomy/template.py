@@ -69,6 +69,14 @@ LAYER_DEPTH_FRACTIONS = [0.0, 0.35, 1.0]
 GNATHION_DIRECTION = np.array([0.0, -np.cos(np.radians(30.0)), np.sin(np.radians(30.0))])
 SKIN_COLOR = np.array([0.745, 0.42, 0.31, 1.0], dtype=np.float32)  # linear RGB of a light skin tone
 
+# The mandible's ramus decimates into faces 2-3 cm long. Pushed in under a thin jaw's skin
+# (fae.adapt.transfer.push_under_skin), two of them folded along their long edge and the
+# fold was blended back over everything within two rings of it, up to the jaw's angle 25 mm
+# away, leaving the skin there inside the bone (a bust refused as not whole). Their faces
+# with an edge over LONG_EDGE mm (the ramus's, none elsewhere) get none over MAX_EDGE; the
+# rest keep the decimation's triangles (the chin's muscles are attached where they are).
+REFINED_PARTS = ("mandible",)
+LONG_EDGE = 20.0
 # (field, grid box lo/hi in mm for the x >= 0 half, grid step mm, faces in the half mesh)
 _PART_SPECS = {
     "cranium": (S.cranium_sdf, (0.0, -110.0, -115.0), (85.0, 125.0, 115.0), 2.0, 4000),
@@ -115,65 +123,101 @@ def _cap_flipped(V: np.ndarray) -> np.ndarray:
 NAPE_REGIONS = ("neck", "jaw_l", "jaw_r")
 
 
-def nape_moved(V: np.ndarray, F: np.ndarray, region: np.ndarray, relax: int = 8) -> np.ndarray:
-    """(n, 3) mm: the skin vertices V (n, 3) mm of the neck and jaw regions that the nape's
-    column changes (template_shapes.skin_sdf with nape) moved onto it, each along its own
-    ray from the neck's axis at its height (the back of the neck is star-shaped about it:
-    the notch's walls keep their order), then `relax` rounds of tangential smoothing back
-    onto it (the walls land packed into thin bands, which fold at the first squeeze)."""
+def _onto_along_rays(P: np.ndarray, field, origin: np.ndarray, direction: np.ndarray) -> np.ndarray:
+    """(k, 3): each point P (k, 3) moved along its ray origin + t direction ((k, 3) each,
+    direction unit, P on the ray) to the nearest crossing of field's zero set beyond it or
+    before it (whichever side P lies on), mm: 1 mm steps, then bisection."""
+    t0 = np.einsum("ij,ij->i", P - origin, direction)
+
+    def at(t):
+        return origin + t[:, None] * direction
+
+    sign = np.where(field(at(t0)) < 0.0, 1.0, -1.0)  # inside: go on outwards, else back in
+    lo, hi = t0.copy(), t0.copy()
+    going = np.ones(len(P), dtype=bool)
+    for _ in range(80):
+        lo[going] = hi[going]
+        hi[going] += sign[going]
+        going &= (field(at(hi)) < 0.0) == (sign > 0)
+        if not going.any():
+            break
+    for _ in range(30):
+        mid = 0.5 * (lo + hi)
+        inside = field(at(mid)) < 0.0
+        lo = np.where(inside == (sign > 0), mid, lo)
+        hi = np.where(inside == (sign > 0), hi, mid)
+    return at(0.5 * (lo + hi))
+
+
+def _nape_rays(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rays out from the neck's axis at each point's height (the back of the neck is
+    star-shaped about it: the notch's walls keep their order)."""
+    d = P[:, [0, 2]] - S.NECK_AXIS_XZ
+    u = d / np.linalg.norm(d, axis=1)[:, None]
+    origin = np.column_stack([np.full(len(P), S.NECK_AXIS_XZ[0]), P[:, 1], np.full(len(P), S.NECK_AXIS_XZ[1])])
+    return origin, np.column_stack([u[:, 0], np.zeros(len(P)), u[:, 1]])
+
+
+def _front_rays(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rays straight forward (+z) through each point (the philtrum faces the front)."""
+    origin = P.copy()
+    origin[:, 2] = 0.0
+    return origin, np.tile([0.0, 0.0, 1.0], (len(P), 1))
+
+
+def reshaped_skin(V: np.ndarray, F: np.ndarray, region: np.ndarray, relax: int = 8) -> np.ndarray:
+    """(n, 3) mm: the skin vertices V (n, 3) mm that the reshaped skin
+    (template_shapes.skin_sdf with reshaped) moves, moved onto it: the neck's and jaw's
+    each along its ray from the neck's axis, the face's (the philtrum) straight forward or
+    back, then `relax` rounds of tangential smoothing back onto it (a notch's walls land
+    packed into thin bands, which fold at the first squeeze)."""
     from fae.mesh import adjacency, vertex_normals
 
     V = np.asarray(V, dtype=np.float64)
-    near = np.isin(region, [REGION_NAMES.index(r) for r in NAPE_REGIONS])
 
     def shaped(P):
-        return S.skin_sdf(P, nape=True)
+        return S.skin_sdf(P, reshaped=True)
 
-    moved = near & (np.abs(shaped(V) - S.skin_sdf(V)) > 1e-3)
-
-    def onto(P):
-        d = P[:, [0, 2]] - S.NECK_AXIS_XZ
-        r0 = np.linalg.norm(d, axis=1)
-        u = d / r0[:, None]
-
-        def at(r):
-            return np.column_stack([S.NECK_AXIS_XZ[0] + r * u[:, 0], P[:, 1], S.NECK_AXIS_XZ[1] + r * u[:, 1]])
-
-        # out (or in) in 1 mm steps to the first point across the surface, then bisection
-        sign = np.where(shaped(at(r0)) < 0.0, 1.0, -1.0)
-        lo, hi = r0.copy(), r0.copy()
-        going = np.ones(len(P), dtype=bool)
-        for _ in range(80):
-            lo[going] = hi[going]
-            hi[going] += sign[going]
-            going &= (shaped(at(hi)) < 0.0) == (sign > 0)
-            if not going.any():
-                break
-        for _ in range(30):
-            mid = 0.5 * (lo + hi)
-            inside = shaped(at(mid)) < 0.0
-            lo = np.where(inside == (sign > 0), mid, lo)
-            hi = np.where(inside == (sign > 0), hi, mid)
-        return at(0.5 * (lo + hi))
-
-    W = V.copy()
-    W[moved] = onto(V[moved])
+    changed = np.abs(shaped(V) - S.skin_sdf(V)) > 1e-3
+    nape = changed & np.isin(region, [REGION_NAMES.index(r) for r in NAPE_REGIONS])
+    front = changed & ~nape & (V[:, 2] > 0.0)
     A = adjacency(np.asarray(F, dtype=np.int64), len(V))
     degree = np.asarray(A.sum(axis=1)).ravel()
+    W = V.copy()
+    moves = [(m, rays) for m, rays in ((nape, _nape_rays), (front, _front_rays)) if m.any()]
+    for m, rays in moves:
+        W[m] = _onto_along_rays(V[m], shaped, *rays(V[m]))
     for _ in range(relax):
-        step = (A @ W)[moved] / degree[moved, None] - W[moved]
-        N = vertex_normals(W, F)[moved]
-        step -= np.sum(step * N, axis=1, keepdims=True) * N
-        W[moved] = onto(W[moved] + step)
+        N = vertex_normals(W, F)
+        for m, rays in moves:
+            step = (A @ W)[m] / degree[m, None] - W[m]
+            step -= np.sum(step * N[m], axis=1, keepdims=True) * N[m]
+            P = W[m] + step
+            W[m] = _onto_along_rays(P, shaped, *rays(P))
     return W
 
 
-def symmetric_mesh(sdf, lo, hi, step: float, half_faces: int, refine_below: float | None = None,
+def _below_the_chin(V: np.ndarray, F: np.ndarray) -> np.ndarray:
+    """(m,) bool: faces of mesh V (n, 3) mm, F (m, 3) whose centre lies below NECK_REFINE_BELOW."""
+    return V[F].mean(axis=1)[:, 1] < NECK_REFINE_BELOW
+
+
+def _with_long_edges(V: np.ndarray, F: np.ndarray) -> np.ndarray:
+    """(m,) bool: faces of mesh V (n, 3) mm, F (m, 3) with an edge longer than LONG_EDGE, and
+    the faces that share a corner with them (room for the split edges' neighbours)."""
+    long = np.linalg.norm(V[F] - V[F][:, [1, 2, 0]], axis=2).max(axis=1) > LONG_EDGE
+    near = np.zeros(len(V), dtype=bool)
+    near[F[long].ravel()] = True
+    return near[F].any(axis=1)
+
+
+def symmetric_mesh(sdf, lo, hi, step: float, half_faces: int, refined=None,
                    kept_edges=None, cap_flipped=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Mirror-symmetric closed mesh of `sdf < 0` (mm): (V (n, 3) mm, F (m, 3), mirror (n,)).
 
-    refine_below: faces whose centre lies below this height (mm) get no edge longer than
-    MAX_EDGE (the decimation leaves centimetre-long slivers where the surface is straight);
+    refined: None, or a function of the decimated half mesh (V (n, 3) mm, F (m, 3)) giving
+    (m,) bool: those faces get no edge longer than MAX_EDGE (the decimation leaves
+    centimetre-long slivers where the surface is straight);
     kept_edges: None, or a function of the vertices V (n, 3) mm giving (n,) bool: the edges
     between faces within FLIP_DIHEDRAL of flat are flipped to Delaunay (caps removed),
     except in faces with a corner it marks; cap_flipped: None, or such a function marking
@@ -182,8 +226,8 @@ def symmetric_mesh(sdf, lo, hi, step: float, half_faces: int, refine_below: floa
     V, F = mesh_from_sdf(sdf, lo, hi, step, pad=False)
     V, F = largest_component(V, F)
     V, F = decimate(V, F, half_faces)
-    if refine_below is not None:
-        V, F = refine_long_triangles(V, F, MAX_EDGE, V[F].mean(axis=1)[:, 1] < refine_below)
+    if refined is not None:
+        V, F = refine_long_triangles(V, F, MAX_EDGE, refined(V, F))
     if kept_edges is not None:
         F = flip_to_delaunay(V, F, ~kept_edges(V)[F].any(axis=1), max_dihedral=FLIP_DIHEDRAL)
     if cap_flipped is not None:
@@ -328,7 +372,9 @@ def skin_feature_vertices(V: np.ndarray, F: np.ndarray, mirror: np.ndarray, regi
     nose_mid = mid_in("nose")
     out["9.3"] = int(nose_mid[np.argmax(V[nose_mid, 2])])
     out["9.12"] = _nearest(V, nose_mid, _front(V, F, 0.0, -22.0))
-    out["9.15"] = _nearest(V, mid, (0.0, -53.5, 100.5))
+    # the nose's bottom middle: where the columella's underside meets the philtrum's groove
+    # (mouth-nose separation 9.15-2.2, the MNS unit of every lip FAP, as with the old keel)
+    out["9.15"] = _nearest(V, mid, (0.0, -54.5, 104.5))
     nose_left = left_in("nose")
     out["9.1"] = _nearest(V, nose_left, (20.0, -47.0, 98.0))
     out["9.5"] = _nearest(V, nose_left, (14.0, -53.0, 97.0))
@@ -429,14 +475,15 @@ def skin_thickness(V: np.ndarray, bones: list[tuple[np.ndarray, np.ndarray]], ca
 def build_template() -> FaceModel:
     """Build the generic head (about 15 s on one core). Deterministic."""
     V, F, mirror = symmetric_mesh(S.skin_sdf, (0.0, -240.0, -125.0), (100.0, 130.0, 130.0), SKIN_STEP, SKIN_HALF_FACES,
-                                  refine_below=NECK_REFINE_BELOW, kept_edges=_unflipped,
+                                  refined=_below_the_chin, kept_edges=_unflipped,
                                   cap_flipped=_cap_flipped)
     region = skin_regions(V, F)
-    V = nape_moved(V, F, region)
+    V = reshaped_skin(V, F, region)
     V = 0.5 * (V + V[mirror] * np.array([-1.0, 1.0, 1.0]))  # exactly symmetric again
     parts_mm: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     for name, (sdf, lo, hi, step, half_faces) in _PART_SPECS.items():
-        PV, PF, _ = symmetric_mesh(sdf, lo, hi, step, half_faces)
+        PV, PF, _ = symmetric_mesh(sdf, lo, hi, step, half_faces,
+                                   refined=_with_long_edges if name in REFINED_PARTS else None)
         parts_mm[name] = (PV, PF)
     eye_r_center = S.EYE_CENTER * np.array([-1.0, 1.0, 1.0])
     eye_l = eyeball(S.EYE_CENTER)

@@ -44,6 +44,7 @@ NECK_AXIS_XZ = np.array([0.0, -18.0])  # the neck's upright axis (x, z)
 NAPE_FRONT_Z = 30.0  # the nape's column reaches forward to z = -NAPE_FRONT_Z
 NAPE_FRONT_BLEND = 30.0  # over which the column's front fades out
 NAPE_BLEND = 25.0  # the column's blend into the neck (the sides and back swell by a quarter of it)
+PHILTRUM_COLUMN_X = 4.0  # the philtrum's columns, either side of the midline at the lip
 
 # dental arch: half-ellipse in the xz plane (centre z, semi-axes along x and z)
 ARCH_CENTER_Z = 44.0
@@ -77,9 +78,9 @@ def _arch_band(P: np.ndarray, arch: tuple[float, float], half_width, y_lo: float
 
 # --- skin ----------------------------------------------------------------------------------
 
-def _skull_mass(P: np.ndarray, nape: bool = False) -> np.ndarray:
-    """Cranium and face volume without the features (P already mirrored); nape: the back of
-    the neck rises into the occiput (see skin_sdf)."""
+def _skull_mass(P: np.ndarray, reshaped: bool = False) -> np.ndarray:
+    """Cranium and face volume without the features (P already mirrored); reshaped: the
+    back of the neck rises into the occiput (see skin_sdf)."""
     cranium = sdf_ellipsoid(P, (0.0, 22.0, -6.0), (75.0, 98.0, 100.0))
     # flatten the temples a little and the back of the head less
     temples = sdf_ellipsoid(P, (0.0, 10.0, 10.0), (71.0, 110.0, 104.0))
@@ -104,7 +105,7 @@ def _skull_mass(P: np.ndarray, nape: bool = False) -> np.ndarray:
     head = smooth_union(head, cheek, 20.0)
     # neck
     neck = sdf_round_box(P, (NECK_AXIS_XZ[0], -160.0, NECK_AXIS_XZ[1]), (56.0, 70.0, 58.0), 44.0)
-    if nape:  # the neck's back half as a column up to the skull: the box's round top left a notch
+    if reshaped:  # the neck's back half as a column up to the skull: the box's round top left a notch
         column = sdf_column(P, NECK_AXIS_XZ, (56.0, 58.0), 44.0, -186.0, -60.0, 24.0)
         # blended into the neck's rounded top and the jaw behind (a plain union left a groove
         # under the ear where the column's side met them)
@@ -135,13 +136,19 @@ def _nostrils(P: np.ndarray) -> np.ndarray:
     return sdf_ellipsoid(P, (7.0, -52.0, 103.0), (3.6, 4.5, 5.5))
 
 
-def _lips(P: np.ndarray) -> np.ndarray:
+def _lips(P: np.ndarray, reshaped: bool = False) -> np.ndarray:
+    """The lips and the skin between the upper one and the nose (P already mirrored);
+    reshaped: a philtrum of two columns with a groove between them (see skin_sdf)."""
     y0 = STOMION_Y
     upper = sdf_polyline(P, [(0.0, y0 + 3.8, 98.5), (12.0, y0 + 3.5, 96.5), (22.0, y0 + 1.5, 91.0), (MOUTH_HALF_WIDTH, y0, 86.0)],
                          [4.6, 4.3, 3.0, 1.5])
     lower = sdf_polyline(P, [(0.0, y0 - 4.4, 96.0), (12.0, y0 - 4.0, 94.5), (21.0, y0 - 2.0, 90.0), (MOUTH_HALF_WIDTH, y0, 86.0)],
                          [5.2, 4.8, 3.4, 1.5])
-    philtrum = sdf_capsule(P, (0.0, y0 + 6.0, 96.5), (0.0, -55.0, 99.0), 3.0, 3.0)
+    if reshaped:
+        x = PHILTRUM_COLUMN_X
+        philtrum = sdf_capsule(P, (x, y0 + 6.0, 94.5), (0.7 * x, -55.0, 97.0), 2.5, 2.5)
+    else:  # one ridge down the middle: a keel 4 mm high, whose steep sides shaded as dark streaks
+        philtrum = sdf_capsule(P, (0.0, y0 + 6.0, 96.5), (0.0, -55.0, 99.0), 3.0, 3.0)
     lips = smooth_union(upper, lower, 2.0)
     return smooth_union(lips, philtrum, 4.0)
 
@@ -199,17 +206,18 @@ def _aperture(P: np.ndarray) -> np.ndarray:
     return np.maximum(np.maximum(np.maximum(vertical, horizontal), front), near)
 
 
-def skin_sdf(P: np.ndarray, nape: bool = False) -> np.ndarray:
+def skin_sdf(P: np.ndarray, reshaped: bool = False) -> np.ndarray:
     """(n,) signed distance (mm, negative inside the soft tissue) of the whole skin surface.
 
-    nape: the skin as shaped, whose neck's back rises into the occiput (the neck's rounded
-    box alone leaves a notch 4 cm deep under the skull, which every fit to a scan kept as a
-    crease across the nape). The skin is meshed without it and its nape then moved onto
-    it (fae.anatomy.template): the whole field decimates as one, and a neck meshed
-    otherwise decimated the face into another triangulation, which everything tuned on the
-    face's would have to be tuned on again."""
+    reshaped: the skin as shaped, whose neck's back rises into the occiput (the neck's
+    rounded box alone leaves a notch 4 cm deep under the skull, which every fit to a scan
+    kept as a crease across the nape) and whose philtrum is a groove between two columns
+    (not one ridge). The skin is meshed without these and the vertices they change then
+    moved onto them (fae.anatomy.template.reshaped_skin): the whole field decimates as one,
+    and a field changed anywhere decimated the face into another triangulation, which
+    everything tuned on the face's would have to be tuned on again."""
     P = _mirror(P)
-    head = _skull_mass(P, nape)
+    head = _skull_mass(P, reshaped)
     head = smooth_union(head, _brow(P), 9.0)
     # orbit hollow above and below the eye, then lids that wrap the eyeball
     hollow = sdf_ellipsoid(P, EYE_CENTER + np.array([0.0, 1.0, 14.0]), (17.0, 13.0, 9.0))
@@ -217,7 +225,7 @@ def skin_sdf(P: np.ndarray, nape: bool = False) -> np.ndarray:
     lids = sdf_sphere(P, EYE_CENTER, EYE_RADIUS + EYE_GAP + LID_THICKNESS)
     head = smooth_union(head, lids, 3.0)
     head = smooth_union(head, _nose(P), 6.0)
-    head = smooth_union(head, _lips(P), 3.0)
+    head = smooth_union(head, _lips(P, reshaped), 3.0)
     head = smooth_union(head, _ear(P), 4.0)
     head = smooth_subtract(head, _nostrils(P), 1.5)
     head = smooth_subtract(head, _aperture(P), 0.8)
