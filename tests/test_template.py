@@ -69,6 +69,16 @@ def test_neck_has_no_long_slivers(head):
     assert np.linalg.norm(V[e[:, 0]] - V[e[:, 1]], axis=1).max() <= MAX_EDGE * MM * 1.001
 
 
+def test_the_mandible_has_no_long_faces(head):
+    """The ramus decimates into faces 2-3 cm long; pushed in under a thin jaw's skin two
+    of them folded, and blending the fold back left a bust's skin inside the bone."""
+    from fae.anatomy.template import LONG_EDGE
+
+    V, F = head.mesh("mandible")
+    F = F.astype(np.int64)
+    assert np.linalg.norm(V[F] - V[F][:, [1, 2, 0]], axis=2).max() <= LONG_EDGE * MM
+
+
 def _outline_z(V: np.ndarray, F: np.ndarray, axis: int, at: float, along: int, positions, pick) -> np.ndarray:
     """z (m) of the skin's outline in the plane where coordinate `axis` equals `at` (m), at
     each position (m) along coordinate `along`: `pick` (np.min: the rearmost, np.max: the
@@ -123,8 +133,9 @@ def test_corners_microns_apart_do_not_count_as_the_skin_cutting_itself(head, fdp
 def test_the_philtrum_is_a_groove_not_a_keel(head, fdp):
     """Between the nose and the upper lip a person has a shallow groove between two low
     columns. One ridge down the middle (the template had a keel 4 mm high) shades as dark
-    streaks under the nose in every render: across the philtrum the midline lies no
-    farther forward than the skin 3 mm to either side."""
+    streaks under the nose in every render: across the philtrum the midline lies no more
+    than 0.5 mm farther forward than the skin 3 mm to either side (the keel: 1.5-2.0 mm;
+    the groove: -0.7 to 0.2 mm)."""
     top, bottom = fdp["9.15"][1], fdp["8.1"][1]
     for y in np.linspace(top - 0.003, bottom + 0.003, 5):
         mid, left, right = _outline_z(head.skin_vertices, head.skin_faces, 1, y, 0, [0.0, 0.003, -0.003], np.max)

@@ -72,9 +72,11 @@ SKIN_COLOR = np.array([0.745, 0.42, 0.31, 1.0], dtype=np.float32)  # linear RGB 
 # The mandible's ramus decimates into faces 2-3 cm long. Pushed in under a thin jaw's skin
 # (fae.adapt.transfer.push_under_skin), two of them folded along their long edge and the
 # fold was blended back over everything within two rings of it, up to the jaw's angle 25 mm
-# away, leaving the skin there inside the bone (a bust refused as not whole). Their faces
-# with an edge over LONG_EDGE mm (the ramus's, none elsewhere) get none over MAX_EDGE; the
-# rest keep the decimation's triangles (the chin's muscles are attached where they are).
+# away, leaving the skin there inside the bone (a bust refused as not whole). The faces
+# with an edge over LONG_EDGE mm (the ramus's, none elsewhere) and their neighbours are
+# refined: their edges between two of them are split to MAX_EDGE, so that no edge over
+# LONG_EDGE is left (the ring's outer edges keep up to 19 mm); the rest keep the
+# decimation's triangles (the chin's muscles are attached where they are).
 REFINED_PARTS = ("mandible",)
 LONG_EDGE = 20.0
 # (field, grid box lo/hi in mm for the x >= 0 half, grid step mm, faces in the half mesh)
@@ -169,8 +171,11 @@ def reshaped_skin(V: np.ndarray, F: np.ndarray, region: np.ndarray, relax: int =
     """(n, 3) mm: the skin vertices V (n, 3) mm that the reshaped skin
     (template_shapes.skin_sdf with reshaped) moves, moved onto it: the neck's and jaw's
     each along its ray from the neck's axis, the face's (the philtrum) straight forward or
-    back, then `relax` rounds of tangential smoothing back onto it (a notch's walls land
-    packed into thin bands, which fold at the first squeeze)."""
+    back, then `relax` rounds of tangential smoothing back onto it, each along its rays
+    (a notch's walls land packed into thin bands, which fold at the first squeeze; the
+    philtrum's vertices, left where their rays put them, bunch under the nose and shade
+    it jagged: smoothed, they slide up to 4.7 mm over the groove and the upper lip, its
+    triangles' areas changing 0.3-7x)."""
     from fae.mesh import adjacency, vertex_normals
 
     V = np.asarray(V, dtype=np.float64)
@@ -216,8 +221,8 @@ def symmetric_mesh(sdf, lo, hi, step: float, half_faces: int, refined=None,
     """Mirror-symmetric closed mesh of `sdf < 0` (mm): (V (n, 3) mm, F (m, 3), mirror (n,)).
 
     refined: None, or a function of the decimated half mesh (V (n, 3) mm, F (m, 3)) giving
-    (m,) bool: those faces get no edge longer than MAX_EDGE (the decimation leaves
-    centimetre-long slivers where the surface is straight);
+    (m,) bool: an edge between two of those faces is split until none is longer than
+    MAX_EDGE (the decimation leaves centimetre-long slivers where the surface is straight);
     kept_edges: None, or a function of the vertices V (n, 3) mm giving (n,) bool: the edges
     between faces within FLIP_DIHEDRAL of flat are flipped to Delaunay (caps removed),
     except in faces with a corner it marks; cap_flipped: None, or such a function marking
@@ -372,8 +377,10 @@ def skin_feature_vertices(V: np.ndarray, F: np.ndarray, mirror: np.ndarray, regi
     nose_mid = mid_in("nose")
     out["9.3"] = int(nose_mid[np.argmax(V[nose_mid, 2])])
     out["9.12"] = _nearest(V, nose_mid, _front(V, F, 0.0, -22.0))
-    # the nose's bottom middle: where the columella's underside meets the philtrum's groove
-    # (mouth-nose separation 9.15-2.2, the MNS unit of every lip FAP, as with the old keel)
+    # the nose's bottom middle: on the columella's underside, 2.8 mm above where it meets
+    # the philtrum's groove, where the old keel's 9.15 was: the mouth-nose separation (MNS,
+    # the unit of every lip FAP) stays 22.8 mm (22.3 before); taken at the junction it was
+    # 20.0 mm, and every mouth opened 10 % less
     out["9.15"] = _nearest(V, mid, (0.0, -54.5, 104.5))
     nose_left = left_in("nose")
     out["9.1"] = _nearest(V, nose_left, (20.0, -47.0, 98.0))
