@@ -142,6 +142,23 @@ def test_the_philtrum_is_a_groove_not_a_keel(head, fdp):
         assert mid <= max(left, right) + 0.0005, f"a ridge {(mid - max(left, right)) * 1000:.1f} mm high at y = {y * 1000:.0f} mm"
 
 
+def test_splitting_long_edges_hemmed_in_stops_with_a_clear_error():
+    """The mandible as decimated, with only its faces over LONG_EDGE allowed to split: an
+    edge grew back to 12.5 mm with every split and the template's build never ended. It
+    stops with an error saying what to allow; with their neighbours allowed too it ends."""
+    from fae.anatomy.geometry import decimate, largest_component, mesh_from_sdf, split_long_edges
+    from fae.anatomy.template import _PART_SPECS, LONG_EDGE, MAX_EDGE, _with_long_edges
+
+    sdf, lo, hi, step, half_faces = _PART_SPECS["mandible"]
+    V, F = mesh_from_sdf(sdf, lo, hi, step, pad=False)
+    V, F = decimate(*largest_component(V, F), half_faces)
+    long = np.linalg.norm(V[F] - V[F][:, [1, 2, 0]], axis=2).max(axis=1) > LONG_EDGE
+    with pytest.raises(RuntimeError, match="allow the faces around"):
+        split_long_edges(V, F, MAX_EDGE, long)
+    V2, F2, _ = split_long_edges(V, F, MAX_EDGE, _with_long_edges(V, F))
+    assert np.linalg.norm(V2[F2] - V2[F2][:, [1, 2, 0]], axis=2).max() <= LONG_EDGE
+
+
 def test_refining_long_triangles_keeps_the_surface_closed_and_oriented():
     import trimesh
 

@@ -302,15 +302,20 @@ def _independent(edge_faces: np.ndarray, candidates: np.ndarray, face_count: int
     return np.array(chosen, dtype=np.int64)
 
 
+SPLIT_ROUNDS = 200  # of split_long_edges (the generic head's neck takes 9, its ramus 6)
+
+
 def split_long_edges(V: np.ndarray, F: np.ndarray, max_edge: float, allowed: np.ndarray
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(V', F', allowed') with every edge of an allowed face (m,) bool longer than `max_edge`
-    split at its midpoint, longest first; each face beside a split edge becomes two.
-    New vertices are appended to V (n, 3), new faces to F (m, 3), orientation kept."""
+    """(V', F', allowed') with every edge between allowed faces (m,) bool longer than
+    `max_edge` split at its midpoint, longest first; each face beside a split edge becomes
+    two. New vertices are appended to V (n, 3), new faces to F (m, 3), orientation kept.
+    Raises RuntimeError after SPLIT_ROUNDS rounds (an allowed region hemmed in by faces it
+    may not split can grow a long edge back with every split)."""
     V = np.asarray(V, dtype=np.float64)
     F = np.asarray(F, dtype=np.int64)
     allowed = np.asarray(allowed, dtype=bool)
-    while True:
+    for _ in range(SPLIT_ROUNDS):
         E, EF = _edge_faces(F)
         length = np.linalg.norm(V[E[:, 0]] - V[E[:, 1]], axis=1)
         in_zone = allowed[EF[:, 0]] & np.where(EF[:, 1] >= 0, allowed[np.maximum(EF[:, 1], 0)], True)
@@ -333,6 +338,8 @@ def split_long_edges(V: np.ndarray, F: np.ndarray, max_edge: float, allowed: np.
                 new_allowed.append(allowed[f])
         F = np.vstack([F, np.array(new_faces, dtype=np.int64).reshape(-1, 3)])
         allowed = np.concatenate([allowed, np.array(new_allowed, dtype=bool)])
+    raise RuntimeError(f"split_long_edges: edges over {max_edge} still grow back after {SPLIT_ROUNDS} rounds of "
+                       "splits; allow the faces around the long ones too")
 
 
 def _corner_angle(V: np.ndarray, apex: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
