@@ -421,6 +421,40 @@ def test_a_blink_reopening_never_shows_the_lids_lining(face, check):
     assert seen[-1] == 0.0, seen
 
 
+def test_a_blink_one_frame_long_closes_the_lids_and_reopens_no_wider_than_rest(face):
+    """eyes_head.fap blinks as 341, 1024, 512 at 25 fps: at the frame sent as 1024 the lids
+    meet, within 0.5 mm of the gap between 3.1 and 3.3 once they have settled closed (the
+    lid's lag left 2.7 mm of eyeball showing there before its closing pull was led); a third
+    of the way closed at 341; and reopening, the lid goes no more than 0.5 mm past its rest
+    (led while it opened too, it went 2 mm past it)."""
+    from fae.animate.player import Player, playable_head
+
+    player = Player(playable_head(face))
+    faces = np.asarray(face.skin_faces)
+
+    def gap(skin):
+        upper, lower = face.feature_points["3.1"], face.feature_points["3.3"]
+        return float(np.linalg.norm(np.asarray(upper.bary) @ skin[faces[upper.triangle]]
+                                    - np.asarray(lower.bary) @ skin[faces[lower.triangle]]))
+
+    def gaps(values):
+        player.reset()
+        out = []
+        for lid in values:
+            v = np.zeros(68)
+            v[[18, 19]] = lid
+            out.append(gap(player.step(v, dt=0.04)))
+        return out
+
+    rest = gap(np.asarray(face.skin_vertices, dtype=np.float64))
+    closed = gaps([1024.0] * 15)[-1]
+    blink = gaps([0.0, 341.0, 1024.0, 512.0] + [0.0] * 8)
+    assert blink[2] <= closed + 0.5e-3, (blink, closed)
+    assert blink[1] == pytest.approx(rest - (rest - closed) / 3.0, abs=1e-3), (blink, rest, closed)
+    assert max(blink[3:]) <= rest + 0.5e-3, (blink, rest)
+    assert blink[-1] == pytest.approx(rest, abs=0.5e-3)
+
+
 def test_a_lid_standing_off_its_eyeball_blinks_without_showing_its_lining(face):
     """An adapted bust's upper lids are fitted to its sculpted eyes, 5-10 mm in front of the
     eyeballs placed in their sockets: with nothing under it, a blinking lid's lining rolled

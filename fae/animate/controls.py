@@ -9,7 +9,8 @@ lip raised alone, which must push the other lip too, would lift a lip the jaw ha
 lowered far past its place. An inner lip FAP and its outer twin sent the same way are
 scaled together so that the larger request is met, not their sum where their points
 overlap (merge_lip_pairs, fae.animate.mapping). Muscle contractions are kept >= 0 and
-every control is bounded, whatever the input.
+every control is bounded, whatever the input. The lids' pull fields are led while they
+close (ActivationLead, one per face), so that a blink one frame long closes.
 """
 
 from __future__ import annotations
@@ -24,6 +25,49 @@ ACTIVATION_LIMIT = 50.0
 # on the generic head with its condylar glide, fae.animate.rigid), so the chin goes down
 # monotonically with open_jaw and visemes
 JAW_ANGLE_LIMIT = 0.5
+
+
+# The lids' skin follows its pull fields as a first-order lag of about LID_RESPONSE_SECONDS
+# (the shipped head's upper lid: 0.59, 0.85, 0.96 of a step in its first three 40 ms
+# frames). A blink sent as one frame at 1024 between 341 and 512 (eyes_head.fap) left the
+# lid 2.7 mm short of closed at its deepest frame, the eyeball's white showing (now 0.3 mm
+# further down than settled closed, on the lower lid); the xface streams' 512, 1024, 1024,
+# 512 closed only on its second frame at 1024 (2.0 mm open on the first; now 0.2 mm). A FAP
+# value is the pose of its frame: the closing lids' pulls are led to reach it
+# (ActivationLead). Opening keeps its lag (led, a lid opened 2 mm past its rest for two
+# frames; real lids open slower than they close).
+LID_FAPS = (19, 20, 21, 22)
+LID_RESPONSE_SECONDS = 0.045
+
+
+class ActivationLead:
+    """Per face: the activations `rows` of the controls, led while they rise, so that skin
+    following each as a first-order lag of `seconds` reaches the frame's activation by the
+    frame's end (the pull of a frame of length dt is (a - e r) / (1 - e), e = exp(-dt /
+    seconds), r what the lag had reached: a step is pulled 1.7x for one 40 ms frame, then
+    as asked). A falling activation is passed as it is, and the lag's reach follows it."""
+
+    def __init__(self, rows: np.ndarray, seconds: float):
+        self.rows = np.asarray(rows, dtype=np.int64)
+        self.seconds = float(seconds)
+        self.reached = np.zeros(len(self.rows))
+
+    def reset(self) -> None:
+        """At rest: nothing reached."""
+        self.reached[:] = 0.0
+
+    def apply(self, activation: np.ndarray, dt: float) -> np.ndarray:
+        """The activations (M,) to simulate a frame of dt seconds with, for the frame's own
+        `activation` (M,); updates what the lag has reached."""
+        if len(self.rows) == 0:
+            return activation
+        a = activation[self.rows]
+        e = float(np.exp(-dt / self.seconds))
+        rising = a > self.reached
+        out = activation.copy()
+        out[self.rows] = np.where(rising, (a - e * self.reached) / (1.0 - e), a)
+        self.reached = np.where(rising, a, a + (self.reached - a) * e)
+        return out
 
 
 _INNER = np.array([k - 1 for k, _ in LIP_PAIRS])
@@ -94,6 +138,8 @@ class FapControls:
                 raise MappingMismatch(f"fap_mapping.{name}: expected finite {shape}, got {a.shape}")
         self.muscle_count = nm + nf
         self.model_muscles = nm
+        # the lids' pull fields among the controls (ActivationLead)
+        self.lid_rows = np.array([nm + fields.index(k) for k in LID_FAPS if k in fields], dtype=np.int64)
         tv, ts = self.table_values, self.table_scale
         # per-FAP slopes of the scale tables, for a vectorized interpolation
         self._x = tv

@@ -2,7 +2,8 @@
 
 Per frame (only precomputed arrays are used): FAP 1/2 records -> low-level values, added to
 the frame's own; clamp (fae.mpeg4.faptables); one matmul to muscle/field activations and
-the jaw pose (fae.animate.controls); one solver step of the skin in the head's frame
+the jaw pose (fae.animate.controls), the closing lids' pulls led so that they reach the
+frame's pose by its end (ActivationLead, per face); one solver step of the skin in the head's frame
 (fae.sim); FaceDefTable offsets added (a frame that repeats the previous one on skin that has
 settled skips the solver); then the head pose (rotation about 7.1) carries
 skin and parts. What all faces of one head share is a PlayableHead, built once; a head
@@ -32,7 +33,7 @@ import numpy as np
 from fae.animate.bake import bake_tables, baked_model, has_baked_tables
 from fae.animate.calibrate import calibrate, pull_fields
 from fae.animate.ears import ear_tables
-from fae.animate.controls import FapControls, MappingMismatch, merge_lip_pairs
+from fae.animate.controls import LID_RESPONSE_SECONDS, ActivationLead, FapControls, MappingMismatch, merge_lip_pairs
 from fae.animate.facedef import FaceDefOffsets
 from fae.mpeg4.faptables import FAP_COUNT, clamp_values, fapu_of
 from fae.animate.highlevel import highlevel_values
@@ -165,6 +166,7 @@ class Player:
         self._R = np.tile(np.eye(3), (2, 1, 1))
         self._t = np.zeros((2, 3))
         self.fps = DEFAULT_FPS
+        self.lead = ActivationLead(head.controls.lid_rows, LID_RESPONSE_SECONDS)
         self.reset()
 
     # what the head shares, read through the player
@@ -193,6 +195,7 @@ class Player:
         self.frame_index = 0
         self._settled = True
         self._last_dt = None
+        self.lead.reset()
 
     def frame_values(self, frame) -> np.ndarray:
         """(68,) clamped low-level values of a DenseFrame or a (68,) array (FAPU units)."""
@@ -222,6 +225,7 @@ class Player:
         if self.sim is None:
             return self._table_step(v)
         activation, jaw = self.controls.controls(v)
+        activation = self.lead.apply(activation, dt)
         J = self.rig.jaw(*jaw)
         self._R[1], self._t[1] = J[:3, :3], J[:3, 3]
         if not (self._settled and dt == self._last_dt and np.array_equal(v, self.values)):
