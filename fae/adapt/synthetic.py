@@ -333,3 +333,24 @@ def template_bust(template, seed: int = 3, V: np.ndarray | None = None) -> Synth
     lining = np.asarray(template.skin_region)[F[:, 0]] == template.region_names.index("mouth_cavity")
     fdp = {n: p for n, p in template.feature_point_positions().items() if template.feature_points[n].part == "skin"}
     return bust_scan(template.skin_vertices if V is None else V, F, fdp, seed=seed, drop_faces=lining)
+
+
+def turned_on_its_neck(template, degrees: float, axis: tuple[float, float, float] = (0.0, 1.0, 0.0)) -> np.ndarray:
+    """(n, 3) metres: the skin of FaceModel `template` with its head turned `degrees` about
+    `axis` (the head's frame; +y: looking aside) on its neck, as a bust is sculpted: all of
+    the turn from 1 cm under the chin (2.1) up, none over the lowest 30 % of the neck below
+    it, a smooth step between, about the neck's middle there."""
+    from fae.linalg import axis_angle
+
+    V = np.asarray(template.skin_vertices, dtype=np.float64)
+    y = V[:, 1]
+    top = template.feature_point_positions()["2.1"][1] - 0.01
+    bottom = y.min() + 0.3 * (top - y.min())
+    t = np.clip((y - bottom) / (top - bottom), 0.0, 1.0)
+    share = t * t * (3.0 - 2.0 * t)
+    near_bottom = np.abs(y - bottom) < 0.01
+    pivot = np.array([np.median(V[near_bottom, 0]), bottom, np.median(V[near_bottom, 2])])
+    out = np.empty_like(V)
+    for i, s in enumerate(share):
+        out[i] = axis_angle(np.asarray(axis, dtype=np.float64), np.radians(degrees) * s) @ (V[i] - pivot) + pivot
+    return out

@@ -43,8 +43,8 @@ MIN_GIVEN_POINTS = 4  # feature points given that place the head (a similarity n
 # the marble bust's points scaled 1.2x about their middle lay a median 8 mm off it and
 # played with a hole in the cheek at rest and the mouth torn open.
 OFF_SCAN = 0.01
-# a face found this many degrees turned from the head's pose places the head again (the busts:
-# 1-4 degrees; a wreath face cut out, posed by the face alone: 37)
+# a face found this many degrees turned from the head's pose places the head again (the whole
+# busts: up to 11 degrees; the wreath's face cut out: 13, and 37 when posed by the face alone)
 MAX_PAIRS_TURN = 15.0
 OFF_SCAN_MEDIAN = 0.003
 OFF_SCAN_SHARE = 0.25
