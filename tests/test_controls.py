@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from fae.animate.calibrate import calibrate
-from fae.animate.controls import ACTIVATION_LIMIT, JAW_ANGLE_LIMIT, FapControls
+from fae.animate.controls import ACTIVATION_LIMIT, JAW_ANGLE_LIMIT, ActivationLead, FapControls
 from fae.mpeg4.faptables import FAP_LIMITS, clamp_values
 from fae.animate.mapping import field_faps
 from fae.mpeg4.faps import FAP_COUNT, FAPS, MIRROR_FAP
@@ -239,3 +239,27 @@ def test_calibrating_again_drops_tables_baked_under_the_old_mapping():
     face.face_def_tables = [table("authored"), table("physics")]
     again = calibrate(face, passes=0)
     assert [t.source for t in again.face_def_tables] == ["authored"]
+
+
+@FAST
+@given(steps=st.lists(st.tuples(st.floats(-60.0, 60.0), st.floats(1e-300, 10.0)), min_size=1, max_size=12))
+def test_a_led_pull_stays_finite_and_bounded_whatever_the_frame(steps):
+    """ActivationLead on any activations and frame lengths (down to 1e-300 s, where the
+    lead's 1 / (1 - e) is unbounded): every pull finite and within ACTIVATION_LIMIT."""
+    lead = ActivationLead(np.array([0]), 0.045)
+    for a, dt in steps:
+        a = float(np.clip(a, -ACTIVATION_LIMIT, ACTIVATION_LIMIT))
+        pull = lead.apply(np.array([a, 1.0]), dt)
+        assert np.all(np.isfinite(pull)) and abs(pull[0]) <= ACTIVATION_LIMIT
+        assert pull[1] == 1.0  # rows not led pass as they are
+
+
+def test_a_lead_pulls_a_rise_so_a_lag_reaches_it_and_passes_a_fall():
+    """A step of 0.3 in a 40 ms frame against a 45 ms lag is pulled 0.3 / (1 - e^(-40/45))
+    (1.7x), then 0.3 once reached; a fall is passed as it is and the lag decays towards it."""
+    lead = ActivationLead(np.array([0]), 0.045)
+    gone = 1.0 - np.exp(-0.04 / 0.045)
+    assert lead.apply(np.array([0.3]), 0.04)[0] == pytest.approx(0.3 / gone)
+    assert lead.apply(np.array([0.3]), 0.04)[0] == pytest.approx(0.3)
+    assert lead.apply(np.array([0.1]), 0.04)[0] == pytest.approx(0.1)
+    assert lead.reached[0] == pytest.approx(0.1 + 0.2 * (1.0 - gone))

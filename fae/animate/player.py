@@ -26,6 +26,7 @@ table's borders, settled, and adds FAPs up where the physics does not (docs/arch
 from __future__ import annotations
 
 from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -181,6 +182,18 @@ class Player:
     def fap_mapping(self) -> dict[str, np.ndarray]:
         """The calibrated mapping in use (store it in the head's .glb to skip calibration)."""
         return self.face.fap_mapping
+
+    @contextmanager
+    def lead_off(self):
+        """Steps inside go without the lids' lead (ActivationLead): a pose held from rest and
+        settled as the calibration settles it (fae.animate.verify.settled_skin). Led, a lid
+        held at 720 settled 0.2 mm further open: its contact with the lower lid keeps how
+        it got there."""
+        lead, self.lead = self.lead, ActivationLead(np.zeros(0, dtype=np.int64), LID_RESPONSE_SECONDS)
+        try:
+            yield self
+        finally:
+            self.lead = lead
 
     def reset(self) -> None:
         """Back to the neutral face at rest (in place: the solver's recorded launches stay valid)."""

@@ -23,14 +23,16 @@ def settled_skin(player, values: np.ndarray, fps: float = 25.0, settled: float =
                  max_frames: int = 60) -> np.ndarray:
     """(V, 3) metres: the skin once FAP `values` (68,) held from the neutral face has settled
     (no vertex moving more than `settled` metres in a frame of 1/fps s, or `max_frames`
-    frames); the player is left at rest."""
+    frames), stepped without the lids' lead as the calibration settles it (Player.lead_off);
+    the player is left at rest."""
     player.reset()
     previous = None
-    for _ in range(max_frames):
-        skin = player.step(values, dt=1.0 / fps)
-        if previous is not None and np.abs(skin - previous).max() < settled:
-            break
-        previous = skin
+    with player.lead_off():
+        for _ in range(max_frames):
+            skin = player.step(values, dt=1.0 / fps)
+            if previous is not None and np.abs(skin - previous).max() < settled:
+                break
+            previous = skin
     player.reset()
     return skin
 
