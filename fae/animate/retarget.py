@@ -905,6 +905,7 @@ class RetargetPlayer:
     step(frame, dt=None) -> (k, 3) the target's skin, face frame, metres
     play(stream, fps=None) -> PlayedFrame per frame (skin and bone poses of the target)
     reset()
+    lead_off()   the template player's (Player.lead_off): a context for settled poses
     """
 
     def __init__(self, rt: Retarget, player):
@@ -927,6 +928,10 @@ class RetargetPlayer:
         self.bone_transforms = {b: np.eye(4) for b in ("head", "jaw", "eye_l", "eye_r", "tongue")}
         self.pupil_scale = dict(p.pupil_scale)
         self.values = p.values
+
+    def lead_off(self):
+        """Steps inside go without the template player's lids' lead (Player.lead_off)."""
+        return self.player.lead_off()
 
     def step(self, frame, dt: float | None = None) -> np.ndarray:
         """Advance the template one frame (see Player.step) and return the target's skin (k, 3)."""
