@@ -340,7 +340,7 @@ def turned_on_its_neck(template, degrees: float, axis: tuple[float, float, float
     `axis` (the head's frame; +y: looking aside) on its neck, as a bust is sculpted: all of
     the turn from 1 cm under the chin (2.1) up, none over the lowest 30 % of the neck below
     it, a smooth step between, about the neck's middle there."""
-    from fae.linalg import axis_angle
+    from scipy.spatial.transform import Rotation
 
     V = np.asarray(template.skin_vertices, dtype=np.float64)
     y = V[:, 1]
@@ -350,7 +350,5 @@ def turned_on_its_neck(template, degrees: float, axis: tuple[float, float, float
     share = t * t * (3.0 - 2.0 * t)
     near_bottom = np.abs(y - bottom) < 0.01
     pivot = np.array([np.median(V[near_bottom, 0]), bottom, np.median(V[near_bottom, 2])])
-    out = np.empty_like(V)
-    for i, s in enumerate(share):
-        out[i] = axis_angle(np.asarray(axis, dtype=np.float64), np.radians(degrees) * s) @ (V[i] - pivot) + pivot
-    return out
+    k = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
+    return Rotation.from_rotvec(np.outer(np.radians(degrees) * share, k)).apply(V - pivot) + pivot
