@@ -511,3 +511,74 @@ def refine_long_triangles(V: np.ndarray, F: np.ndarray, max_edge: float, allowed
     if len(V2) > n2:
         V2[n2:] = closest_surface_points(V, F, V2[n2:])[0]
     return V2, F2
+
+
+def collapse_caps(V: np.ndarray, F: np.ndarray, allowed: np.ndarray, cap_angle: float = 150.0,
+                  rounds: int = 5) -> tuple[np.ndarray, np.ndarray]:
+    """(V', F'): caps among the allowed faces (m,) bool of mesh V (n, 3), F (m, 3) removed by
+    moving each cap's apex (its widest corner, over cap_angle degrees) onto the nearer end of
+    its long edge and merging the two. Where a sharp edge runs through three vertices almost
+    in a line (a lip's inner rim), a cap lies along it: its normal is the average of the
+    two sides', and an apex moved a fraction of a millimetre turns it over. Flipping its long
+    edge instead (flip_caps) joins the apex to the far side and the rim turned jagged as it
+    moved; merged, the rim keeps its run of edges with one vertex less. A merge is made only
+    where the mesh stays manifold (the two vertices share exactly the two neighbours across
+    their edge), no face around the apex turns by more than 30 degrees or gets a corner wider
+    than the cap's, and the apex is not on the open border (a half mesh's plane x = 0) unless
+    its end is too. Unused vertices are dropped; V' keeps V's order otherwise."""
+    V = np.asarray(V, dtype=np.float64)
+    F = np.asarray(F, dtype=np.int64).copy()
+    allowed = np.asarray(allowed, dtype=bool).copy()
+    cap = np.radians(cap_angle)
+    for _ in range(rounds):
+        border = np.zeros(len(V), dtype=bool)
+        border[boundary_edges(F).ravel()] = True
+        corners = _corner_angles(V, F)
+        widest = corners.max(axis=1)
+        faces = np.flatnonzero(allowed & (widest > cap))
+        faces = faces[np.argsort(-widest[faces], kind="stable")]
+        if len(faces) == 0:
+            break
+        A = adjacency(F, len(V)).tocsr()
+        vertex_faces = [[] for _ in range(len(V))]
+        for i, tri in enumerate(F):
+            for v in tri:
+                vertex_faces[v].append(i)
+        locked = np.zeros(len(V), dtype=bool)
+        dead = np.zeros(len(F), dtype=bool)
+        merged = 0
+        for f in faces:
+            if dead[f]:
+                continue
+            k = int(np.argmax(corners[f]))
+            c, a, b = (int(x) for x in (F[f, k], F[f, (k + 1) % 3], F[f, (k + 2) % 3]))
+            t = a if np.linalg.norm(V[a] - V[c]) <= np.linalg.norm(V[b] - V[c]) else b
+            if locked[[c, t]].any() or (border[c] and not border[t]):
+                continue
+            shared = np.intersect1d(A[c].indices, A[t].indices)
+            both = [g for g in vertex_faces[c] if t in F[g] and not dead[g]]
+            if len(both) != 2 or len(shared) != 2:
+                continue
+            around = [g for g in vertex_faces[c] if g not in both and not dead[g]]
+            old = F[around]
+            new = np.where(old == c, t, old)
+            n_old = np.cross(V[old[:, 1]] - V[old[:, 0]], V[old[:, 2]] - V[old[:, 0]])
+            n_new = np.cross(V[new[:, 1]] - V[new[:, 0]], V[new[:, 2]] - V[new[:, 0]])
+            norm = np.linalg.norm(n_old, axis=1) * np.linalg.norm(n_new, axis=1)
+            if not np.all(np.sum(n_old * n_new, axis=1) > np.cos(np.radians(30.0)) * norm):
+                continue
+            if _corner_angles(V, new).max() >= widest[f]:
+                continue
+            F[around] = new
+            dead[both] = True
+            locked[A[c].indices] = True
+            locked[A[t].indices] = True
+            locked[[c, t]] = True
+            merged += 1
+        if merged == 0:
+            break
+        F, allowed = F[~dead], allowed[~dead]
+    used = np.unique(F)
+    index = np.full(len(V), -1, dtype=np.int64)
+    index[used] = np.arange(len(used))
+    return V[used], index[F]
