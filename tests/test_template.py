@@ -232,6 +232,59 @@ def test_a_cap_is_flipped_away_only_where_that_keeps_the_shape():
     assert np.array_equal(flip_caps(V, F, np.ones(len(F), dtype=bool), max_change=0.5), F)
 
 
+def test_a_cap_along_a_sharp_edge_is_merged_into_the_edge():
+    """collapse_caps (the lips' inner rims): the patch folded 90 degrees along the line its
+    cap lies on, as a lip's top meets its inner wall, the cap's apex 0.4 mm beside the
+    line. The apex is merged into the nearer end of the cap's long edge: one vertex and
+    two faces fewer, no corner over 150 degrees, every other face turned by less than 30
+    degrees, the sheet still manifold with the same border, and the fold line kept as an
+    edge. Faces not allowed keep their cap."""
+    from fae.anatomy.geometry import _corner_angles, collapse_caps
+
+    V, F, cap = _patch_with_a_cap(0.0)
+    d = (V[:, 1] - V[:, 0]) / np.sqrt(2.0)  # distance from the line x = y, on the apex's side > 0
+    side = d > 1e-9
+    V[side] += d[side, None] * (np.array([1.0, -1.0, 0.0]) / np.sqrt(2.0) + np.array([0.0, 0.0, 1.0]))
+    assert np.degrees(_corner_angles(V, F).max(axis=1))[cap] > 160.0
+    ends = [int(v) for v in F[cap] if abs(V[v, 2]) < 1e-9]  # on the fold line; the apex is 0.4 mm up the wall
+    V2, F2 = collapse_caps(V, F, np.ones(len(F), dtype=bool))
+    assert len(V2) == len(V) - 1 and len(F2) == len(F) - 2
+    assert np.degrees(_corner_angles(V2, F2).max()) < 150.0
+    _, counts, same_direction = edge_counts(F2)
+    assert np.all(counts <= 2) and not np.any(same_direction)
+    assert np.sum(counts == 1) == np.sum(edge_counts(F)[1] == 1)
+    # the kept vertices keep their order and place; the fold line's two ends still share an edge
+    kept = np.delete(np.arange(len(V)), [v for v in np.unique(F[cap]) if v not in ends])
+    assert np.allclose(V2, V[kept])
+    a, b = (int(np.flatnonzero(np.all(V2 == V[e], axis=1))[0]) for e in ends)
+    assert np.any([(a in f) and (b in f) for f in F2])
+    before = {tuple(sorted(f)): np.cross(V[f[1]] - V[f[0]], V[f[2]] - V[f[0]]) for f in F}
+    for f in F2:
+        g = tuple(sorted(kept[f]))
+        if g in before:  # a face untouched by the merge keeps its normal
+            n = np.cross(V2[f[1]] - V2[f[0]], V2[f[2]] - V2[f[0]])
+            assert n @ before[g] > 0.99 * np.linalg.norm(n) * np.linalg.norm(before[g])
+    V3, F3 = collapse_caps(V, F, np.zeros(len(F), dtype=bool))
+    assert np.array_equal(V3, V) and np.array_equal(F3, F)
+
+
+def test_the_lower_lips_rim_carries_no_caps(head):
+    """The shipped skin's lower lip has no corner over CAP_COLLAPSE_ANGLE (the caps along its
+    inner rim that turned over as the rim bent: 8 a side, up to 169 degrees) but at the
+    mouth's corners, where merging one would turn the faces around it (one a side, 158
+    degrees)."""
+    from fae.anatomy.geometry import _corner_angles
+    from fae.anatomy.template import CAP_COLLAPSE_ANGLE, CAP_COLLAPSED_REGIONS
+
+    F = np.asarray(head.skin_faces)
+    lip = np.isin(head.skin_region, [head.region_names.index(r) for r in CAP_COLLAPSED_REGIONS])
+    in_lip = lip[F].sum(axis=1) >= 2
+    widest = np.degrees(_corner_angles(np.asarray(head.skin_vertices) * 1000.0, F).max(axis=1))
+    corners = np.abs(np.asarray(head.skin_vertices)[F].mean(axis=1)[:, 0]) > 0.022
+    assert in_lip.sum() > 200 and widest[in_lip & ~corners].max() < CAP_COLLAPSE_ANGLE
+    assert np.sum(in_lip & corners & (widest >= CAP_COLLAPSE_ANGLE)) <= 2
+
+
 def test_skin_is_mirror_symmetric(head):
     V = head.skin_vertices
     reflected = V[head.skin_mirror] * np.array([-1.0, 1.0, 1.0])

@@ -18,6 +18,7 @@ import numpy as np
 from fae import __version__
 from fae.anatomy import template_shapes as S
 from fae.anatomy.geometry import (
+    collapse_caps,
     decimate,
     largest_component,
     mesh_from_sdf,
@@ -62,6 +63,17 @@ FLIP_KEPT_REGIONS = ("lip_upper", "lip_lower", "mouth_cavity", "eyelid_upper_l",
 CAP_FLIPPED_REGIONS = ("eyelid_upper_l", "eyelid_upper_r")
 CAP_ANGLE = 130.0  # degrees
 CAP_FLIP_CHANGE = 0.5  # mm
+# The lower lip's inner rim is a sharp edge, and the decimation left caps lying along it
+# (three rim vertices in one face, a corner of 150-170 degrees, 0.2 mm high across 3.5 mm):
+# a cap's normal is the mean of the rim's two sides and turns over as soon as the rim bends,
+# and the skin check counted it and its neighbours as a crease in every stream (most of the
+# lower lip's folds). Flipped (flip_caps), the rim turned jagged as the mouth opened; each
+# cap's apex is merged into the nearer end of its long edge instead
+# (fae.anatomy.geometry.collapse_caps), the rim keeping its run of edges. Not in the upper
+# lip: merged there, its edge rose unevenly as lower_t_midlip and its twins raised it (1.2
+# against 3.8 mm, a row of teeth) and a head made from a photo folded a triangle.
+CAP_COLLAPSED_REGIONS = ("lip_lower",)
+CAP_COLLAPSE_ANGLE = 150.0  # degrees
 NEEDLE_GAP = 0.05  # mm
 THICKNESS_CAP = 0.025  # m, soft-tissue depth reported where no bone lies below
 LAYER_DEPTH_FRACTIONS = [0.0, 0.35, 1.0]
@@ -118,6 +130,11 @@ def _unflipped(V: np.ndarray) -> np.ndarray:
 def _cap_flipped(V: np.ndarray) -> np.ndarray:
     """(n,) bool: skin vertices (mm) whose faces lose their caps (CAP_FLIPPED_REGIONS)."""
     return np.isin(skin_regions(V, None), [REGION_NAMES.index(r) for r in CAP_FLIPPED_REGIONS])
+
+
+def _cap_collapsed(V: np.ndarray) -> np.ndarray:
+    """(n,) bool: skin vertices (mm) whose faces' caps are merged away (CAP_COLLAPSED_REGIONS)."""
+    return np.isin(skin_regions(V, None), [REGION_NAMES.index(r) for r in CAP_COLLAPSED_REGIONS])
 
 
 # --- meshes ----------------------------------------------------------------------------------
@@ -217,7 +234,7 @@ def _with_long_edges(V: np.ndarray, F: np.ndarray) -> np.ndarray:
 
 
 def symmetric_mesh(sdf, lo, hi, step: float, half_faces: int, refined=None,
-                   kept_edges=None, cap_flipped=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                   kept_edges=None, cap_flipped=None, cap_collapsed=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Mirror-symmetric closed mesh of `sdf < 0` (mm): (V (n, 3) mm, F (m, 3), mirror (n,)).
 
     refined: None, or a function of the decimated half mesh (V (n, 3) mm, F (m, 3)) giving
@@ -227,7 +244,9 @@ def symmetric_mesh(sdf, lo, hi, step: float, half_faces: int, refined=None,
     between faces within FLIP_DIHEDRAL of flat are flipped to Delaunay (caps removed),
     except in faces with a corner it marks; cap_flipped: None, or such a function marking
     vertices whose faces (two corners marked or more: the lid's crease runs along its
-    border with the forehead) lose their caps (flip_caps) after that."""
+    border with the forehead) lose their caps (flip_caps) after that; cap_collapsed: None, or
+    such a function marking vertices whose faces (two corners marked or more) have their caps
+    over CAP_COLLAPSE_ANGLE merged away (collapse_caps) last."""
     V, F = mesh_from_sdf(sdf, lo, hi, step, pad=False)
     V, F = largest_component(V, F)
     V, F = decimate(V, F, half_faces)
@@ -237,6 +256,8 @@ def symmetric_mesh(sdf, lo, hi, step: float, half_faces: int, refined=None,
         F = flip_to_delaunay(V, F, ~kept_edges(V)[F].any(axis=1), max_dihedral=FLIP_DIHEDRAL)
     if cap_flipped is not None:
         F = flip_caps(V, F, cap_flipped(V)[F].sum(axis=1) >= 2, cap_angle=CAP_ANGLE, max_change=CAP_FLIP_CHANGE)
+    if cap_collapsed is not None:
+        V, F = collapse_caps(V, F, cap_collapsed(V)[F].sum(axis=1) >= 2, cap_angle=CAP_COLLAPSE_ANGLE)
     return mirror_half(V, F, tol=1e-9)
 
 
@@ -483,7 +504,7 @@ def build_template() -> FaceModel:
     """Build the generic head (about 15 s on one core). Deterministic."""
     V, F, mirror = symmetric_mesh(S.skin_sdf, (0.0, -240.0, -125.0), (100.0, 130.0, 130.0), SKIN_STEP, SKIN_HALF_FACES,
                                   refined=_below_the_chin, kept_edges=_unflipped,
-                                  cap_flipped=_cap_flipped)
+                                  cap_flipped=_cap_flipped, cap_collapsed=_cap_collapsed)
     region = skin_regions(V, F)
     V = reshaped_skin(V, F, region)
     V = 0.5 * (V + V[mirror] * np.array([-1.0, 1.0, 1.0]))  # exactly symmetric again
