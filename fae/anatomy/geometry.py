@@ -524,8 +524,9 @@ def collapse_caps(V: np.ndarray, F: np.ndarray, allowed: np.ndarray, cap_angle: 
     moved; merged, the rim keeps its run of edges with one vertex less. A merge is made only
     where the mesh stays manifold (the two vertices share exactly the two neighbours across
     their edge), no face around the apex turns by more than 30 degrees or gets a corner wider
-    than the cap's, and the apex is not on the open border (a half mesh's plane x = 0) unless
-    its end is too. Unused vertices are dropped; V' keeps V's order otherwise."""
+    than the cap's, and the apex is not on the open border (a half mesh's plane x = 0: merged
+    along an edge inside, the border would pass twice through the kept vertex). Unused
+    vertices are dropped; V' keeps V's order otherwise."""
     V = np.asarray(V, dtype=np.float64)
     F = np.asarray(F, dtype=np.int64).copy()
     allowed = np.asarray(allowed, dtype=bool).copy()
@@ -553,13 +554,15 @@ def collapse_caps(V: np.ndarray, F: np.ndarray, allowed: np.ndarray, cap_angle: 
             k = int(np.argmax(corners[f]))
             c, a, b = (int(x) for x in (F[f, k], F[f, (k + 1) % 3], F[f, (k + 2) % 3]))
             t = a if np.linalg.norm(V[a] - V[c]) <= np.linalg.norm(V[b] - V[c]) else b
-            if locked[[c, t]].any() or (border[c] and not border[t]):
+            if locked[[c, t]].any() or border[c]:
                 continue
             shared = np.intersect1d(A[c].indices, A[t].indices)
             both = [g for g in vertex_faces[c] if t in F[g] and not dead[g]]
             if len(both) != 2 or len(shared) != 2:
                 continue
             around = [g for g in vertex_faces[c] if g not in both and not dead[g]]
+            if not around:
+                continue
             old = F[around]
             new = np.where(old == c, t, old)
             n_old = np.cross(V[old[:, 1]] - V[old[:, 0]], V[old[:, 2]] - V[old[:, 0]])

@@ -55,7 +55,7 @@ MIN_COMPRESSION = 0.3
 # edge grown to 0.2 mm is 200x its length and invisible
 STRAIN_MIN_EDGE = 0.05
 # a needle (least height under this share of the median edge: 0.04 mm on the shipped head,
-# which has 182 of them among 22,710 triangles) has no direction of its own to turn from:
+# which has 182 of them among 22,742 triangles) has no direction of its own to turn from:
 # two of its corners a few microns apart swap sides at the slightest motion, unseen
 SLIVER_HEIGHT = 0.01
 SWEEP_RAMP, SWEEP_HOLD = 4, 8  # frames of the FAP sweep: rise, hold at the limit
