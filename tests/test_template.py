@@ -241,9 +241,10 @@ def test_a_cap_along_a_sharp_edge_is_merged_into_the_edge():
     fold line kept as an edge. Faces not allowed keep their cap, and an apex on the open
     border (a half mesh's midline) is never merged."""
     from fae.anatomy.geometry import _corner_angles, collapse_caps
+    from fae.mesh import triangle_normals
 
     def normals(V, F):
-        n = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+        n = triangle_normals(V, F)
         return n / np.linalg.norm(n, axis=1, keepdims=True)
 
     V, F, cap = _patch_with_a_cap(0.0)

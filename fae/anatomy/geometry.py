@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from fae.mesh import adjacency, boundary_edges, vertex_normals
+from fae.mesh import adjacency, boundary_edges, triangle_normals, vertex_normals
 
 
 # ---------------------------------------------------------------------------------------
@@ -565,8 +565,7 @@ def collapse_caps(V: np.ndarray, F: np.ndarray, allowed: np.ndarray, cap_angle: 
                 continue
             old = F[around]
             new = np.where(old == c, t, old)
-            n_old = np.cross(V[old[:, 1]] - V[old[:, 0]], V[old[:, 2]] - V[old[:, 0]])
-            n_new = np.cross(V[new[:, 1]] - V[new[:, 0]], V[new[:, 2]] - V[new[:, 0]])
+            n_old, n_new = triangle_normals(V, old), triangle_normals(V, new)
             norm = np.linalg.norm(n_old, axis=1) * np.linalg.norm(n_new, axis=1)
             if not np.all(np.sum(n_old * n_new, axis=1) > np.cos(np.radians(30.0)) * norm):
                 continue
