@@ -281,21 +281,55 @@ def test_a_cap_along_a_sharp_edge_is_merged_into_the_edge():
     assert len(V5) == len(np.unique(F4[keep])) and len(F5) == int(keep.sum())
 
 
-def test_the_lower_lips_rim_carries_no_caps(head):
+def test_a_cap_whose_near_end_would_turn_a_face_goes_to_the_far_end_where_allowed():
+    """collapse_caps with far_end (the lower lids' outer corners): a flat patch whose cap's
+    apex, merged into the nearer end of its long edge, would turn the face beside it over
+    (a neighbour slid 3.6 mm towards that end). Without far_end the cap stays; with it the
+    apex goes to the farther end: one vertex and two faces fewer, every face still up, no
+    corner as wide as the cap's."""
+    from fae.anatomy.geometry import _corner_angles, collapse_caps
+
+    V, F, cap = _patch_with_a_cap(0.0)
+    apex, far = 4 * 9 + 5, 5 * 9 + 5
+    V[apex, :2] -= 0.5  # nearer (16, 16) than the far end (20, 20)
+    V[3 * 9 + 4, :2] += [3.0, 2.0]  # (12, 16) -> (15, 18): beside the apex, towards the near end
+    up = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])[:, 2]
+    assert np.all(up > 0.0) and np.degrees(_corner_angles(V, F).max(axis=1))[cap] > 160.0
+    everywhere = np.ones(len(F), dtype=bool)
+    V2, F2 = collapse_caps(V, F, everywhere)
+    assert np.array_equal(V2, V) and np.array_equal(F2, F)
+    V3, F3 = collapse_caps(V, F, everywhere, far_end=everywhere)
+    assert len(V3) == len(V) - 1 and len(F3) == len(F) - 2
+    kept = np.delete(np.arange(len(V)), apex)
+    old = kept[F3]
+    old_faces = {tuple(sorted(f)) for f in F}
+    moved = np.array([tuple(sorted(f)) not in old_faces for f in old])
+    assert moved.any() and np.all((old[moved] == far).any(axis=1))
+    up3 = np.cross(V3[F3[:, 1]] - V3[F3[:, 0]], V3[F3[:, 2]] - V3[F3[:, 0]])[:, 2]
+    assert np.all(up3 > 0.0)
+    assert np.degrees(_corner_angles(V3, F3).max()) < np.degrees(_corner_angles(V, F).max(axis=1))[cap]
+
+
+def test_the_lower_lips_rim_and_the_lower_lids_carry_no_caps(head):
     """The shipped skin's lower lip has no corner over CAP_COLLAPSE_ANGLE (the caps along its
     inner rim that turned over as the rim bent: 8 a side, up to 169 degrees) but at the
     mouth's corners, where merging one would turn the faces around it (one a side, 158
-    degrees)."""
+    degrees); the lower lids none at all (three a side at the outer corner, up to 174
+    degrees, which creased as blinks lowered the upper lids)."""
     from fae.anatomy.geometry import _corner_angles
-    from fae.anatomy.template import CAP_COLLAPSE_ANGLE, CAP_COLLAPSED_REGIONS
+    from fae.anatomy.template import CAP_COLLAPSE_ANGLE
 
     F = np.asarray(head.skin_faces)
-    lip = np.isin(head.skin_region, [head.region_names.index(r) for r in CAP_COLLAPSED_REGIONS])
-    in_lip = lip[F].sum(axis=1) >= 2
     widest = np.degrees(_corner_angles(np.asarray(head.skin_vertices) * 1000.0, F).max(axis=1))
+
+    def faces_in(*regions):
+        return np.isin(head.skin_region, [head.region_names.index(r) for r in regions])[F].sum(axis=1) >= 2
+
+    lip, lids = faces_in("lip_lower"), faces_in("eyelid_lower_l", "eyelid_lower_r")
     corners = np.abs(np.asarray(head.skin_vertices)[F].mean(axis=1)[:, 0]) > 0.022
-    assert in_lip.sum() > 200 and widest[in_lip & ~corners].max() < CAP_COLLAPSE_ANGLE
-    assert np.sum(in_lip & corners & (widest >= CAP_COLLAPSE_ANGLE)) <= 2
+    assert lip.sum() > 200 and widest[lip & ~corners].max() < CAP_COLLAPSE_ANGLE
+    assert np.sum(lip & corners & (widest >= CAP_COLLAPSE_ANGLE)) <= 2
+    assert lids.sum() > 600 and widest[lids].max() < CAP_COLLAPSE_ANGLE
 
 
 def test_skin_is_mirror_symmetric(head):

@@ -513,8 +513,33 @@ def refine_long_triangles(V: np.ndarray, F: np.ndarray, max_edge: float, allowed
     return V2, F2
 
 
+def _cap_merge(V, F, A, vertex_faces, dead, locked, c: int, t: int, widest: float):
+    """(t, the two faces on edge c-t, the other faces around c, those faces with c moved
+    to t) when merging cap apex c into its neighbour t keeps the mesh manifold (the two share
+    exactly the two neighbours across their edge), turns no face around c by more than 30
+    degrees and opens no corner as wide as the cap's (`widest` radians); else None."""
+    if locked[t]:
+        return None
+    shared = np.intersect1d(A[c].indices, A[t].indices)
+    both = [g for g in vertex_faces[c] if t in F[g] and not dead[g]]
+    if len(both) != 2 or len(shared) != 2:
+        return None
+    around = [g for g in vertex_faces[c] if g not in both and not dead[g]]
+    if not around:
+        return None
+    old = F[around]
+    new = np.where(old == c, t, old)
+    n_old, n_new = triangle_normals(V, old), triangle_normals(V, new)
+    norm = np.linalg.norm(n_old, axis=1) * np.linalg.norm(n_new, axis=1)
+    if not np.all(np.sum(n_old * n_new, axis=1) > np.cos(np.radians(30.0)) * norm):
+        return None
+    if _corner_angles(V, new).max() >= widest:
+        return None
+    return t, both, around, new
+
+
 def collapse_caps(V: np.ndarray, F: np.ndarray, allowed: np.ndarray, cap_angle: float = 150.0,
-                  rounds: int = 5) -> tuple[np.ndarray, np.ndarray]:
+                  rounds: int = 5, far_end: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(V', F'): caps among the allowed faces (m,) bool of mesh V (n, 3), F (m, 3) removed by
     moving each cap's apex (its widest corner, over cap_angle degrees) onto the nearer end of
     its long edge and merging the two. Where a sharp edge runs through three vertices almost
@@ -525,11 +550,15 @@ def collapse_caps(V: np.ndarray, F: np.ndarray, allowed: np.ndarray, cap_angle: 
     where the mesh stays manifold (the two vertices share exactly the two neighbours across
     their edge), no face around the apex turns by more than 30 degrees or gets a corner wider
     than the cap's, and the apex is not on the open border (a half mesh's plane x = 0: merged
-    along an edge inside, the border would pass twice through the kept vertex). Unused
-    vertices are dropped; V' keeps V's order otherwise."""
+    along an edge inside, the border would pass twice through the kept vertex). far_end:
+    None, or (m,) bool: caps whose apex goes to the farther end where the nearer one fails
+    those checks (a lower lid's outer corner, where the near end would turn the face beside
+    it over; not at the mouth corners, where the longer edges it leaves stretched 2.8x as
+    a viseme narrowed the mouth). Unused vertices are dropped; V' keeps V's order otherwise."""
     V = np.asarray(V, dtype=np.float64)
     F = np.asarray(F, dtype=np.int64).copy()
     allowed = np.asarray(allowed, dtype=bool).copy()
+    far_end = np.zeros(len(F), dtype=bool) if far_end is None else np.asarray(far_end, dtype=bool).copy()
     cap = np.radians(cap_angle)
     for _ in range(rounds):
         border = np.zeros(len(V), dtype=bool)
@@ -553,24 +582,15 @@ def collapse_caps(V: np.ndarray, F: np.ndarray, allowed: np.ndarray, cap_angle: 
                 continue
             k = int(np.argmax(corners[f]))
             c, a, b = (int(x) for x in (F[f, k], F[f, (k + 1) % 3], F[f, (k + 2) % 3]))
-            t = a if np.linalg.norm(V[a] - V[c]) <= np.linalg.norm(V[b] - V[c]) else b
-            if locked[[c, t]].any() or border[c]:
+            if locked[c] or border[c]:
                 continue
-            shared = np.intersect1d(A[c].indices, A[t].indices)
-            both = [g for g in vertex_faces[c] if t in F[g] and not dead[g]]
-            if len(both) != 2 or len(shared) != 2:
+            # the nearer end first (the apex moves least), then (far_end) the farther one
+            ends = sorted((a, b), key=lambda v: np.linalg.norm(V[v] - V[c]))[:2 if far_end[f] else 1]
+            merge = next((m for t in ends
+                          if (m := _cap_merge(V, F, A, vertex_faces, dead, locked, c, t, widest[f])) is not None), None)
+            if merge is None:
                 continue
-            around = [g for g in vertex_faces[c] if g not in both and not dead[g]]
-            if not around:
-                continue
-            old = F[around]
-            new = np.where(old == c, t, old)
-            n_old, n_new = triangle_normals(V, old), triangle_normals(V, new)
-            norm = np.linalg.norm(n_old, axis=1) * np.linalg.norm(n_new, axis=1)
-            if not np.all(np.sum(n_old * n_new, axis=1) > np.cos(np.radians(30.0)) * norm):
-                continue
-            if _corner_angles(V, new).max() >= widest[f]:
-                continue
+            t, both, around, new = merge
             F[around] = new
             dead[both] = True
             locked[A[c].indices] = True
@@ -579,7 +599,7 @@ def collapse_caps(V: np.ndarray, F: np.ndarray, allowed: np.ndarray, cap_angle: 
             merged += 1
         if merged == 0:
             break
-        F, allowed = F[~dead], allowed[~dead]
+        F, allowed, far_end = F[~dead], allowed[~dead], far_end[~dead]
     used = np.unique(F)
     index = np.full(len(V), -1, dtype=np.int64)
     index[used] = np.arange(len(used))

@@ -72,7 +72,14 @@ CAP_FLIP_CHANGE = 0.5  # mm
 # (fae.anatomy.geometry.collapse_caps), the rim keeping its run of edges. Not in the upper
 # lip: merged there, its edge rose unevenly as lower_t_midlip and its twins raised it (1.2
 # against 3.8 mm, a row of teeth) and a head made from a photo folded a triangle.
-CAP_COLLAPSED_REGIONS = ("lip_lower",)
+# The lower lids' outer corners carry caps too (a corner of 174 degrees, 0.08 mm high
+# across 3.6 mm, at the canthus): as a blink lowered the upper lid the cap turned over and
+# creased the faces beside it (3 a side in every blinking stream). There the nearer end
+# would turn the face beside the cap over, and the apex goes to the farther one
+# (CAP_FAR_END_REGIONS); in the lower lip the farther end was tried and not kept: the two
+# mouth-corner caps it merged left edges that stretched 2.8x as viseme 14 narrowed the mouth.
+CAP_COLLAPSED_REGIONS = ("lip_lower", "eyelid_lower_l", "eyelid_lower_r")
+CAP_FAR_END_REGIONS = ("eyelid_lower_l", "eyelid_lower_r")
 CAP_COLLAPSE_ANGLE = 150.0  # degrees
 NEEDLE_GAP = 0.05  # mm
 THICKNESS_CAP = 0.025  # m, soft-tissue depth reported where no bone lies below
@@ -135,6 +142,11 @@ def _cap_flipped(V: np.ndarray) -> np.ndarray:
 def _cap_collapsed(V: np.ndarray) -> np.ndarray:
     """(n,) bool: skin vertices (mm) whose faces' caps are merged away (CAP_COLLAPSED_REGIONS)."""
     return np.isin(skin_regions(V, None), [REGION_NAMES.index(r) for r in CAP_COLLAPSED_REGIONS])
+
+
+def _cap_far_end(V: np.ndarray) -> np.ndarray:
+    """(n,) bool: skin vertices (mm) whose faces' caps may merge into either end (CAP_FAR_END_REGIONS)."""
+    return np.isin(skin_regions(V, None), [REGION_NAMES.index(r) for r in CAP_FAR_END_REGIONS])
 
 
 # --- meshes ----------------------------------------------------------------------------------
@@ -234,7 +246,8 @@ def _with_long_edges(V: np.ndarray, F: np.ndarray) -> np.ndarray:
 
 
 def symmetric_mesh(sdf, lo, hi, step: float, half_faces: int, refined=None,
-                   kept_edges=None, cap_flipped=None, cap_collapsed=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                   kept_edges=None, cap_flipped=None, cap_collapsed=None,
+                   cap_far_end=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Mirror-symmetric closed mesh of `sdf < 0` (mm): (V (n, 3) mm, F (m, 3), mirror (n,)).
 
     refined: None, or a function of the decimated half mesh (V (n, 3) mm, F (m, 3)) giving
@@ -246,7 +259,8 @@ def symmetric_mesh(sdf, lo, hi, step: float, half_faces: int, refined=None,
     vertices whose faces (two corners marked or more: the lid's crease runs along its
     border with the forehead) lose their caps (flip_caps) after that; cap_collapsed: None, or
     such a function marking vertices whose faces (two corners marked or more) have their caps
-    over CAP_COLLAPSE_ANGLE merged away (collapse_caps) last."""
+    over CAP_COLLAPSE_ANGLE merged away (collapse_caps) last, into the farther end of their
+    long edge where the nearer one fails in faces cap_far_end (such a function) marks."""
     V, F = mesh_from_sdf(sdf, lo, hi, step, pad=False)
     V, F = largest_component(V, F)
     V, F = decimate(V, F, half_faces)
@@ -257,7 +271,8 @@ def symmetric_mesh(sdf, lo, hi, step: float, half_faces: int, refined=None,
     if cap_flipped is not None:
         F = flip_caps(V, F, cap_flipped(V)[F].sum(axis=1) >= 2, cap_angle=CAP_ANGLE, max_change=CAP_FLIP_CHANGE)
     if cap_collapsed is not None:
-        V, F = collapse_caps(V, F, cap_collapsed(V)[F].sum(axis=1) >= 2, cap_angle=CAP_COLLAPSE_ANGLE)
+        far = None if cap_far_end is None else cap_far_end(V)[F].sum(axis=1) >= 2
+        V, F = collapse_caps(V, F, cap_collapsed(V)[F].sum(axis=1) >= 2, cap_angle=CAP_COLLAPSE_ANGLE, far_end=far)
     return mirror_half(V, F, tol=1e-9)
 
 
@@ -504,7 +519,7 @@ def build_template() -> FaceModel:
     """Build the generic head (about 15 s on one core). Deterministic."""
     V, F, mirror = symmetric_mesh(S.skin_sdf, (0.0, -240.0, -125.0), (100.0, 130.0, 130.0), SKIN_STEP, SKIN_HALF_FACES,
                                   refined=_below_the_chin, kept_edges=_unflipped,
-                                  cap_flipped=_cap_flipped, cap_collapsed=_cap_collapsed)
+                                  cap_flipped=_cap_flipped, cap_collapsed=_cap_collapsed, cap_far_end=_cap_far_end)
     region = skin_regions(V, F)
     V = reshaped_skin(V, F, region)
     V = 0.5 * (V + V[mirror] * np.array([-1.0, 1.0, 1.0]))  # exactly symmetric again
