@@ -310,6 +310,39 @@ def test_a_cap_whose_near_end_would_turn_a_face_goes_to_the_far_end_where_allowe
     assert np.degrees(_corner_angles(V3, F3).max()) < np.degrees(_corner_angles(V, F).max(axis=1))[cap]
 
 
+def test_a_short_edge_is_merged_away_and_the_sheet_stays_whole():
+    """collapse_short_edges (the lips' rims near the mouth corners): in a patch of 4 mm
+    squares, a vertex slid to 0.5 mm of its neighbour (and 0.3 mm up) leaves an edge of
+    0.58 mm with needles beside it; merged, the patch has one vertex and two faces fewer,
+    no edge under 1 mm, every face still up and the same border. Faces not allowed keep
+    the edge, and an edge along the open border is never merged."""
+    from fae.anatomy.geometry import collapse_short_edges
+
+    def up(V, F):
+        return np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])[:, 2]
+
+    def shortest(V, F):
+        E = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
+        return np.linalg.norm(V[E[:, 0]] - V[E[:, 1]], axis=1).min()
+
+    V, F, _ = _patch_with_a_cap(0.0, off=2.0)
+    V[4 * 9 + 4] = [16.0, 12.5, 0.3]  # 0.58 mm from (16, 12)
+    assert np.all(up(V, F) > 0.0) and shortest(V, F) < 0.6
+    everywhere = np.ones(len(F), dtype=bool)
+    V2, F2 = collapse_short_edges(V, F, everywhere, 1.0)
+    assert len(V2) == len(V) - 1 and len(F2) == len(F) - 2
+    assert shortest(V2, F2) > 1.0 and np.all(up(V2, F2) > 0.0)
+    _, counts, same_direction = edge_counts(F2)
+    assert np.all(counts <= 2) and not np.any(same_direction)
+    assert np.sum(counts == 1) == np.sum(edge_counts(F)[1] == 1)
+    V3, F3 = collapse_short_edges(V, F, np.zeros(len(F), dtype=bool), 1.0)
+    assert np.array_equal(V3, V) and np.array_equal(F3, F)
+    V4, F4, _ = _patch_with_a_cap(0.0, off=2.0)
+    V4[1] = [0.0, 0.5, 0.0]  # 0.5 mm from its neighbour along the border
+    V5, F5 = collapse_short_edges(V4, F4, everywhere, 1.0)
+    assert len(V5) == len(V4) and np.array_equal(F5, F4)
+
+
 def test_the_lower_lips_rim_and_the_lower_lids_carry_no_caps(head):
     """The shipped skin's lower lip has no corner over CAP_COLLAPSE_ANGLE (the caps along its
     inner rim that turned over as the rim bent: 8 a side, up to 169 degrees) but at the
@@ -330,6 +363,20 @@ def test_the_lower_lips_rim_and_the_lower_lids_carry_no_caps(head):
     assert lip.sum() > 200 and widest[lip & ~corners].max() < CAP_COLLAPSE_ANGLE
     assert np.sum(lip & corners & (widest >= CAP_COLLAPSE_ANGLE)) <= 2
     assert lids.sum() > 600 and widest[lids].max() < CAP_COLLAPSE_ANGLE
+
+
+def test_the_lips_keep_no_short_edges(head):
+    """No edge of the shipped skin's lips is shorter than SHORT_EDGE (0.5-0.6 mm ones near
+    the mouth corners, with needles of 6-10 degrees beside them, creased as the corners
+    moved)."""
+    from fae.anatomy.template import SHORT_EDGE
+
+    V, F = np.asarray(head.skin_vertices) * 1000.0, np.asarray(head.skin_faces)
+    lips = np.isin(head.skin_region, [head.region_names.index(r) for r in ("lip_upper", "lip_lower")])
+    faces = F[lips[F].all(axis=1)]
+    E = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    assert len(faces) > 500
+    assert np.linalg.norm(V[E[:, 0]] - V[E[:, 1]], axis=1).min() >= SHORT_EDGE
 
 
 def test_skin_is_mirror_symmetric(head):

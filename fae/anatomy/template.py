@@ -19,6 +19,7 @@ from fae import __version__
 from fae.anatomy import template_shapes as S
 from fae.anatomy.geometry import (
     collapse_caps,
+    collapse_short_edges,
     decimate,
     largest_component,
     mesh_from_sdf,
@@ -81,6 +82,13 @@ CAP_FLIP_CHANGE = 0.5  # mm
 CAP_COLLAPSED_REGIONS = ("lip_lower", "eyelid_lower_l", "eyelid_lower_r")
 CAP_FAR_END_REGIONS = ("eyelid_lower_l", "eyelid_lower_r")
 CAP_COLLAPSE_ANGLE = 150.0  # degrees
+# The lips' rims near the mouth corners kept edges of 0.5-0.6 mm among 3-5 mm ones, with
+# needles beside them (corners of 6-10 degrees): a needle's normal turned over as soon as
+# the corner moved, and creased the lip's top against it in most frames of every stream
+# (the lower lip's 8-14 folded triangles a stream, the upper lip's few). Edges shorter than
+# SHORT_EDGE are merged away in SHORT_EDGE_REGIONS (fae.anatomy.geometry.collapse_short_edges)
+SHORT_EDGE_REGIONS = ("lip_upper", "lip_lower")
+SHORT_EDGE = 0.7  # mm
 NEEDLE_GAP = 0.05  # mm
 THICKNESS_CAP = 0.025  # m, soft-tissue depth reported where no bone lies below
 LAYER_DEPTH_FRACTIONS = [0.0, 0.35, 1.0]
@@ -142,6 +150,11 @@ def _cap_flipped(V: np.ndarray) -> np.ndarray:
 def _cap_collapsed(V: np.ndarray) -> np.ndarray:
     """(n,) bool: skin vertices (mm) whose faces' caps are merged away (CAP_COLLAPSED_REGIONS)."""
     return np.isin(skin_regions(V, None), [REGION_NAMES.index(r) for r in CAP_COLLAPSED_REGIONS])
+
+
+def _short_edges_merged(V: np.ndarray) -> np.ndarray:
+    """(n,) bool: skin vertices (mm) whose faces lose their short edges (SHORT_EDGE_REGIONS)."""
+    return np.isin(skin_regions(V, None), [REGION_NAMES.index(r) for r in SHORT_EDGE_REGIONS])
 
 
 def _cap_far_end(V: np.ndarray) -> np.ndarray:
@@ -247,7 +260,7 @@ def _with_long_edges(V: np.ndarray, F: np.ndarray) -> np.ndarray:
 
 def symmetric_mesh(sdf, lo, hi, step: float, half_faces: int, refined=None,
                    kept_edges=None, cap_flipped=None, cap_collapsed=None,
-                   cap_far_end=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                   cap_far_end=None, short_edges_merged=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Mirror-symmetric closed mesh of `sdf < 0` (mm): (V (n, 3) mm, F (m, 3), mirror (n,)).
 
     refined: None, or a function of the decimated half mesh (V (n, 3) mm, F (m, 3)) giving
@@ -260,7 +273,9 @@ def symmetric_mesh(sdf, lo, hi, step: float, half_faces: int, refined=None,
     border with the forehead) lose their caps (flip_caps) after that; cap_collapsed: None, or
     such a function marking vertices whose faces (two corners marked or more) have their caps
     over CAP_COLLAPSE_ANGLE merged away (collapse_caps) last, into the farther end of their
-    long edge where the nearer one fails in faces cap_far_end (such a function) marks."""
+    long edge where the nearer one fails in faces cap_far_end (such a function) marks;
+    short_edges_merged: None, or such a function marking vertices whose faces' edges
+    shorter than SHORT_EDGE are merged away (collapse_short_edges) after that."""
     V, F = mesh_from_sdf(sdf, lo, hi, step, pad=False)
     V, F = largest_component(V, F)
     V, F = decimate(V, F, half_faces)
@@ -273,6 +288,8 @@ def symmetric_mesh(sdf, lo, hi, step: float, half_faces: int, refined=None,
     if cap_collapsed is not None:
         far = None if cap_far_end is None else cap_far_end(V)[F].sum(axis=1) >= 2
         V, F = collapse_caps(V, F, cap_collapsed(V)[F].sum(axis=1) >= 2, cap_angle=CAP_COLLAPSE_ANGLE, far_end=far)
+    if short_edges_merged is not None:
+        V, F = collapse_short_edges(V, F, short_edges_merged(V)[F].sum(axis=1) >= 2, SHORT_EDGE)
     return mirror_half(V, F, tol=1e-9)
 
 
@@ -519,7 +536,8 @@ def build_template() -> FaceModel:
     """Build the generic head (about 15 s on one core). Deterministic."""
     V, F, mirror = symmetric_mesh(S.skin_sdf, (0.0, -240.0, -125.0), (100.0, 130.0, 130.0), SKIN_STEP, SKIN_HALF_FACES,
                                   refined=_below_the_chin, kept_edges=_unflipped,
-                                  cap_flipped=_cap_flipped, cap_collapsed=_cap_collapsed, cap_far_end=_cap_far_end)
+                                  cap_flipped=_cap_flipped, cap_collapsed=_cap_collapsed, cap_far_end=_cap_far_end,
+                                  short_edges_merged=_short_edges_merged)
     region = skin_regions(V, F)
     V = reshaped_skin(V, F, region)
     V = 0.5 * (V + V[mirror] * np.array([-1.0, 1.0, 1.0]))  # exactly symmetric again
