@@ -146,6 +146,34 @@ def test_edge_crossings_find_what_the_pairwise_test_finds(template):
     assert weight[k] == 0.0 and np.mean(weight == 1.0) > 0.95  # only a neighbourhood is relaxed
 
 
+def test_a_crossing_along_a_seam_is_told_from_a_real_one(template):
+    """along_seams: the shipped skin's mouth pouch joins its walls by seams of coincident
+    vertices (two indices, one place). An edge of one wall along its seam, tested against
+    the other wall's face across it, is marked (both ends on the face's corners at rest:
+    the slightest deformation moves it through by rounding, and the paper methods' fit
+    dropped a chin point for it); an edge with one end away from the face is not, nor an
+    edge from elsewhere."""
+    from fae.adapt.untangle import along_seams
+    from fae.mesh import coincident_groups, edges
+
+    V, F = template.skin_vertices, template.skin_faces.astype(np.int64)
+    _, group = coincident_groups(V, 5e-5)
+    E = edges(F)
+    same = np.bincount(group)[group] > 1  # vertices with a twin elsewhere
+    seam = np.flatnonzero(same[E].all(axis=1))
+    assert len(seam) > 10
+    e = E[seam[0]]
+    # a face holding the twins of both ends, not the edge's own vertices
+    twins = [np.flatnonzero((group == group[v]) & (np.arange(len(V)) != v)) for v in e]
+    face = next(int(f) for f in range(len(F)) if np.isin(F[f], twins[0]).any() and np.isin(F[f], twins[1]).any()
+                and not np.isin(F[f], e).any())
+    far = E[int(np.argmax(np.linalg.norm(V[E[:, 0]] - V[F[face, 0]], axis=1)))]
+    half = np.array([e[0], far[1]])
+    marked = along_seams(V, F, np.array([e, far, half]), np.array([face, face, face]))
+    assert marked.tolist() == [True, False, False]
+    assert along_seams(V, F, np.zeros((0, 2), dtype=np.int64), np.zeros(0, dtype=np.int64)).shape == (0,)
+
+
 def test_a_crumpled_bone_is_found_folded_and_blended_back(template):
     """A mandible vertex slid past its neighbour (twice their distance) folds its faces
     back onto the others without any two faces cutting through each other yet;

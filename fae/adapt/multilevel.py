@@ -42,7 +42,7 @@ from fae.adapt.local import (OffsetSmoother, limit_offsets, lowpass_pyramid, nea
                              offset_clearance)
 from fae.adapt.query import MeshQuery
 from fae.adapt.rbf import RBF, rbf_interpolant, rbf_weights
-from fae.adapt.untangle import edge_crossings, mesh_edges, untangle
+from fae.adapt.untangle import along_seams, edge_crossings, mesh_edges, untangle
 from fae.mesh import coincident_groups, group_means
 
 METHODS = PAPER_METHODS
@@ -248,14 +248,17 @@ def folding_free_rbf(P: np.ndarray, F: np.ndarray, PL: np.ndarray, QL: np.ndarra
     contour of a face scanned with the mouth open, closed eyelids over open ones) ask the
     interpolant for a huge local stretch: the lips cross. While the fitted surface crosses
     itself, the feature point nearest to the crossings, among those whose displacement
-    differs most from their neighbours', is dropped and the RBF fitted again.
+    differs most from their neighbours', is dropped and the RBF fitted again. An edge that
+    lies along a seam of its face (the mouth pouch's walls, joined edge on edge) passes
+    through it by rounding alone and does not count (untangle.along_seams).
     """
     dropped: list[int] = []
     keep = np.arange(len(PL))
     for _ in range(max_drops + 1):
         deformation = Deformation(rbf_weights(PL[keep], QL[keep] - PL[keep], kernel, rho=rho))
         X = deformation(P)
-        crossing, _ = edge_crossings(X, F, edges, query)
+        crossing, through = edge_crossings(X, F, edges, query)
+        crossing = crossing[~along_seams(P, F, crossing, through)]
         if len(crossing) == 0 or len(keep) <= 4:
             break
         at = X[crossing].mean(axis=1).mean(axis=0)

@@ -11,6 +11,7 @@ further against each other than on the reference, which crumple a thin bone befo
 two of its faces cut through each other.
 
     edge_crossings(V, F) -> (edges (k, 2), faces (k,))
+    along_seams(V0, F, edges, faces) -> (k,) bool: crossings of an edge along its face's seam
     folded_pairs(V0, V, F) -> (face pairs (k, 2)) turned into folds against the reference V0
     untangle(F, X, X_safe) -> (X (n, 3), weight (n,))
 
@@ -32,6 +33,7 @@ from fae.mesh import triangle_pairs
 
 _END_GAP = 1e-3  # of the edge length, kept off both ends (Warp works in float32)
 FOLD_ANGLE = np.pi / 2  # radians two neighbouring faces may turn further against each other than on the reference
+SEAM_GAP = 5e-5  # m: rest vertices this close are one place (a seam's two sides)
 
 
 def edge_crossings(V: np.ndarray, F: np.ndarray, edges: np.ndarray | None = None,
@@ -50,6 +52,22 @@ def edge_crossings(V: np.ndarray, F: np.ndarray, edges: np.ndarray | None = None
     face = query.edge_crossings(E, _END_GAP)
     found = face >= 0
     return E[found], face[found]
+
+
+def along_seams(V0: np.ndarray, F: np.ndarray, edges: np.ndarray, faces: np.ndarray,
+                gap: float = SEAM_GAP) -> np.ndarray:
+    """(k,) bool: crossings (edges (k, 2), faces (k,) from edge_crossings) whose edge lies
+    along an edge of its face on the rest surface V0 (n, 3): both its ends within `gap`
+    metres of a corner of the face. Two sheets joined by a seam of coincident vertices (the
+    mouth pouch's walls) meet there edge on edge, and the slightest deformation moves one
+    through the other by rounding alone."""
+    if len(edges) == 0:
+        return np.zeros(0, dtype=bool)
+    V0 = np.asarray(V0, dtype=np.float64)
+    ends = V0[np.asarray(edges)]  # (k, 2, 3)
+    corners = V0[np.asarray(F)[np.asarray(faces)]]  # (k, 3, 3)
+    d = np.linalg.norm(ends[:, :, None, :] - corners[:, None, :, :], axis=3).min(axis=2)  # (k, 2)
+    return np.all(d <= gap, axis=1)
 
 
 def dihedral_turns(V: np.ndarray, F: np.ndarray, pairs: np.ndarray) -> np.ndarray:
