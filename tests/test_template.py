@@ -341,6 +341,17 @@ def test_a_short_edge_is_merged_away_and_the_sheet_stays_whole():
     V4[1] = [0.0, 0.5, 0.0]  # 0.5 mm from its neighbour along the border
     V5, F5 = collapse_short_edges(V4, F4, everywhere, 1.0)
     assert len(V5) == len(V4) and np.array_equal(F5, F4)
+    # a short edge from the border inwards: the inner end moves, the border stays put
+    V6, F6, _ = _patch_with_a_cap(0.0, off=2.0)
+    V6[10] = [0.5, 4.2, 0.0]  # 0.54 mm from (0, 4) on the border x = 0
+    V7, F7 = collapse_short_edges(V6, F6, everywhere, 1.0)
+    assert len(V7) == len(V6) - 1 and np.all(up(V7, F7) > 0.0)
+
+    def border_edges(V, F):  # as sets of end positions
+        E, counts, _ = edge_counts(F)
+        return {tuple(sorted(map(tuple, np.round(V[e], 6)))) for e in E[counts == 1]}
+
+    assert border_edges(V7, F7) == border_edges(V6, F6)
 
 
 def test_the_lower_lips_rim_and_the_lower_lids_carry_no_caps(head):

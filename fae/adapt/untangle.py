@@ -56,11 +56,15 @@ def edge_crossings(V: np.ndarray, F: np.ndarray, edges: np.ndarray | None = None
 
 def along_seams(V0: np.ndarray, F: np.ndarray, edges: np.ndarray, faces: np.ndarray,
                 gap: float = SEAM_GAP) -> np.ndarray:
-    """(k,) bool: crossings (edges (k, 2), faces (k,) from edge_crossings) whose edge lies
-    along an edge of its face on the rest surface V0 (n, 3): both its ends within `gap`
-    metres of a corner of the face. Two sheets joined by a seam of coincident vertices (the
-    mouth pouch's walls) meet there edge on edge, and the slightest deformation moves one
-    through the other by rounding alone."""
+    """(k,) bool: crossings (edges (k, 2), faces (k,) from edge_crossings) whose edge, on the
+    rest surface V0 (n, 3), has both ends within `gap` metres of corners of its face: it lies
+    along one of the face's edges (two sheets joined by a seam of nearly coincident
+    vertices, the mouth pouch's walls, meet there edge on edge) or is a sliver of an edge
+    at one corner (a few tens of micrometres, between a vertex and its twin). Either way
+    the slightest deformation moves it through the face by rounding alone. (edge_crossings
+    reports one face an edge passes through; an edge marked here that also passed through
+    another face far from its seam would go unseen, which only an edge lying on a seam
+    at rest can.)"""
     if len(edges) == 0:
         return np.zeros(0, dtype=bool)
     V0 = np.asarray(V0, dtype=np.float64)
@@ -115,6 +119,8 @@ def untangle(F: np.ndarray, X: np.ndarray, X_safe: np.ndarray, rings: int = 2, r
     check = E  # the edges whose crossing can have changed since the last round
     for r in range(rounds + 1):
         bad_e, bad_f = edge_crossings(Y, F, check, query)
+        seam = along_seams(X_safe, F, bad_e, bad_f)  # rounding along a seam: X_safe has them too
+        bad_e, bad_f = bad_e[~seam], bad_f[~seam]
         folded = np.zeros((0, 2), dtype=np.int64) if pairs is None else folded_pairs(reference, Y, F, pairs)
         if len(bad_e) == 0 and len(folded) == 0:
             break

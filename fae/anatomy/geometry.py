@@ -513,7 +513,7 @@ def refine_long_triangles(V: np.ndarray, F: np.ndarray, max_edge: float, allowed
     return V2, F2
 
 
-def _merge_round(V: np.ndarray, F: np.ndarray) -> tuple:
+def _round_state(V: np.ndarray, F: np.ndarray) -> tuple:
     """A round of vertex merges starts: (adjacency (n, n) csr, the faces at each vertex,
     locked (n,) bool, dead (m,) bool), the last two all False."""
     vertex_faces = [[] for _ in range(len(V))]
@@ -536,13 +536,14 @@ def _apply_merge(F: np.ndarray, A, locked: np.ndarray, dead: np.ndarray, c: int,
     locked[[c, t]] = True
 
 
-def _vertex_merge(V, F, A, vertex_faces, dead, locked, c: int, t: int, widest: float):
+def _vertex_merge(V, F, A, vertex_faces, dead, locked, border, c: int, t: int, max_corner: float):
     """(t, the two faces on edge c-t, the other faces around c, those faces with c moved
-    to t, the least cosine of their turns) when merging vertex c into its neighbour t keeps
-    the mesh manifold (the two share exactly the two neighbours across their edge), turns
-    no face around c by more than 30 degrees and opens no corner of `widest` radians or
-    more (a cap's own); else None."""
-    if locked[t]:
+    to t, the least cosine of their turns) when vertex c may be merged into its neighbour
+    t: neither locked this round, c not on the open border, the mesh kept manifold (the two
+    share exactly the two neighbours across their edge), no face around c turned by more
+    than 30 degrees and no corner of `max_corner` radians or more opened (a cap's own
+    angle); else None."""
+    if locked[c] or locked[t] or border[c]:
         return None
     shared = np.intersect1d(A[c].indices, A[t].indices)
     both = [g for g in vertex_faces[c] if t in F[g] and not dead[g]]
@@ -556,7 +557,7 @@ def _vertex_merge(V, F, A, vertex_faces, dead, locked, c: int, t: int, widest: f
     n_old, n_new = triangle_normals(V, old), triangle_normals(V, new)
     norm = np.linalg.norm(n_old, axis=1) * np.linalg.norm(n_new, axis=1)
     cos = np.sum(n_old * n_new, axis=1) / np.maximum(norm, 1e-300)
-    if not np.all(cos > np.cos(np.radians(30.0))) or _corner_angles(V, new).max() >= widest:
+    if not np.all(cos > np.cos(np.radians(30.0))) or _corner_angles(V, new).max() >= max_corner:
         return None
     return t, both, around, new, float(cos.min())
 
@@ -592,19 +593,20 @@ def collapse_caps(V: np.ndarray, F: np.ndarray, allowed: np.ndarray, cap_angle: 
         faces = faces[np.argsort(-widest[faces], kind="stable")]
         if len(faces) == 0:
             break
-        A, vertex_faces, locked, dead = _merge_round(V, F)
+        A, vertex_faces, locked, dead = _round_state(V, F)
         merged = 0
         for f in faces:
             if dead[f]:
                 continue
             k = int(np.argmax(corners[f]))
             c, a, b = (int(x) for x in (F[f, k], F[f, (k + 1) % 3], F[f, (k + 2) % 3]))
-            if locked[c] or border[c]:
-                continue
-            # the nearer end first (the apex moves least), then (far_end) the farther one
+            # the nearer end first (the apex moves least), then (far_end) the farther one;
+            # a nearer end locked this round is tried again in the next
             ends = sorted((a, b), key=lambda v: np.linalg.norm(V[v] - V[c]))[:2 if far_end[f] else 1]
-            merge = next((m for t in ends
-                          if (m := _vertex_merge(V, F, A, vertex_faces, dead, locked, c, t, widest[f])) is not None), None)
+            if locked[ends[0]]:
+                continue
+            merge = next((m for t in ends if (m := _vertex_merge(V, F, A, vertex_faces, dead, locked, border, c, t,
+                                                                 widest[f])) is not None), None)
             if merge is None:
                 continue
             _apply_merge(F, A, locked, dead, c, merge)
@@ -617,7 +619,7 @@ def collapse_caps(V: np.ndarray, F: np.ndarray, allowed: np.ndarray, cap_angle: 
 
 def collapse_short_edges(V: np.ndarray, F: np.ndarray, allowed: np.ndarray, min_length: float,
                          max_angle: float = 150.0, rounds: int = 5) -> tuple[np.ndarray, np.ndarray]:
-    """(V', F'): edges shorter than min_length between allowed faces (m,) bool of mesh V (n,
+    """(V', F'): edges shorter than min_length of the allowed faces (m,) bool of mesh V (n,
     3), F (m, 3) merged away, shortest first: one end moved onto the other (the end whose
     move turns the faces around it least), where the mesh stays manifold, no face around
     the moved end turns by more than 30 degrees nor gets a corner of max_angle degrees or
@@ -639,14 +641,12 @@ def collapse_short_edges(V: np.ndarray, F: np.ndarray, allowed: np.ndarray, min_
         short = short[length[short] < min_length]
         if len(short) == 0:
             break
-        A, vertex_faces, locked, dead = _merge_round(V, F)
+        A, vertex_faces, locked, dead = _round_state(V, F)
         merged = 0
         for u, v in E[short]:
             best = None
             for c, t in ((int(u), int(v)), (int(v), int(u))):
-                if locked[c] or border[c]:
-                    continue
-                m = _vertex_merge(V, F, A, vertex_faces, dead, locked, c, t, limit)
+                m = _vertex_merge(V, F, A, vertex_faces, dead, locked, border, c, t, limit)
                 if m is not None and (best is None or m[4] > best[1][4]):
                     best = (c, m)  # the end whose faces turn least
             if best is None:

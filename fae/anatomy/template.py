@@ -86,7 +86,7 @@ CAP_COLLAPSE_ANGLE = 150.0  # degrees
 # needles beside them (corners of 6-10 degrees): a needle's normal turned over as soon as
 # the corner moved, and creased the lip's top against it in most frames of every stream
 # (the lower lip's 8-14 folded triangles a stream, the upper lip's few). Edges shorter than
-# SHORT_EDGE are merged away in SHORT_EDGE_REGIONS (fae.anatomy.geometry.collapse_short_edges)
+# SHORT_EDGE are merged away in SHORT_EDGE_REGIONS (fae.anatomy.geometry.collapse_short_edges).
 SHORT_EDGE_REGIONS = ("lip_upper", "lip_lower")
 SHORT_EDGE = 0.7  # mm
 NEEDLE_GAP = 0.05  # mm
