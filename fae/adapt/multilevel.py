@@ -250,7 +250,10 @@ def folding_free_rbf(P: np.ndarray, F: np.ndarray, PL: np.ndarray, QL: np.ndarra
     itself, the feature point nearest to the crossings, among those whose displacement
     differs most from their neighbours', is dropped and the RBF fitted again. An edge that
     lies along a seam of its face (the mouth pouch's walls, joined edge on edge) passes
-    through it by rounding alone and does not count (untangle.along_seams).
+    through it by rounding alone and does not count (untangle.along_seams). The later
+    levels are untangled against this result, seam crossings included, and the head's
+    check counts every crossing: taken as safe instead, the template itself left meshmonk's
+    face with two crossing pairs its fit had cleared.
     """
     dropped: list[int] = []
     keep = np.arange(len(PL))

@@ -119,8 +119,6 @@ def untangle(F: np.ndarray, X: np.ndarray, X_safe: np.ndarray, rings: int = 2, r
     check = E  # the edges whose crossing can have changed since the last round
     for r in range(rounds + 1):
         bad_e, bad_f = edge_crossings(Y, F, check, query)
-        seam = along_seams(X_safe, F, bad_e, bad_f)  # rounding along a seam: X_safe has them too
-        bad_e, bad_f = bad_e[~seam], bad_f[~seam]
         folded = np.zeros((0, 2), dtype=np.int64) if pairs is None else folded_pairs(reference, Y, F, pairs)
         if len(bad_e) == 0 and len(folded) == 0:
             break
