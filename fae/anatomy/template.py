@@ -142,24 +142,10 @@ def _unflipped(V: np.ndarray) -> np.ndarray:
     return kept
 
 
-def _cap_flipped(V: np.ndarray) -> np.ndarray:
-    """(n,) bool: skin vertices (mm) whose faces lose their caps (CAP_FLIPPED_REGIONS)."""
-    return np.isin(skin_regions(V, None), [REGION_NAMES.index(r) for r in CAP_FLIPPED_REGIONS])
-
-
-def _cap_collapsed(V: np.ndarray) -> np.ndarray:
-    """(n,) bool: skin vertices (mm) whose faces' caps are merged away (CAP_COLLAPSED_REGIONS)."""
-    return np.isin(skin_regions(V, None), [REGION_NAMES.index(r) for r in CAP_COLLAPSED_REGIONS])
-
-
-def _short_edges_merged(V: np.ndarray) -> np.ndarray:
-    """(n,) bool: skin vertices (mm) whose faces lose their short edges (SHORT_EDGE_REGIONS)."""
-    return np.isin(skin_regions(V, None), [REGION_NAMES.index(r) for r in SHORT_EDGE_REGIONS])
-
-
-def _cap_far_end(V: np.ndarray) -> np.ndarray:
-    """(n,) bool: skin vertices (mm) whose faces' caps may merge into either end (CAP_FAR_END_REGIONS)."""
-    return np.isin(skin_regions(V, None), [REGION_NAMES.index(r) for r in CAP_FAR_END_REGIONS])
+def _in_regions(regions: tuple[str, ...]):
+    """A function of skin vertices V (n, 3) mm giving (n,) bool: those in `regions` (the
+    faces whose caps are flipped or merged, or whose short edges are merged)."""
+    return lambda V: np.isin(skin_regions(V, None), [REGION_NAMES.index(r) for r in regions])
 
 
 # --- meshes ----------------------------------------------------------------------------------
@@ -536,8 +522,10 @@ def build_template() -> FaceModel:
     """Build the generic head (about 15 s on one core). Deterministic."""
     V, F, mirror = symmetric_mesh(S.skin_sdf, (0.0, -240.0, -125.0), (100.0, 130.0, 130.0), SKIN_STEP, SKIN_HALF_FACES,
                                   refined=_below_the_chin, kept_edges=_unflipped,
-                                  cap_flipped=_cap_flipped, cap_collapsed=_cap_collapsed, cap_far_end=_cap_far_end,
-                                  short_edges_merged=_short_edges_merged)
+                                  cap_flipped=_in_regions(CAP_FLIPPED_REGIONS),
+                                  cap_collapsed=_in_regions(CAP_COLLAPSED_REGIONS),
+                                  cap_far_end=_in_regions(CAP_FAR_END_REGIONS),
+                                  short_edges_merged=_in_regions(SHORT_EDGE_REGIONS))
     region = skin_regions(V, F)
     V = reshaped_skin(V, F, region)
     V = 0.5 * (V + V[mirror] * np.array([-1.0, 1.0, 1.0]))  # exactly symmetric again
