@@ -10,7 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from fae.mesh import adjacency, boundary_edges, triangle_normals, vertex_normals
+from fae.mesh import adjacency, boundary_edges, boundary_vertices, triangle_normals, vertex_normals
+from fae.mesh import edges as mesh_edges
 
 
 # ---------------------------------------------------------------------------------------
@@ -585,8 +586,7 @@ def collapse_caps(V: np.ndarray, F: np.ndarray, allowed: np.ndarray, cap_angle: 
     far_end = np.zeros(len(F), dtype=bool) if far_end is None else np.asarray(far_end, dtype=bool).copy()
     cap = np.radians(cap_angle)
     for _ in range(rounds):
-        border = np.zeros(len(V), dtype=bool)
-        border[boundary_edges(F).ravel()] = True
+        border = boundary_vertices(F, len(V))
         corners = _corner_angles(V, F)
         widest = corners.max(axis=1)
         faces = np.flatnonzero(allowed & (widest > cap))
@@ -632,10 +632,8 @@ def collapse_short_edges(V: np.ndarray, F: np.ndarray, allowed: np.ndarray, min_
     allowed = np.asarray(allowed, dtype=bool).copy()
     limit = np.radians(max_angle)
     for _ in range(rounds):
-        border = np.zeros(len(V), dtype=bool)
-        border[boundary_edges(F).ravel()] = True
-        E = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])[np.tile(allowed, 3)]
-        E = np.unique(np.sort(E, axis=1), axis=0)
+        border = boundary_vertices(F, len(V))
+        E = mesh_edges(F[allowed])
         length = np.linalg.norm(V[E[:, 0]] - V[E[:, 1]], axis=1)
         short = np.argsort(length, kind="stable")
         short = short[length[short] < min_length]
