@@ -23,7 +23,8 @@ output of the last:
    over the displacement D (n, 3) of the skin X: q_i is vertex i projected onto the
    scan's tangent plane at its closest compatible scan point (normals within
    MAX_NORMAL_ANGLE, within a reach that shrinks stage by stage, not within EDGE_REACH of
-   the scan's edge, where the template's surface goes on and the scan's does not; where
+   the scan's rim nor HOLE_REACH of a hole, where the template's surface goes on and the
+   scan's does not; where
    the closest point is not compatible, the scan along the vertex's own normal, so that
    skin over a hollow follows its floor, not its steep side: scan_pairs); L is
    the graph Laplacian of the template mesh plus every pair of vertices closer than
@@ -87,7 +88,11 @@ BLEND_RINGS = 1  # rings around a fold blended back to the last fold-free surfac
 BLEND_ROUNDS = 12  # rounds at most (the zone widens every second)
 DETAIL_STIFFNESS = 5.0  # stages below this stiffness match only the `detail` skin
 EXTEND_START = 0.01  # m: skin this far from any skin on the scan takes the harmonic extension
-EDGE_REACH = 0.008  # m: scan faces this close to the scan's edge pair with nothing
+EDGE_REACH = 0.008  # m: scan faces this close to the scan's rim pair with nothing
+# m: and those this close to a hole's edge: the template goes on past a rim for centimetres,
+# but over a hole only as far as the hole is wide (a mask's mouth is a slit: within
+# EDGE_REACH of it the lips paired nothing, and stayed 2-4 mm off the mask's lips)
+HOLE_REACH = 0.002
 QUIET_RINGS = 1  # rings around a fold whose scan pull is let go
 ROUNDS = 3  # correspondence rounds per stiffness
 REACH = (0.04, 0.004)  # m: pairs farther than this are dropped, from the first stage to the last
@@ -162,14 +167,14 @@ def graph_laplacian(F: np.ndarray, n: int, P: np.ndarray | None = None, radius: 
 
 
 def near_edge(scan: Surface, reach: float = EDGE_REACH) -> np.ndarray:
-    """(m,) bool: faces of the scan within `reach` metres of its boundary (a hole, or where
-    the scan or the head part ends). A template vertex whose closest point lies there has
-    no counterpart on the scan: the surface it belongs to goes on where the scan stops.
-    Cached on the Surface."""
+    """(m,) bool: faces of the scan within `reach` metres of its rim (where the scan or the
+    head part ends: near_rim) or within HOLE_REACH of a hole. A template vertex whose
+    closest point lies there has no counterpart on the scan: the surface it belongs to
+    goes on where the scan stops. Cached on the Surface."""
     cached = getattr(scan, "_near_edge", None)
     if cached is not None and cached[0] == reach:
         return cached[1]
-    near = _faces_near(scan, scan.boundary, reach)
+    near = near_rim(scan, reach) | _faces_near(scan, scan.boundary, HOLE_REACH)
     scan._near_edge = (reach, near)
     return near
 
