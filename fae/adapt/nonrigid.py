@@ -83,7 +83,7 @@ STIFFNESS = (30.0, 12.0, 5.0, 2.0, 1.0, 0.5)  # a per stage, coarse to fine
 NEIGHBOUR_RADIUS = 0.006  # m: vertices this close are neighbours in the smoothness term
 SIMILARITY_START = True  # the start: one scale (True) or a full affine map
 PARTIAL_EDGE_SHARE = 0.4  # of the start's closest pairs by the scan's rim: more, and the scan covers part of the head
-RIM_SHARE = 0.25  # boundary loops at least this share of the longest one's length are the scan's rim (not holes)
+RIM_SHARE = 0.25  # boundary loops at least this share of the longest one's length and of the widest one's extent are the scan's rim (not holes)
 BLEND_RINGS = 1  # rings around a fold blended back to the last fold-free surface
 BLEND_ROUNDS = 12  # rounds at most (the zone widens every second)
 DETAIL_STIFFNESS = 5.0  # stages below this stiffness match only the `detail` skin
@@ -191,8 +191,9 @@ def _faces_near(scan: Surface, at: np.ndarray, reach: float) -> np.ndarray:
 
 def near_rim(scan: Surface, reach: float = EDGE_REACH) -> np.ndarray:
     """(m,) bool: faces of the scan within `reach` metres of its rim: its boundary loops at
-    least RIM_SHARE of the longest one's length (a face scan's outline, the head part's cut
-    below the neck), not its holes (a bust with a hundred 5 mm holes behind is whole)."""
+    least RIM_SHARE of the longest one's length and of the widest one's extent (a face
+    scan's outline, the head part's cut below the neck), not its holes (a bust with a
+    hundred 5 mm holes behind is whole; a face scan's eye openings, a mouth's slit)."""
     from scipy.sparse.csgraph import connected_components
 
     edges = boundary_edges(scan.F)
@@ -201,8 +202,18 @@ def near_rim(scan: Surface, reach: float = EDGE_REACH) -> np.ndarray:
     n = len(scan.V)
     _, loop = connected_components(sp.coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n)),
                                    directed=False)
-    length = np.bincount(loop[edges[:, 0]], weights=np.linalg.norm(scan.V[edges[:, 0]] - scan.V[edges[:, 1]], axis=1))
-    rim = length[loop[edges[:, 0]]] >= RIM_SHARE * length.max()
+    # a rim is large both in length and in extent (bounding-box diagonal): a face scan's eye
+    # openings, cut along the lids' sawtooth, run half its outline's length within a fifth
+    # of its extent; a mouth's slit spans more than a quarter of a bust's neck cut, in
+    # under a quarter of its length
+    ids = loop[edges[:, 0]]
+    length = np.bincount(ids, weights=np.linalg.norm(scan.V[edges[:, 0]] - scan.V[edges[:, 1]], axis=1))
+    lo = np.full((len(length), 3), np.inf)
+    hi = np.full((len(length), 3), -np.inf)
+    np.minimum.at(lo, ids, scan.V[edges[:, 0]])
+    np.maximum.at(hi, ids, scan.V[edges[:, 0]])
+    extent = np.linalg.norm(np.where(np.isfinite(hi - lo), hi - lo, 0.0), axis=1)
+    rim = (length[ids] >= RIM_SHARE * length.max()) & (extent[ids] >= RIM_SHARE * extent.max())
     on_rim = np.zeros(n, dtype=bool)
     on_rim[edges[rim].ravel()] = True
     return _faces_near(scan, on_rim, reach)
