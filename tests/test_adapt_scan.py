@@ -276,6 +276,42 @@ def test_given_feature_points_with_wrong_ones_still_give_a_whole_head(bust, temp
 
 @needs_mediapipe
 @pytest.mark.slow
+def test_a_mouth_marked_on_the_chin_is_left_out_and_the_scans_mouth_kept(bust, template, tmp_path, capsys):
+    """A marker can place a whole part on the wrong feature: the mouth's 18 points moved 0.9
+    of the way from the lower lip to the chin, along the surface. Each agrees with its own
+    part and the scan holds them all, so neither check of single points caught them, and
+    the fit laid the template's mouth on the chin, trusted. The face found on the scan
+    has its mouth elsewhere: those points are left out, with a notice naming the part, and
+    the head's lips are the scan's."""
+    from fae.mpeg4.fdps import face_part
+
+    names = [n for n in bust.landmarks if face_part(n) is not None]
+    pts = {n: np.asarray(bust.landmarks[n], float) for n in names}
+    mouth = [n for n in names if face_part(n) == "mouth"]
+    assert len(mouth) >= 10
+    shift = 0.9 * (pts["2.1"] - pts["8.2"])
+    surface = trimesh.Trimesh(bust.vertices, bust.faces, process=False)
+    moved = trimesh.proximity.closest_point(surface, np.array([pts[n] + shift for n in mouth]))[0]
+    given = dict(pts)
+    given.update({n: p for n, p in zip(mouth, moved)})
+    scan, lm = tmp_path / "bust.obj", tmp_path / "lm.json"
+    surface.export(scan)
+    lm.write_text(json.dumps({n: p.tolist() for n, p in given.items()}))
+    out, rep = tmp_path / "head.glb", tmp_path / "r.json"
+    assert main(["adapt", str(scan), "--landmarks", str(lm), "-o", str(out), "--report", str(rep),
+                 "--no-calibrate"]) == 0
+    err = capsys.readouterr().err
+    assert "the mouth's points lie" in err and "8.2" in err
+    report = json.loads(rep.read_text())
+    assert not set(mouth) & set(report["landmarks_used"])
+    assert report["folded_triangles"]["all"] == 0
+    on_scan = report["feature_points_on_scan"]
+    for n in ("8.1", "8.2", "8.3", "8.4"):  # mm, the scan's unit; the chin lies 20 mm and more away
+        assert np.linalg.norm(np.asarray(on_scan[n]) - pts[n]) < 5.0, n
+
+
+@needs_mediapipe
+@pytest.mark.slow
 def test_a_scan_wound_inside_out_is_turned_outward(bust, tmp_path, capsys):
     """Exporters and mirroring leave scans wound inside out: the fit, pairing by normals,
     found no face on the turned marble bust and refused it, blaming the feature points."""

@@ -4,8 +4,9 @@
                landmarks_name="--landmarks", say=None) -> (FaceModel, report, keep)
 
 Steps: feature points given are checked against each other (one that disagrees with the
-rest is dropped, with a notice) and against the scan (one off it is dropped; points off it
-as a whole are refused); the head is found in the scan, from them or from the
+rest is dropped, with a notice), against the scan (one off it is dropped; points off it
+as a whole are refused) and, part by part, against the face found on the scan (a part
+marked on the wrong feature is dropped, with a notice: part_offsets); the head is found in the scan, from them or from the
 scan's shape alone (fae.adapt.head_pose); `face_pairs(part_V, part_F)` finds corresponding
 points on the head part (fae adapt passes a face-landmark model looking at the template and
 at the head part from the same camera, fae.render.landmarks: a layer above this one);
@@ -48,6 +49,53 @@ OFF_SCAN = 0.01
 MAX_PAIRS_TURN = 15.0
 OFF_SCAN_MEDIAN = 0.003
 OFF_SCAN_SHARE = 0.25
+
+
+# Feature points given are checked, part by part (the mouth's, an eye's: fae.mpeg4.fdps.face_part),
+# against the face the face-landmark model finds on the scan: a part whose points lie a
+# median of more than GIVEN_PART_OFF of the template's eye distance from where the found
+# face has them (two of them at least with pairs near) is left out, with a notice. A marker can place a whole part on the wrong
+# feature (the menpo3d mask's mouth moved 3.2 cm down onto its chin, along the surface): each
+# point agrees with its own part, the scan holds them all, and the fit laid the template's
+# mouth on the chin (face to scan 0.088 % of the diagonal, nothing folded: trusted). The
+# found face's pairs within PART_PAIR_REACH of a given point's place on the template say
+# where the scan has it: the mask's own iBUG-68 points lie a median of 3-11 mm from it,
+# part by part (its right brow 11 mm; its jaw's one point judged, 2.12, 17 mm), the moved
+# mouth 29 mm.
+GIVEN_PART_OFF = 0.25
+PART_PAIR_REACH = 0.012  # m
+
+
+def part_offsets(template: FaceModel, given: dict[str, np.ndarray], skin_points: np.ndarray,
+                 scan_points: np.ndarray) -> dict[str, tuple[list[str], float]]:
+    """Per part of the face (fae.mpeg4.fdps.face_part), the names of the feature points
+    given (face frame, metres) and the median distance (metres) of those with found pairs
+    near them from where the pairs (template skin points (k, 3) -> scan points (k, 3), face
+    frame) put them: each point's place on the template moved by the pairs' mean motion
+    within PART_PAIR_REACH (weighted by nearness; a point with fewer than two pairs there
+    has no say). Parts with fewer than two points that have a say are left out."""
+    from scipy.spatial import cKDTree
+
+    from fae.mpeg4.fdps import face_part
+
+    fdp = markup_positions(template)
+    S = np.asarray(skin_points, dtype=np.float64)
+    Q = np.asarray(scan_points, dtype=np.float64)
+    tree = cKDTree(S)
+    names: dict[str, list[str]] = {}
+    offsets: dict[str, list[float]] = {}
+    for n, g in given.items():
+        part = face_part(n) if n in fdp else None
+        if part is None:
+            continue
+        names.setdefault(part, []).append(n)
+        near = np.asarray(tree.query_ball_point(fdp[n], PART_PAIR_REACH), dtype=np.int64)
+        if len(near) < 2:
+            continue
+        w = 1.0 / (np.linalg.norm(S[near] - fdp[n], axis=1) + 1e-3)
+        found = fdp[n] + (w[:, None] * (Q[near] - S[near])).sum(axis=0) / w.sum()
+        offsets.setdefault(part, []).append(float(np.linalg.norm(np.asarray(g, np.float64) - found)))
+    return {part: (names[part], float(np.median(d))) for part, d in offsets.items() if len(d) >= 2}
 
 
 class AdaptRefused(Exception):
@@ -184,6 +232,26 @@ def adapt_scan(template: FaceModel, V: np.ndarray, F: np.ndarray, face_pairs: Ca
 
         pairs = None
         found = looked_at(head)
+        if landmarks and usable(found):
+            given = {n: apply_transform(head.transform, np.asarray(p, np.float64)[None])[0]
+                     for n, p in landmarks.items()}
+            limit = GIVEN_PART_OFF * eye_distance(template)
+            off = {part: v for part, v in part_offsets(template, given, skin_points(found),
+                                                        found.scan_points).items() if v[1] > limit}
+            if off:
+                for part, (part_names, distance) in sorted(off.items()):
+                    say(f"ignored feature points {', '.join(part_names)}: the {part.replace('_', ' ')}'s points lie "
+                        f"{distance * 1000:.0f} mm from where the face found on {scan_name} has them (at most "
+                        f"{limit * 1000:.0f} mm expected; marked on the wrong feature?)")
+                wrong = {n for part_names, _ in off.values() for n in part_names}
+                landmarks = {n: p for n, p in landmarks.items() if n not in wrong}
+                if len(landmarks) < MIN_GIVEN_POINTS:
+                    raise AdaptRefused(f"{landmarks_name}: {len(landmarks)} feature points agree with the face found "
+                                       f"on {scan_name}; at least {MIN_GIVEN_POINTS} are needed (or leave "
+                                       "--landmarks out to find the head without them)")
+                head = head_from_landmarks(template, V, F, np.array([fdp[n] for n in landmarks]),
+                                           np.array([landmarks[n] for n in landmarks]))
+                found = looked_at(head)
         if not landmarks and not usable(found):
             # a face scan leaves up and down open: its face upside down may match the template's
             # (a beard taken for a brow); the face-landmark model tells, on the other poses' renders
