@@ -268,10 +268,64 @@ def test_given_feature_points_with_wrong_ones_still_give_a_whole_head(bust, temp
     out, rep = tmp_path / "head.glb", tmp_path / "r.json"
     assert main(["adapt", str(scan), "--landmarks", str(lm), "-o", str(out), "--report", str(rep),
                  "--no-calibrate"]) == 0
-    assert "ignored feature point" in capsys.readouterr().err
+    assert "disagrees with the others" in capsys.readouterr().err
     report = json.loads(rep.read_text())
     assert report["folded_triangles"]["all"] == 0
     assert report["errors"]["face_to_scan_rms_rel"] < 0.001
+
+
+def test_a_part_of_the_feature_points_off_the_found_face_is_told_from_a_doubtful_face(template):
+    """part_offsets / misplaced_parts without a face-landmark model: pairs laid on the
+    template's own skin (1 mm of noise) agree with the template's points; the mouth's
+    moved 30 mm is the one part left out; most parts moved put the found face in doubt."""
+    from fae.adapt.workflow import GIVEN_PART_OFF, eye_distance, misplaced_parts, part_offsets
+    from fae.anatomy.surface_points import markup_positions
+    from fae.mpeg4.fdps import face_part
+
+    fdp = markup_positions(template)
+    names = [n for n in fdp if template.feature_points[n].part == "skin" and face_part(n) is not None]
+    skin = np.asarray(template.skin_vertices)[::3]
+    found = skin + np.random.default_rng(0).normal(scale=0.001, size=skin.shape)
+    limit = GIVEN_PART_OFF * eye_distance(template)
+    offsets = part_offsets(template, {n: fdp[n] for n in names}, skin, found)
+    assert {"mouth", "nose", "eye_l", "eye_r", "brow_l", "brow_r"} <= set(offsets)
+    assert max(d for _, d in offsets.values()) < 0.004
+    assert misplaced_parts(offsets, limit) == ({}, False)
+    down = np.array([0.0, -0.03, 0.0])
+    moved = {n: fdp[n] + (down if face_part(n) == "mouth" else 0.0) for n in names}
+    off, doubted = misplaced_parts(part_offsets(template, moved, skin, found), limit)
+    assert not doubted and set(off) == {"mouth"}
+    assert set(off["mouth"][0]) == {n for n in names if face_part(n) == "mouth"} and off["mouth"][1] > 0.025
+    most = {n: fdp[n] + (down if face_part(n) != "nose" else 0.0) for n in names}
+    assert misplaced_parts(part_offsets(template, most, skin, found), limit) == ({}, True)
+
+
+def test_a_scans_rim_is_its_outline_not_its_slits_or_jagged_openings():
+    """near_rim on a face-like sheet (0.3 m across) with a mouth's slit and an eye opening
+    cut along a sawtooth (as long as half the outline), and on a closed head whose only
+    opening is a mouth's slit: only the outline is rim."""
+    from fae.adapt.nonrigid import EDGE_REACH, near_rim
+
+    n = 121
+    x, y = np.meshgrid(np.linspace(-0.15, 0.15, n), np.linspace(-0.15, 0.15, n))
+    V = np.column_stack([x.ravel(), y.ravel(), np.zeros(n * n)])
+    i = np.arange(n - 1)
+    a = (i[:, None] * n + i[None, :]).ravel()
+    F = np.vstack([np.column_stack([a, a + 1, a + n]), np.column_stack([a + 1, a + n + 1, a + n])])
+    c = V[F].mean(axis=1)
+    slit = (np.abs(c[:, 0]) < 0.03) & (np.abs(c[:, 1] + 0.07) < 0.002)
+    eye = (np.abs(c[:, 0] - 0.06) < 0.03) & (np.abs(c[:, 1] - 0.05) < 0.01 + 0.006 * np.sign(np.sin(c[:, 0] * 900)))
+    sheet = surface(V, F[~slit & ~eye])
+    rim = near_rim(sheet)
+    fc = sheet.V[sheet.F].mean(axis=1)
+    inset = 0.15 - np.max(np.abs(fc[:, :2]), axis=1)  # from the outline, metres
+    assert rim[inset < 0.5 * EDGE_REACH].all()
+    assert not rim[inset > 1.5 * EDGE_REACH].any()  # where the slit and the eye opening are
+    ball = trimesh.creation.icosphere(subdivisions=5, radius=0.1)
+    bc = ball.triangles_center
+    closed = surface(ball.vertices, ball.faces[~((np.abs(bc[:, 0]) < 0.025) & (np.abs(bc[:, 1] + 0.05) < 0.004)
+                                                  & (bc[:, 2] > 0))])
+    assert closed.boundary.any() and not near_rim(closed).any()
 
 
 @needs_mediapipe

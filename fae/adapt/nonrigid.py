@@ -24,9 +24,9 @@ output of the last:
    scan's tangent plane at its closest compatible scan point (normals within
    MAX_NORMAL_ANGLE, within a reach that shrinks stage by stage, not within EDGE_REACH of
    the scan's rim nor HOLE_REACH of a hole, where the template's surface goes on and the
-   scan's does not; where
-   the closest point is not compatible, the scan along the vertex's own normal, so that
-   skin over a hollow follows its floor, not its steep side: scan_pairs); L is
+   scan's does not; where the closest point is not compatible, the scan along the
+   vertex's own normal, so that skin over a hollow follows its floor, not its steep side:
+   scan_pairs); L is
    the graph Laplacian of the template mesh plus every pair of vertices closer than
    NEIGHBOUR_RADIUS (the mesh is irregular: slivers beside centimetre-long triangles), S a
    per-vertex stiffness (thin, creased parts bend as a piece); l_k are feature points
@@ -83,7 +83,12 @@ STIFFNESS = (30.0, 12.0, 5.0, 2.0, 1.0, 0.5)  # a per stage, coarse to fine
 NEIGHBOUR_RADIUS = 0.006  # m: vertices this close are neighbours in the smoothness term
 SIMILARITY_START = True  # the start: one scale (True) or a full affine map
 PARTIAL_EDGE_SHARE = 0.4  # of the start's closest pairs by the scan's rim: more, and the scan covers part of the head
-RIM_SHARE = 0.25  # boundary loops at least this share of the longest one's length and of the widest one's extent are the scan's rim (not holes)
+# boundary loops at least this share of the longest one's length and of the widest one's
+# extent are the scan's rim (not holes)
+RIM_SHARE = 0.25
+# and at least this share of the scan's diagonal in extent (the busts' head parts' cuts
+# 0.42-0.59, face scans' outlines 0.87-0.92; holes, slits and eye openings 0.15-0.23)
+RIM_MIN_EXTENT = 0.3
 BLEND_RINGS = 1  # rings around a fold blended back to the last fold-free surface
 BLEND_ROUNDS = 12  # rounds at most (the zone widens every second)
 DETAIL_STIFFNESS = 5.0  # stages below this stiffness match only the `detail` skin
@@ -191,9 +196,10 @@ def _faces_near(scan: Surface, at: np.ndarray, reach: float) -> np.ndarray:
 
 def near_rim(scan: Surface, reach: float = EDGE_REACH) -> np.ndarray:
     """(m,) bool: faces of the scan within `reach` metres of its rim: its boundary loops at
-    least RIM_SHARE of the longest one's length and of the widest one's extent (a face
-    scan's outline, the head part's cut below the neck), not its holes (a bust with a
-    hundred 5 mm holes behind is whole; a face scan's eye openings, a mouth's slit)."""
+    least RIM_SHARE of the longest one's length and of the widest one's extent, and
+    RIM_MIN_EXTENT of the scan's diagonal across (a face scan's outline, the head part's cut
+    below the neck), not its holes (a bust with a hundred 5 mm holes behind is whole; a
+    face scan's eye openings, a mouth's slit)."""
     from scipy.sparse.csgraph import connected_components
 
     edges = boundary_edges(scan.F)
@@ -214,6 +220,7 @@ def near_rim(scan: Surface, reach: float = EDGE_REACH) -> np.ndarray:
     np.maximum.at(hi, ids, scan.V[edges[:, 0]])
     extent = np.linalg.norm(np.where(np.isfinite(hi - lo), hi - lo, 0.0), axis=1)
     rim = (length[ids] >= RIM_SHARE * length.max()) & (extent[ids] >= RIM_SHARE * extent.max())
+    rim &= extent[ids] >= RIM_MIN_EXTENT * scan.diagonal  # a closed head's one mouth slit is no rim
     on_rim = np.zeros(n, dtype=bool)
     on_rim[edges[rim].ravel()] = True
     return _faces_near(scan, on_rim, reach)

@@ -6,8 +6,9 @@
 Steps: feature points given are checked against each other (one that disagrees with the
 rest is dropped, with a notice), against the scan (one off it is dropped; points off it
 as a whole are refused) and, part by part, against the face found on the scan (a part
-marked on the wrong feature is dropped, with a notice: part_offsets); the head is found in the scan, from them or from the
-scan's shape alone (fae.adapt.head_pose); `face_pairs(part_V, part_F)` finds corresponding
+marked on the wrong feature is dropped, with a notice: part_offsets, misplaced_parts);
+the head is found in the scan, from them or from the scan's shape alone
+(fae.adapt.head_pose); `face_pairs(part_V, part_F)` finds corresponding
 points on the head part (fae adapt passes a face-landmark model looking at the template and
 at the head part from the same camera, fae.render.landmarks: a layer above this one);
 the skin is fitted and the anatomy carried over (fae.adapt.from_scan). The report gains
@@ -52,17 +53,24 @@ OFF_SCAN_SHARE = 0.25
 
 
 # Feature points given are checked, part by part (the mouth's, an eye's: fae.mpeg4.fdps.face_part),
-# against the face the face-landmark model finds on the scan: a part whose points lie a
-# median of more than GIVEN_PART_OFF of the template's eye distance from where the found
-# face has them (two of them at least with pairs near) is left out, with a notice. A marker can place a whole part on the wrong
-# feature (the menpo3d mask's mouth moved 3.2 cm down onto its chin, along the surface): each
-# point agrees with its own part, the scan holds them all, and the fit laid the template's
-# mouth on the chin (face to scan 0.088 % of the diagonal, nothing folded: trusted). The
-# found face's pairs within PART_PAIR_REACH of a given point's place on the template say
-# where the scan has it: the mask's own iBUG-68 points lie a median of 3-11 mm from it,
-# part by part (its right brow 11 mm; its jaw's one point judged, 2.12, 17 mm), the moved
-# mouth 29 mm.
+# against the face the face-landmark model finds on the scan (misplaced_parts). A marker can
+# place a whole part on the wrong feature (the menpo3d mask's mouth moved 3.2 cm down onto
+# its chin, along the surface): each point agrees with its own part, the scan holds them
+# all, and the fit laid the template's mouth on the chin (face to scan 0.088 % of the
+# diagonal, nothing folded: trusted). The found face's pairs within PART_PAIR_REACH of a
+# given point's place on the template say where the scan has it: the mask's own iBUG-68
+# points lie a median of 3-11 mm from it, part by part (its right brow 11 mm), the moved
+# mouth 29 mm. A part farther than GIVEN_PART_OFF of the template's eye distance and
+# PART_OUTLIER times the other parts' median is left out, with a notice; when half the
+# parts or more lie that far, the found face is doubted instead, and the points kept. The
+# jaw is not judged: its points follow conventions that differ (iBUG's jaw line against
+# MPEG-4's chin corners: the mask's 2.12 lies 17 mm from the found face's).
 GIVEN_PART_OFF = 0.25
+PART_OUTLIER = 3.0
+UNJUDGED_PARTS = ("jaw",)
+PART_WORDS = {"mouth": "mouth", "nose": "nose", "jaw": "jaw", "head": "head", "eye_l": "left eye",
+              "eye_r": "right eye", "brow_l": "left brow", "brow_r": "right brow", "cheek_l": "left cheek",
+              "cheek_r": "right cheek", "ear_l": "left ear", "ear_r": "right ear"}
 PART_PAIR_REACH = 0.012  # m
 
 
@@ -96,6 +104,23 @@ def part_offsets(template: FaceModel, given: dict[str, np.ndarray], skin_points:
         found = fdp[n] + (w[:, None] * (Q[near] - S[near])).sum(axis=0) / w.sum()
         offsets.setdefault(part, []).append(float(np.linalg.norm(np.asarray(g, np.float64) - found)))
     return {part: (names[part], float(np.median(d))) for part, d in offsets.items() if len(d) >= 2}
+
+
+def misplaced_parts(offsets: dict[str, tuple[list[str], float]], limit: float
+                    ) -> tuple[dict[str, tuple[list[str], float]], bool]:
+    """(the parts of `offsets` (part_offsets) to leave out, whether the found face is in
+    doubt): a part is left out when its distance exceeds `limit` (metres) and PART_OUTLIER
+    times the median of the other judged parts'; when half of the judged parts or more
+    exceed `limit`, none is left out and the found face is in doubt. UNJUDGED_PARTS are
+    not judged."""
+    judged = {p: v for p, v in offsets.items() if p not in UNJUDGED_PARTS}
+    over = {p: v for p, v in judged.items() if v[1] > limit}
+    if not over:
+        return {}, False
+    if 2 * len(over) >= len(judged):
+        return {}, True
+    return {p: v for p, v in over.items()
+            if v[1] > PART_OUTLIER * float(np.median([w[1] for q, w in judged.items() if q != p]))}, False
 
 
 class AdaptRefused(Exception):
@@ -236,19 +261,24 @@ def adapt_scan(template: FaceModel, V: np.ndarray, F: np.ndarray, face_pairs: Ca
             given = {n: apply_transform(head.transform, np.asarray(p, np.float64)[None])[0]
                      for n, p in landmarks.items()}
             limit = GIVEN_PART_OFF * eye_distance(template)
-            off = {part: v for part, v in part_offsets(template, given, skin_points(found),
-                                                        found.scan_points).items() if v[1] > limit}
-            if off:
+            offsets = part_offsets(template, given, skin_points(found), found.scan_points)
+            off, doubted = misplaced_parts(offsets, limit)
+            if doubted:
+                say(f"the face found on {scan_name} disagrees with most parts of the feature points given "
+                    f"(more than {limit * 1000:.0f} mm at the template's size); fitting by the points alone")
+                found = None
+            elif off:
+                agree = np.median([v[1] for q, v in offsets.items() if q not in off and q not in UNJUDGED_PARTS])
                 for part, (part_names, distance) in sorted(off.items()):
-                    say(f"ignored feature points {', '.join(part_names)}: the {part.replace('_', ' ')}'s points lie "
-                        f"{distance * 1000:.0f} mm from where the face found on {scan_name} has them (at most "
-                        f"{limit * 1000:.0f} mm expected; marked on the wrong feature?)")
+                    say(f"ignored feature points {', '.join(part_names)}: the {PART_WORDS[part]}'s points lie "
+                        f"{distance * 1000:.0f} mm from where the face found on {scan_name} has them, the other "
+                        f"parts' {agree * 1000:.0f} mm (at the template's size; marked on the wrong feature?)")
                 wrong = {n for part_names, _ in off.values() for n in part_names}
                 landmarks = {n: p for n, p in landmarks.items() if n not in wrong}
                 if len(landmarks) < MIN_GIVEN_POINTS:
-                    raise AdaptRefused(f"{landmarks_name}: {len(landmarks)} feature points agree with the face found "
-                                       f"on {scan_name}; at least {MIN_GIVEN_POINTS} are needed (or leave "
-                                       "--landmarks out to find the head without them)")
+                    raise AdaptRefused(f"{landmarks_name}: {len(landmarks)} feature points are left beside the "
+                                       f"parts left out; at least {MIN_GIVEN_POINTS} are needed (correct or remove "
+                                       "that part's points)")
                 head = head_from_landmarks(template, V, F, np.array([fdp[n] for n in landmarks]),
                                            np.array([landmarks[n] for n in landmarks]))
                 found = looked_at(head)

@@ -215,10 +215,12 @@ def face_part(name: str) -> str | None:
     """The part of the face feature point `name` marks, the points a marker places together
     ("mouth": the lips' outer and inner contours; "jaw": chin and jaw bone; "nose";
     "eye_l" / "eye_r"; "brow_l" / "brow_r"; "cheek_l" / "cheek_r"; "ear_l" / "ear_r";
-    "head"), or None (tongue, teeth, the spine's point)."""
+    "head"), or None (tongue, teeth 9.8-9.11, the spine's point)."""
     p = feature_point(name)
     side = "_l" if p.side > 0 else "_r"
     if p.group == 8 or (p.group == 2 and 2 <= p.index <= 9):
         return "mouth"
+    if p.group == 9 and 8 <= p.index <= 11:
+        return None
     return {2: "jaw", 9: "nose", 11: "head", 3: "eye" + side, 4: "brow" + side, 5: "cheek" + side,
             10: "ear" + side}.get(p.group)
