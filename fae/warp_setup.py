@@ -12,11 +12,20 @@ writes through it as it starts: with two launches at once, that write can land i
 thread's stack. fae's kernels use no tiles, so the option is left to Warp's automatic
 choice, which enables it only on AArch64, where the pointer lives in a register of each
 thread.
+
+    launch_split(kernel, n, inputs, outputs) -> one kernel's samples on every core
 """
 
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
 import warp as wp
 
+from fae.cores import workers
 from fae.native_stderr import native_stderr_filtered
+
+SPLIT_THREADS = 4  # at most, for one launch's samples side by side
+SPLIT_MIN = 2048  # samples below which a launch is not split (a thread costs more than it saves)
 
 wp.config.enable_tiles_in_stack_memory = None
 # Warp reports every module load on stdout at its default level; a player's output is the
@@ -28,4 +37,27 @@ wp.config.log_level = 30
 with native_stderr_filtered(keep=lambda line: "NVIDIA CUDA driver" not in line):
     wp.init()
 
-__all__ = ["wp"]
+
+
+def launch_split(kernel, n: int, inputs: list, outputs: list, device: str = "cpu") -> None:
+    """Launch `kernel` over samples 0..n-1; its arguments are `inputs`, then the first
+    sample of the launch (int: the kernel's sample is wp.tid() + first), then `outputs`.
+    On the CPU a launch runs on one core: samples are split into one range per core,
+    launched side by side (Warp lets go of the GIL while a kernel runs)."""
+    parts = 1 if wp.get_device(device).is_cuda or n < SPLIT_MIN else workers(SPLIT_THREADS)
+    bounds = np.linspace(0, n, parts + 1).astype(int)
+
+    def run(k: int) -> None:
+        if bounds[k + 1] > bounds[k]:
+            wp.launch(kernel, dim=int(bounds[k + 1] - bounds[k]), device=device,
+                      inputs=[*inputs, int(bounds[k]), *outputs])
+
+    if parts == 1:
+        run(0)
+        return
+    wp.load_module(kernel.module, device=device)  # loaded once, before two threads would both load it
+    with ThreadPoolExecutor(parts) as pool:
+        list(pool.map(run, range(parts)))
+
+
+__all__ = ["launch_split", "wp"]

@@ -146,6 +146,34 @@ def test_edge_crossings_find_what_the_pairwise_test_finds(template):
     assert weight[k] == 0.0 and np.mean(weight == 1.0) > 0.95  # only a neighbourhood is relaxed
 
 
+def test_a_query_split_over_the_cores_answers_each_point_as_one_launch_does(template):
+    """MeshQuery's launches over many points run as one range per core (launch_split): each
+    range must answer its own points, in their places."""
+    from fae.adapt.query import MeshQuery
+    from fae.warp_setup import SPLIT_MIN
+
+    V, F = template.skin_vertices, template.skin_faces
+    rng = np.random.default_rng(7)
+    X = V[rng.integers(0, len(V), 3 * SPLIT_MIN)] + rng.normal(0.0, 0.004, (3 * SPLIT_MIN, 3))
+    query = MeshQuery(V, F)
+    pts, dist, face, _ = query.closest_points(X)
+    alone = [query.closest_points(X[i:i + SPLIT_MIN // 2]) for i in range(0, len(X), SPLIT_MIN // 2)]
+    np.testing.assert_allclose(pts, np.vstack([a[0] for a in alone]), atol=1e-7)
+    assert np.array_equal(face, np.concatenate([a[2] for a in alone]))
+    d = query.signed_distances(X)
+    np.testing.assert_allclose(np.abs(d), dist, atol=1e-6)
+    directions = -per_vertex_directions(X, pts)
+    hit, t, _, _ = query.ray_hits(X, directions, 1.0)
+    # (a ray aimed at its closest point along an edge may slip past it: one in thousands)
+    assert np.mean(hit & np.isclose(t, dist, atol=2e-5)) > 0.99
+
+
+def per_vertex_directions(X, P):
+    """(n, 3) unit directions from points P to points X."""
+    D = X - P
+    return D / np.maximum(np.linalg.norm(D, axis=1, keepdims=True), 1e-12)
+
+
 def test_a_crossing_along_a_seam_is_told_from_a_real_one(template):
     """along_seams: the shipped skin's mouth pouch joins its walls by seams of nearly
     coincident vertices (two indices, one place). An edge of one wall along the seam,

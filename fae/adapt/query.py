@@ -9,7 +9,7 @@ Points go in and come out as float64 numpy arrays; Warp works in float32 interna
 from __future__ import annotations
 
 import numpy as np
-from fae.warp_setup import wp
+from fae.warp_setup import launch_split, wp
 
 # nothing here is differentiated: no adjoint code to compile
 wp.set_module_options({"enable_backward": False})
@@ -27,9 +27,9 @@ def init_warp() -> None:
 
 @wp.kernel
 def _ray_kernel(mesh: wp.uint64, origins: wp.array(dtype=wp.vec3), directions: wp.array(dtype=wp.vec3),
-                max_t: float, hit_t: wp.array(dtype=float), hit_face: wp.array(dtype=int),
+                max_t: float, first: int, hit_t: wp.array(dtype=float), hit_face: wp.array(dtype=int),
                 hit_bary: wp.array(dtype=wp.vec3)):
-    i = wp.tid()
+    i = wp.tid() + first
     q = wp.mesh_query_ray(mesh, origins[i], directions[i], max_t)
     if q.result:
         hit_t[i] = q.t
@@ -40,9 +40,9 @@ def _ray_kernel(mesh: wp.uint64, origins: wp.array(dtype=wp.vec3), directions: w
 
 
 @wp.kernel
-def _closest_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), max_dist: float,
+def _closest_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), max_dist: float, first: int,
                     out_face: wp.array(dtype=int), out_bary: wp.array(dtype=wp.vec3)):
-    i = wp.tid()
+    i = wp.tid() + first
     q = wp.mesh_query_point_no_sign(mesh, points[i], max_dist)
     if q.result:
         out_face[i] = q.face
@@ -52,10 +52,10 @@ def _closest_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), max_dist: 
 
 
 @wp.kernel
-def _signed_distance_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), max_dist: float,
+def _signed_distance_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), max_dist: float, first: int,
                             out_distance: wp.array(dtype=float)):
     # distance to the closest surface point, negative inside; max_dist + 1 where none is that close
-    i = wp.tid()
+    i = wp.tid() + first
     q = wp.mesh_query_point_sign_normal(mesh, points[i], max_dist)
     if q.result:
         out_distance[i] = q.sign * wp.length(points[i] - wp.mesh_eval_position(mesh, q.face, q.u, q.v))
@@ -65,10 +65,10 @@ def _signed_distance_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), ma
 
 @wp.kernel
 def _segment_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32),
-                    ends: wp.array(dtype=wp.int32), same: float, out_face: wp.array(dtype=int)):
+                    ends: wp.array(dtype=wp.int32), same: float, first: int, out_face: wp.array(dtype=int)):
     # segment e joins mesh vertices ends[2e], ends[2e+1]; the first triangle it passes through,
     # among those overlapping its bounding box that share no corner with it, or -1
-    e = wp.tid()
+    e = wp.tid() + first
     ia = ends[2 * e]
     ib = ends[2 * e + 1]
     a = points[ia]
@@ -154,7 +154,7 @@ class MeshQuery:
         t = wp.zeros(n, dtype=float, device="cpu")
         f = wp.zeros(n, dtype=int, device="cpu")
         b = wp.zeros(n, dtype=wp.vec3, device="cpu")
-        wp.launch(_ray_kernel, dim=n, inputs=[self._mesh.id, o, d, float(max_t), t, f, b], device="cpu")
+        launch_split(_ray_kernel, n, [self._mesh.id, o, d, float(max_t)], [t, f, b])
         face = f.numpy().astype(np.int64)
         return face >= 0, t.numpy().astype(np.float64), face, b.numpy().astype(np.float64)
 
@@ -171,8 +171,7 @@ class MeshQuery:
         out = wp.zeros(n, dtype=int, device="cpu")
         if n:
             ends = wp.array(E, dtype=wp.int32, device="cpu")
-            wp.launch(_segment_kernel, dim=n, inputs=[self._mesh.id, self._points, self._indices, ends,
-                                                         float(end_gap), out], device="cpu")
+            launch_split(_segment_kernel, n, [self._mesh.id, self._points, self._indices, ends, float(end_gap)], [out])
         return out.numpy().astype(np.int64)
 
     def closest_points(self, X: np.ndarray, max_dist: float = 1e6
@@ -186,7 +185,7 @@ class MeshQuery:
         p = wp.array(self._local(X), dtype=wp.vec3, device="cpu")
         f = wp.zeros(n, dtype=int, device="cpu")
         b = wp.zeros(n, dtype=wp.vec3, device="cpu")
-        wp.launch(_closest_kernel, dim=n, inputs=[self._mesh.id, p, float(max_dist), f, b], device="cpu")
+        launch_split(_closest_kernel, n, [self._mesh.id, p, float(max_dist)], [f, b])
         face = f.numpy().astype(np.int64)
         bary = b.numpy().astype(np.float64)
         pts = np.full((n, 3), np.nan)
@@ -210,7 +209,7 @@ class MeshQuery:
             return np.zeros(0)
         p = wp.array(self._local(X), dtype=wp.vec3, device="cpu")
         out = wp.zeros(n, dtype=float, device="cpu")
-        wp.launch(_signed_distance_kernel, dim=n, inputs=[self._mesh.id, p, float(max_dist), out], device="cpu")
+        launch_split(_signed_distance_kernel, n, [self._mesh.id, p, float(max_dist)], [out])
         d = out.numpy().astype(np.float64)
         d[d > max_dist] = np.inf
         return d

@@ -12,12 +12,9 @@ from __future__ import annotations
 
 import hashlib
 from collections import OrderedDict
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
-import warp as wp
-
-from fae.cores import workers
+from fae.warp_setup import launch_split, wp
 
 # nothing here is differentiated: no adjoint code to compile
 wp.set_module_options({"enable_backward": False})
@@ -31,7 +28,6 @@ GRID_PADDING = 0.01  # metres between a mesh's bounding box and its grid's
 # coarse grid's, interpolated (the coarse cell's diagonal is 3.5 cells: its sign holds there)
 NEAR_BAND = 4.0
 FAR_MARGIN = 1.5
-SPLIT_THREADS = 4  # at most, computing one grid's samples side by side
 
 
 @wp.func
@@ -104,9 +100,9 @@ def signed_distance_grid(V: np.ndarray, F: np.ndarray, cell: float = 0.003, max_
     # exact distance near the surface on all: a third of the time of the winding number on all
     coarse_dims = (dims + 1) // 2
     coarse = wp.zeros(int(np.prod(coarse_dims)), dtype=float, device=device)
-    _launch_split(_grid_signed_distance, coarse.shape[0], device,
+    launch_split(_grid_signed_distance, coarse.shape[0],
                   [mesh.id, wp.vec3(*lo.astype(np.float32)), float(2.0 * spacing), int(coarse_dims[1]),
-                   int(coarse_dims[2]), max_dist], coarse)
+                   int(coarse_dims[2]), max_dist], [coarse], device)
     far = _upsampled(coarse.numpy().reshape(tuple(coarse_dims)), dims)
     # interpolation overshoots by up to about a cell where the distance bends (the medial
     # axis, deep inside or far out): far samples are lowered so that they stay lower bounds
@@ -116,9 +112,9 @@ def signed_distance_grid(V: np.ndarray, F: np.ndarray, cell: float = 0.003, max_
     depth = np.abs(far)
     far = np.sign(far) * (depth - FAR_MARGIN * spacing * np.clip((depth - band) / band, 0.0, 1.0))
     out = wp.array(far.astype(np.float32).ravel(), dtype=float, device=device)
-    _launch_split(_grid_near_signed_distance, out.shape[0], device,
+    launch_split(_grid_near_signed_distance, out.shape[0],
                   [mesh.id, wp.vec3(*lo.astype(np.float32)), float(spacing), int(dims[1]), int(dims[2]),
-                   float(band)], out)
+                   float(band)], [out], device)
     values = out.numpy().reshape(tuple(dims)).copy()
     values.setflags(write=False)  # shared by every caller through the cache
     lo.setflags(write=False)
@@ -126,26 +122,6 @@ def signed_distance_grid(V: np.ndarray, F: np.ndarray, cell: float = 0.003, max_
     while len(_GRID_CACHE) > _GRID_CACHE_SIZE:
         _GRID_CACHE.popitem(last=False)
     return _GRID_CACHE[key]
-
-
-def _launch_split(kernel, n: int, device: str, inputs: list, out) -> None:
-    """Launch `kernel` over samples 0..n-1 (its inputs, then the first sample, then `out`).
-    On the CPU a launch runs on one core: the samples are split into one range per core,
-    launched side by side (Warp lets go of the GIL while a kernel runs)."""
-    parts = 1 if wp.get_device(device).is_cuda else workers(SPLIT_THREADS)
-    bounds = np.linspace(0, n, parts + 1).astype(int)
-
-    def run(k: int) -> None:
-        if bounds[k + 1] > bounds[k]:
-            wp.launch(kernel, dim=int(bounds[k + 1] - bounds[k]), device=device,
-                      inputs=[*inputs, int(bounds[k]), out])
-
-    if parts == 1:
-        run(0)
-        return
-    wp.load_module(device=device)  # loaded once, before two threads would both load it
-    with ThreadPoolExecutor(parts) as pool:
-        list(pool.map(run, range(parts)))
 
 
 def _upsampled(coarse: np.ndarray, dims: np.ndarray) -> np.ndarray:
