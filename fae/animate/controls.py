@@ -29,15 +29,16 @@ JAW_ANGLE_LIMIT = 0.5
 
 # The lids' skin follows its pull fields as a first-order lag of about LID_RESPONSE_SECONDS
 # (the shipped head's upper lid: 0.59, 0.85, 0.96 of a step in its first three 40 ms
-# frames). A blink sent as one frame at 1024 between 341 and 512 (eyes_head.fap) left the
-# lid 2.7 mm short of closed at its deepest frame, the eyeball's white showing (now 0.3 mm
-# further down than settled closed, on the lower lid); the xface streams' 512, 1024, 1024,
-# 512 closed only on its second frame at 1024 (2.0 mm open on the first; now 0.2 mm). A FAP
-# value is the pose of its frame: the closing lids' pulls are led to reach it
-# (ActivationLead). Opening keeps its lag (led, a lid opened 2 mm past its rest for two
-# frames; real lids open slower than they close).
+# frames; refitted to 0.048 s when the fold guard grew stronger, fae.sim.build: at 0.045 a
+# one-frame blink then stopped 0.5 mm short of closed). A blink sent as one frame at 1024
+# between 341 and 512 (eyes_head.fap) left the lid 2.7 mm short of closed at its deepest
+# frame, the eyeball's white showing (now 0.3 mm further down than settled closed, on the
+# lower lid); the xface streams' 512, 1024, 1024, 512 closed only on its second frame at
+# 1024 (2.0 mm open on the first; now 0.2 mm). A FAP value is the pose of its frame: the
+# closing lids' pulls are led to reach it (ActivationLead). Opening keeps its lag (led, a
+# lid opened 2 mm past its rest for two frames; real lids open slower than they close).
 LID_FAPS = (19, 20, 21, 22)
-LID_RESPONSE_SECONDS = 0.045
+LID_RESPONSE_SECONDS = 0.048
 
 
 class ActivationLead:

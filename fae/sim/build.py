@@ -39,8 +39,8 @@ height above its vertex in the middle layer (0.25, and the middle layer over the
 too, held the lower lip's raise to 0.72 of its FAP) (fae.sim.integrate). Contact:
 penetrations of skin the bone moved onto deeper than `contact_depth` 4 mm are left to
 the springs (see fae.sim.collision). Folds (fae.sim.folds): triangles of the two upper
-layers below `fold_min_area` 0.3 of their rest area (in their rest plane) are restored,
-epidermis particles whose Laplacian offset strays more than `crease_tolerance` 0.25 x their
+layers below `fold_min_area` 0.5 of their rest area (in their rest plane) are restored,
+epidermis particles whose Laplacian offset strays more than `crease_tolerance` 0.2 x their
 mean edge are moved back, epidermis edges where the skin is seen are kept between
 `strain_min` 0.4 and `strain_max` 1.8 x their rest length, and lip particles facing each
 other within `LIP_PAIR_REACH` 6 mm stay in order (each with up to `LIP_PAIR_NEIGHBOURS` 6
@@ -48,7 +48,11 @@ of the other lip's; so does each upper lid's lining within `lip_reach` 3 mm
 of its front's margin: it sinks no further below the margin than at rest, nor rises more
 than `LID_MARGIN_SLACK` over its rest height; and an upper lid's skin near its margin stays
 above the lower lid's margin, `LID_CONTACT_BAND`), in up to
-`fold_passes` 3 passes per substep.
+`fold_passes` 4 passes per substep. (Setting in at 0.5 of the rest area and 0.2 of an
+edge, over four passes, each head calibrated again: the nine xface streams' triangles ever
+folded, shipped head 100 -> 52, the three busts' 223 / 287 / 389 -> 151 / 208 / 257; at 0.3,
+0.25 and three passes before. 0.6 of the area folded more lids, a tolerance of 0.15
+stretched the wreath's lip corners to 5x, five passes cost a fifth of the frame rate.)
 """
 
 from __future__ import annotations
@@ -95,9 +99,9 @@ DEFAULTS = {
     "jaw_sure": 0.5,
     "jaw_corner_blend": 0.2,
     "jaw_blend_rings": 4,
-    "fold_min_area": 0.3,
-    "fold_passes": 3,
-    "crease_tolerance": 0.25,
+    "fold_min_area": 0.5,
+    "fold_passes": 4,
+    "crease_tolerance": 0.2,
     "strain_max": 1.8,
     "strain_min": 0.4,
     "lip_reach": 0.003,
