@@ -13,7 +13,7 @@ thread's stack. fae's kernels use no tiles, so the option is left to Warp's auto
 choice, which enables it only on AArch64, where the pointer lives in a register of each
 thread.
 
-    launch_split(kernel, n, inputs, outputs) -> one kernel's samples on every core
+    launch_split(kernel, n, inputs, outputs) -> one kernel's samples on up to SPLIT_THREADS cores
 """
 
 from concurrent.futures import ThreadPoolExecutor
@@ -42,8 +42,9 @@ with native_stderr_filtered(keep=lambda line: "NVIDIA CUDA driver" not in line):
 def launch_split(kernel, n: int, inputs: list, outputs: list, device: str = "cpu") -> None:
     """Launch `kernel` over samples 0..n-1; its arguments are `inputs`, then the first
     sample of the launch (int: the kernel's sample is wp.tid() + first), then `outputs`.
-    On the CPU a launch runs on one core: samples are split into one range per core,
-    launched side by side (Warp lets go of the GIL while a kernel runs)."""
+    On the CPU a launch runs on one core: from SPLIT_MIN samples on, they are split into
+    one range per usable core (at most SPLIT_THREADS), launched side by side (Warp lets go
+    of the GIL while a kernel runs)."""
     parts = 1 if wp.get_device(device).is_cuda or n < SPLIT_MIN else workers(SPLIT_THREADS)
     bounds = np.linspace(0, n, parts + 1).astype(int)
 

@@ -162,13 +162,13 @@ def test_a_query_split_over_the_cores_answers_each_point_as_one_launch_does(temp
     assert np.array_equal(face, np.concatenate([a[2] for a in alone]))
     d = query.signed_distances(X)
     np.testing.assert_allclose(np.abs(d), dist, atol=1e-6)
-    directions = -per_vertex_directions(X, pts)
+    directions = -unit_directions(X, pts)
     hit, t, _, _ = query.ray_hits(X, directions, 1.0)
     # (a ray aimed at its closest point along an edge may slip past it: one in thousands)
     assert np.mean(hit & np.isclose(t, dist, atol=2e-5)) > 0.99
 
 
-def per_vertex_directions(X, P):
+def unit_directions(X, P):
     """(n, 3) unit directions from points P to points X."""
     D = X - P
     return D / np.maximum(np.linalg.norm(D, axis=1, keepdims=True), 1e-12)

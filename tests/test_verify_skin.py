@@ -331,8 +331,8 @@ def test_real_streams_keep_the_lips_apart_and_the_folds_few(name):
     """The xface streams on the shipped head: the lips never pass through each other (0-3
     frames a stream, pressed together as xface_beg and xface_hate press them, while each lip
     particle was kept in order with the other lip's nearest alone), at
-    most 20 visible triangles ever fold or crease (0-16 measured, 0-4 of them on the upper
-    lids, 4-12 on the lips, since the fold guard sets in at half a triangle's area and 0.2
+    most 20 visible triangles ever fold or crease (0-16 measured: fear and joy none, 2 a lid
+    on the upper lids of the streams that blink, 4-12 on the lips of the others, since the fold guard sets in at half a triangle's area and 0.2
     of an edge's crease over four passes; 0-23 before, 10-19 of them on the upper
     lids of the streams that blink, since the lips' short edges near the mouth corners were
     merged away: four streams fold nothing; 10-31 before, 8-14 of them on the lower lip;

@@ -45,11 +45,11 @@ class ActivationLead:
     """Per face: the activations `rows` of the controls, led while they rise, so that skin
     following each as a first-order lag of `seconds` reaches the frame's activation by the
     frame's end (the pull of a frame of length dt is (a - e r) / (1 - e), e = exp(-dt /
-    seconds), r what the lag had reached: a step is pulled 1.7x for one 40 ms frame, then
+    seconds), r what the lag had reached: a step is pulled 1.8x for one 40 ms frame, then
     as asked), within ACTIVATION_LIMIT. A falling activation is passed as it is; the lag's
     reach follows whatever was pulled. The lag was fitted at 25 fps: the lid has inertia
     the model lacks, so shorter frames are led less well (a step's first 10 ms frame at
-    100 fps is pulled 5x; eyes_head's blink sent at 100 fps ends its 40 ms at 1024 with a
+    100 fps is pulled 5.3x; eyes_head's blink sent at 100 fps ends its 40 ms at 1024 with a
     2.1 mm gap, 5.2 without the lead, 1.3 at 25 fps; settled closed: 1.6)."""
 
     def __init__(self, rows: np.ndarray, seconds: float):
