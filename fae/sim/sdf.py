@@ -101,8 +101,8 @@ def signed_distance_grid(V: np.ndarray, F: np.ndarray, cell: float = 0.003, max_
     coarse_dims = (dims + 1) // 2
     coarse = wp.zeros(int(np.prod(coarse_dims)), dtype=float, device=device)
     launch_split(_grid_signed_distance, coarse.shape[0],
-                  [mesh.id, wp.vec3(*lo.astype(np.float32)), float(2.0 * spacing), int(coarse_dims[1]),
-                   int(coarse_dims[2]), max_dist], [coarse], device)
+                 [mesh.id, wp.vec3(*lo.astype(np.float32)), float(2.0 * spacing), int(coarse_dims[1]),
+                  int(coarse_dims[2]), max_dist], [coarse], device)
     far = _upsampled(coarse.numpy().reshape(tuple(coarse_dims)), dims)
     # interpolation overshoots by up to about a cell where the distance bends (the medial
     # axis, deep inside or far out): far samples are lowered so that they stay lower bounds
@@ -113,8 +113,8 @@ def signed_distance_grid(V: np.ndarray, F: np.ndarray, cell: float = 0.003, max_
     far = np.sign(far) * (depth - FAR_MARGIN * spacing * np.clip((depth - band) / band, 0.0, 1.0))
     out = wp.array(far.astype(np.float32).ravel(), dtype=float, device=device)
     launch_split(_grid_near_signed_distance, out.shape[0],
-                  [mesh.id, wp.vec3(*lo.astype(np.float32)), float(spacing), int(dims[1]), int(dims[2]),
-                   float(band)], [out], device)
+                 [mesh.id, wp.vec3(*lo.astype(np.float32)), float(spacing), int(dims[1]), int(dims[2]),
+                  float(band)], [out], device)
     values = out.numpy().reshape(tuple(dims)).copy()
     values.setflags(write=False)  # shared by every caller through the cache
     lo.setflags(write=False)
