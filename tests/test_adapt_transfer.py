@@ -168,6 +168,30 @@ def test_a_query_split_over_the_cores_answers_each_point_as_one_launch_does(temp
     assert np.mean(hit & np.isclose(t, dist, atol=2e-5)) > 0.99
 
 
+def test_overlapping_faces_are_every_pair_of_boxes_that_meet(template):
+    """The self-intersection test's broad phase (MeshQuery.overlapping_faces, split over the
+    cores) must give every pair of faces sharing no vertex whose boxes overlap, each once:
+    checked against all pairs of a patch of the lips, where the skin crowds most."""
+    from fae.adapt.query import MeshQuery
+
+    V, F = template.skin_vertices, template.skin_faces.astype(np.int64)
+    rng = np.random.default_rng(3)
+    W = V + rng.normal(0.0, 5e-4, V.shape)  # boxes that cross their neighbours' too
+    pairs = MeshQuery(W, F).overlapping_faces(pad=1e-6)
+    assert len(pairs) > 1000 and np.all(pairs[:, 0] < pairs[:, 1])
+    assert len(np.unique(pairs, axis=0)) == len(pairs)
+    lip = template.feature_point_positions()["8.1"]
+    patch = np.flatnonzero(np.linalg.norm(W[F].mean(axis=1) - lip, axis=1) < 0.02)
+    T = W[F[patch]]
+    lo, hi = T.min(axis=1) - 1e-6, T.max(axis=1) + 1e-6
+    meet = np.all((lo[:, None] <= hi[None]) & (lo[None] <= hi[:, None]), axis=2)
+    share = (F[patch][:, None, :, None] == F[patch][None, :, None, :]).any(axis=(2, 3))
+    a, b = np.nonzero(np.triu(meet & ~share, 1))
+    expected = {(int(patch[i]), int(patch[j])) for i, j in zip(a, b)}
+    found = {(int(i), int(j)) for i, j in pairs if i in set(patch) and j in set(patch)}
+    assert len(expected) > 50 and found == expected
+
+
 def unit_directions(X, P):
     """(n, 3) unit directions from points P to points X."""
     D = X - P

@@ -112,6 +112,42 @@ def _segment_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), indices: w
             return
 
 
+@wp.func
+def _face_box_shares_corner(indices: wp.array(dtype=wp.int32), f: int, g: int) -> bool:
+    for a in range(3):
+        for b in range(3):
+            if indices[3 * f + a] == indices[3 * g + b]:
+                return True
+    return False
+
+
+@wp.kernel
+def _overlap_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32),
+                    pad: float, offsets: wp.array(dtype=int), fill: int, first: int,
+                    out_count: wp.array(dtype=int), out_pairs: wp.array(dtype=int)):
+    # face i against every later face g whose bounding box overlaps its own (grown by pad) and
+    # which shares no corner with it: counted (fill 0) or written from offsets[i] on (fill 1)
+    i = wp.tid() + first
+    p0 = points[indices[3 * i]]
+    p1 = points[indices[3 * i + 1]]
+    p2 = points[indices[3 * i + 2]]
+    grow = wp.vec3(pad, pad, pad)
+    q = wp.mesh_query_aabb(mesh, wp.min(wp.min(p0, p1), p2) - grow, wp.max(wp.max(p0, p1), p2) + grow)
+    k = int(0)
+    if fill == 1:
+        k = offsets[i]
+    c = int(0)
+    for g in q:
+        if g > i and not _face_box_shares_corner(indices, i, g):
+            if fill == 1:
+                out_pairs[2 * k] = i
+                out_pairs[2 * k + 1] = g
+                k += 1
+            c += 1
+    if fill == 0:
+        out_count[i] = c
+
+
 class MeshQuery:
     """A BVH over one triangle mesh: V (n, 3) float64, F (m, 3) int, any consistent unit."""
 
@@ -173,6 +209,21 @@ class MeshQuery:
             ends = wp.array(E, dtype=wp.int32, device="cpu")
             launch_split(_segment_kernel, n, [self._mesh.id, self._points, self._indices, ends, float(end_gap)], [out])
         return out.numpy().astype(np.int64)
+
+    def overlapping_faces(self, pad: float = 0.0) -> np.ndarray:
+        """(k, 2) int pairs i < j of faces sharing no vertex whose bounding boxes, grown by `pad`
+        (the mesh's unit) on every side, overlap: the candidates of a self-intersection test."""
+        m = len(self.F)
+        args = [self._mesh.id, self._points, self._indices, float(pad)]
+        counts = wp.zeros(m, dtype=int, device="cpu")
+        none = wp.zeros(0, dtype=int, device="cpu")
+        launch_split(_overlap_kernel, m, [*args, none, 0], [counts, none])
+        offsets = np.concatenate([[0], np.cumsum(counts.numpy())]).astype(np.int64)
+        pairs = wp.zeros(2 * int(offsets[-1]), dtype=int, device="cpu")
+        if offsets[-1]:
+            launch_split(_overlap_kernel, m, [*args, wp.array(offsets[:-1].astype(np.int32), dtype=int, device="cpu"), 1],
+                         [counts, pairs])
+        return pairs.numpy().astype(np.int64).reshape(-1, 2)
 
     def closest_points(self, X: np.ndarray, max_dist: float = 1e6
                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
