@@ -145,12 +145,15 @@ def folded_triangles(X0: np.ndarray, X: np.ndarray, F: np.ndarray, angle: float 
     DEGENERATE_SHARE of the median, on either surface: the template has collapsed ones
     at its seams) are never counted. reference: fold_reference(X0, F), made once."""
     U0, real0 = fold_reference(X0, F) if reference is None else reference
-    # by components and squared lengths: a fit tests ~150 surfaces, this is 1.6x np.cross's way
-    a = X[F[:, 0]]
-    e1, e2 = X[F[:, 1]] - a, X[F[:, 2]] - a
-    nx = e1[:, 1] * e2[:, 2] - e1[:, 2] * e2[:, 1]
-    ny = e1[:, 2] * e2[:, 0] - e1[:, 0] * e2[:, 2]
-    nz = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+    # by components and squared lengths: a fit tests ~150 surfaces, this is 1.6x np.cross's way,
+    # and gathering each coordinate by the corners (3, m) another 1.5x X[F]'s (n, 3) rows
+    FT = F.T
+    x, y, z = X[:, 0][FT], X[:, 1][FT], X[:, 2][FT]
+    e1x, e1y, e1z = x[1] - x[0], y[1] - y[0], z[1] - z[0]
+    e2x, e2y, e2z = x[2] - x[0], y[2] - y[0], z[2] - z[0]
+    nx = e1y * e2z - e1z * e2y
+    ny = e1z * e2x - e1x * e2z
+    nz = e1x * e2y - e1y * e2x
     area2 = nx * nx + ny * ny + nz * nz
     real = real0 & (area2 > DEGENERATE_SHARE ** 2 * np.median(area2))
     along = U0[:, 0] * nx + U0[:, 1] * ny + U0[:, 2] * nz
