@@ -391,17 +391,20 @@ def test_the_lips_contact_kernel_moves_each_partner_by_its_share_as_the_numpy_tw
     a = 0.2
     rot = np.stack([np.eye(3), np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])])
     move, moves = wp.zeros(P, dtype=wp.vec3, device="cpu"), wp.zeros(P, dtype=float, device="cpu")
-    count = wp.zeros(1, dtype=int, device="cpu")
+    count, touched = wp.zeros(2, dtype=int, device="cpu"), wp.zeros(P, dtype=int, device="cpu")
     wp.launch(folds.separate_lips, dim=K, device="cpu",
               inputs=[wp.array(q.astype(np.float32), dtype=wp.vec3, device="cpu"), wp.array(rec, dtype=LipPair, device="cpu"),
                       wp.array(rot.astype(np.float32), dtype=wp.mat33, device="cpu"), K],
-              outputs=[move, moves, count])
+              outputs=[move, moves, touched, count])
     ref = object.__new__(ReferenceSolver)
     ref.a = {"lip_pair": rec}
     idx, mv, hits = ref.lip_moves(q, rot)
     assert 10 < hits < K and count.numpy()[0] == hits
     np.testing.assert_allclose(move.numpy(), _accumulate(P, idx, mv), atol=1e-7)
     np.testing.assert_array_equal(moves.numpy(), np.bincount(idx, minlength=P))
+    # each particle moved is listed once for apply_guard
+    listed = touched.numpy()[:count.numpy()[1]]
+    assert sorted(listed) == sorted(set(idx.tolist()))
     one = rec[:1].copy()
     one["upper"], one["lower"], one["jaw"], one["gap"], one["most"], one["upper_share"] = 0, 1, 0.0, 0.01, np.inf, 1.0
     ref.a = {"lip_pair": one}  # the upper 1 cm short of its least height: it alone moves, 1 cm up

@@ -119,6 +119,21 @@ def _pack(model: SkinModel) -> tuple[wp.array, wp.array, wp.array]:
             wp.array(static, dtype=_integrate.ParticleStatic, device=model.device))
 
 
+def _triangles_of_particles(model: SkinModel) -> tuple[wp.array, wp.array]:
+    """(start (P+1,) int, triangles (3T,) int): the guarded triangles of particle p are
+    triangles[start[p]:start[p + 1]] (fae.sim.folds.guard_folds_near)."""
+    P = model.particle_count
+    if not model.triangle_count:
+        return wp.zeros(P + 1, dtype=int, device=model.device), wp.zeros(1, dtype=int, device=model.device)
+    tri = model.triangle_guard.numpy()
+    corners = np.concatenate([tri["i"], tri["j"], tri["k"]]).astype(np.int64)
+    owner = np.tile(np.arange(len(tri)), 3)
+    order = np.argsort(corners, kind="stable")
+    start = np.concatenate([[0], np.cumsum(np.bincount(corners, minlength=P))])
+    return (wp.array(start.astype(np.int32), dtype=int, device=model.device),
+            wp.array(owner[order].astype(np.int32), dtype=int, device=model.device))
+
+
 class SkinSolver:
     """Advances a SkinModel's State under a Control; allocates its scratch arrays once."""
 
@@ -132,8 +147,16 @@ class SkinSolver:
         self.particle_move = wp.zeros(model.particle_count, dtype=wp.vec3, device=model.device)
         self.particle_moves = wp.zeros(model.particle_count, dtype=float, device=model.device)
         self.particle_crease = wp.zeros(model.particle_count, dtype=wp.vec3, device=model.device)
-        self.guarded_count = wp.zeros(1, dtype=int, device=model.device)
+        # [triangles and particles guarded, particles on `touched`] in the current pass
+        self.pass_counts = wp.zeros(2, dtype=int, device=model.device)
+        self.touched = wp.zeros(model.particle_count, dtype=int, device=model.device)
+        # the particles the last pass moved: flagged, and listed in one of two lists (the
+        # next pass reads one while its moves fill the other), `_moved_list` the current one
         self.particle_moved = wp.zeros(model.particle_count, dtype=int, device=model.device)
+        self.moved = [wp.zeros(model.particle_count, dtype=int, device=model.device) for _ in range(2)]
+        self.moved_counts = wp.zeros(2, dtype=int, device=model.device)
+        self._moved_list = 0
+        self.triangle_start, self.particle_triangles = _triangles_of_particles(model)
         self._cpu = cpu
         self._scratch = (model.state(), model.state())
         no_grid = wp.full((2, 2, 2), 1.0, dtype=float, device=model.device)  # far outside everywhere
@@ -190,34 +213,46 @@ class SkinSolver:
                 outputs=[dst.particle_q, dst.particle_qd], record_cmd=True)
             guard = apply = None
             if m.triangle_count:
-                guard = [wp.launch(_folds.guard_folds, dim=-(-m.triangle_count // self.particle_chunk),
-                                   device=m.device,
-                                   inputs=[dst.particle_q, m.triangle_guard, control.bone_rotation,
-                                           float(m.fold_min_area), m.triangle_count, self.particle_chunk,
-                                           later, self.particle_moved],
-                                   outputs=[self.particle_move, self.particle_moves, self.guarded_count],
-                                   record_cmd=True) for later in (0, 1)]
+                chunks = -(-m.particle_count // self.particle_chunk)
+                rotation, chunk, counts = control.bone_rotation, self.particle_chunk, self.pass_counts
+                moves = [self.particle_move, self.particle_moves, self.touched, counts]
+                # a substep's first pass looks at every triangle and particle, a later one (per
+                # list it reads) only next to what the pass before it moved
+                first = [wp.launch(_folds.guard_folds, dim=-(-m.triangle_count // chunk), device=m.device,
+                                   inputs=[dst.particle_q, m.triangle_guard, rotation, float(m.fold_min_area),
+                                           m.triangle_count, chunk], outputs=moves, record_cmd=True)]
+                later = [[wp.launch(_folds.guard_folds_near, dim=chunks, device=m.device,
+                                    inputs=[dst.particle_q, m.triangle_guard, rotation, float(m.fold_min_area), chunk,
+                                            self.moved[which], self.moved_counts, which, self.particle_moved,
+                                            self.triangle_start, self.particle_triangles],
+                                    outputs=moves, record_cmd=True)] for which in (0, 1)]
                 n_crease = len(m.crease_vertex)
-                crease = [wp.launch(_folds.smooth_creases, dim=-(-n_crease // self.particle_chunk), device=m.device,
-                                    inputs=[dst.particle_q, m.crease_vertex, m.crease_neighbours,
-                                            m.crease_rest_length, control.bone_rotation, float(m.crease_tolerance),
-                                            float(m.strain_max), float(m.strain_min), n_crease,
-                                            self.particle_chunk, later, self.particle_moved],
-                                    outputs=[self.particle_move, self.particle_moves, self.guarded_count,
-                                             self.particle_crease],
-                                    record_cmd=True) for later in (0, 1)]
-                lips = None
+                crease_args = [dst.particle_q, m.crease_vertex, m.crease_neighbours, m.crease_rest_length, rotation,
+                               float(m.crease_tolerance), float(m.strain_max), float(m.strain_min), n_crease, chunk]
+                first.append(wp.launch(_folds.smooth_creases, dim=-(-n_crease // chunk), device=m.device,
+                                       inputs=crease_args, outputs=[*moves, self.particle_crease], record_cmd=True))
+                for which in (0, 1):
+                    later[which].append(wp.launch(
+                        _folds.smooth_creases_near, dim=chunks, device=m.device,
+                        inputs=[*crease_args, self.moved[which], self.moved_counts, which, self.particle_moved],
+                        outputs=[*moves, self.particle_crease], record_cmd=True))
                 if m.lip_pair_count:
                     lips = wp.launch(_folds.separate_lips, dim=m.lip_pair_count, device=m.device,
-                                     inputs=[dst.particle_q, m.lip_pair, control.bone_rotation, m.lip_pair_count],
-                                     outputs=[self.particle_move, self.particle_moves, self.guarded_count],
-                                     record_cmd=True)
-                guard = (guard, crease, lips)
-                apply = wp.launch(_folds.apply_guard, dim=-(-m.particle_count // self.particle_chunk), device=m.device,
-                                  inputs=[particle_static, self.particle_move, self.particle_moves, self.particle_crease,
-                                          control.bone_rotation, control.bone_translation, *self._grids,
-                                          float(m.contact_depth), m.particle_count, self.particle_chunk],
-                                  outputs=[dst.particle_q, dst.particle_qd, self.particle_moved], record_cmd=True)
+                                     inputs=[dst.particle_q, m.lip_pair, rotation, m.lip_pair_count],
+                                     outputs=moves, record_cmd=True)
+                    for launches in (first, *later):
+                        launches.append(lips)
+                guard = (first, later)
+                apply = [(wp.launch(_folds.forget_moved, dim=chunks, device=m.device,
+                                    inputs=[self.moved[which], self.moved_counts, which, chunk],
+                                    outputs=[self.particle_moved], record_cmd=True),
+                          wp.launch(_folds.apply_guard, dim=chunks, device=m.device,
+                                    inputs=[particle_static, self.particle_move, self.particle_moves,
+                                            self.particle_crease, rotation, control.bone_translation, *self._grids,
+                                            float(m.contact_depth), self.touched, counts, chunk, which],
+                                    outputs=[dst.particle_q, dst.particle_qd, self.particle_moved,
+                                             self.moved[1 - which], self.moved_counts], record_cmd=True))
+                         for which in (0, 1)]
             return [springs, particles, guard, apply, h]
 
         entry = self._launches.get((src, dst, control), record)
@@ -250,16 +285,17 @@ class SkinSolver:
                 springs.launch()
             particles.launch()
             if guard is not None:
-                for k in range(model.fold_passes):
-                    self.guarded_count.zero_()
-                    later = min(k, 1)  # after the first pass: only next to what it moved
-                    guard[0][later].launch()
-                    guard[1][later].launch()
-                    if guard[2] is not None:
-                        guard[2].launch()
-                    if self._cpu and self.guarded_count.numpy()[0] == 0:
+                first, later = guard
+                for pass_index in range(model.fold_passes):
+                    self.pass_counts.zero_()
+                    which = self._moved_list
+                    for launch in first if pass_index == 0 else later[which]:
+                        launch.launch()
+                    if self._cpu and self.pass_counts.numpy()[0] == 0:
                         break  # nothing near folding (on CUDA, reading this would stall the queue)
-                    apply.launch()
+                    for launch in apply[which]:
+                        launch.launch()
+                    self._moved_list = 1 - which
             src = dst
         if src is not state_out:
             state_out.assign(src)
