@@ -47,6 +47,23 @@ def test_signed_distance_grid_of_a_sphere_is_exact_near_it_and_a_lower_bound_far
     assert np.min(cosine) > 0.95
 
 
+def test_a_bone_with_a_hole_is_still_signed_inside_and_out():
+    """The far samples are signed by the winding number (WINDING_ACCURACY), which a hole does
+    not fool: a sphere with a cap of 2 cm cut away (a bone scan's foramen, a mesh left open)
+    is still negative deep inside, also straight under the hole, and positive outside."""
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=0.05)
+    keep = sphere.triangles_center[:, 2] < 0.045  # the cap above z = 4.5 cm goes
+    values, origin, spacing = signed_distance_grid(sphere.vertices, sphere.faces[keep], cell=0.004)
+    rng = np.random.default_rng(2)
+    d = rng.normal(size=(400, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    inside = d * rng.uniform(0.0, 0.03, (400, 1))
+    axis = np.column_stack([np.zeros(20), np.zeros(20), np.linspace(-0.03, 0.03, 20)])  # under the hole
+    outside = d * rng.uniform(0.07, 0.09, (400, 1))
+    assert np.all(sample_grid(values, origin, spacing, np.vstack([inside, axis]))[0] < 0.0)
+    assert np.all(sample_grid(values, origin, spacing, outside)[0] > 0.0)
+
+
 def test_rest_stays_at_rest(model):
     solver, state, control = SkinSolver(model), model.state(), model.control()
     for _ in range(100):
