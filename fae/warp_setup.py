@@ -16,6 +16,8 @@ thread.
     launch_split(kernel, n, inputs, outputs) -> one kernel's samples on up to SPLIT_THREADS cores
 """
 
+import os
+import threading
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -57,8 +59,37 @@ def launch_split(kernel, n: int, inputs: list, outputs: list, device: str = "cpu
         run(0)
         return
     wp.load_module(kernel.module, device=device)  # loaded once, before two threads would both load it
-    with ThreadPoolExecutor(parts) as pool:
-        list(pool.map(run, range(parts)))
+    # the calling thread runs the first range, threads kept for the purpose the others (a pool
+    # made per call cost 1-2 ms of thread starts, a fit makes about a hundred such launches)
+    rest = [_split_pool(parts - 1).submit(run, k) for k in range(1, parts)]
+    try:
+        run(0)
+    finally:
+        for launched in rest:
+            launched.result()
+
+
+_split_pools: dict[int, ThreadPoolExecutor] = {}
+_split_pools_lock = threading.Lock()
+
+
+def _split_pool(threads: int) -> ThreadPoolExecutor:
+    """The process's pool of `threads` threads for launch_split's further ranges."""
+    with _split_pools_lock:
+        pool = _split_pools.get(threads)
+        if pool is None:
+            pool = _split_pools[threads] = ThreadPoolExecutor(threads, thread_name_prefix="fae-split")
+        return pool
+
+
+def _forget_split_pools() -> None:
+    # a forked child has none of its parent's threads: its pools are made anew
+    global _split_pools_lock
+    _split_pools.clear()
+    _split_pools_lock = threading.Lock()
+
+
+os.register_at_fork(after_in_child=_forget_split_pools)
 
 
 __all__ = ["launch_split", "wp"]
