@@ -351,6 +351,35 @@ def test_warp_fold_guard_matches_numpy_reference(model):
     assert np.abs(state.particle_q.numpy() - q).max() < 1e-5 * max(1.0, moved / 1e-3)
 
 
+def test_a_step_stopped_inside_the_fold_guard_leaves_the_next_step_as_a_fresh_solver_takes_it(model):
+    """The guard's passes keep lists of the particles they move, consistent only from pass to
+    pass: a step interrupted between a pass's moves and their application (Ctrl-C, a failed
+    launch) must not leave moves behind that no later pass lists, and the next step is the one
+    a new solver takes."""
+    activation = np.full(model.muscle_count, 3.0)
+    rot, tr = _jaw_pose(0.1, model.jaw_pivot)
+    control = model.control()
+    control.set(muscle_activation=activation, bone_rotation=rot, bone_translation=tr)
+    solver, state = SkinSolver(model), model.state()
+    for _ in range(3):
+        state = solver.step(model, state, control, 1 / 25)
+    first_pass = solver._guard
+
+    def stopped(model_, first, later, apply):
+        for launch in first:  # the first pass asks its moves, then the step stops
+            launch.launch()
+        assert solver.pass_counts.numpy()[1] > 0
+        raise KeyboardInterrupt
+
+    solver._guard = stopped
+    with pytest.raises(KeyboardInterrupt):
+        solver.step(model, state, control, 1 / 25, model.state())
+    solver._guard = first_pass
+    again = solver.step(model, state, control, 1 / 25, model.state())
+    fresh = SkinSolver(model).step(model, state, control, 1 / 25, model.state())
+    np.testing.assert_allclose(again.particle_q.numpy(), fresh.particle_q.numpy(), atol=1e-7)
+
+
 def test_a_stretched_edge_is_pulled_back_within_the_strain_limit(face, model):
     """One epidermis particle pulled off its place by three times its longest edge stretches
     its edges to several times their rest length; a step too short to move anything leaves it to the fold guard's

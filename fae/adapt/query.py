@@ -113,7 +113,7 @@ def _segment_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), indices: w
 
 
 @wp.func
-def _face_box_shares_corner(indices: wp.array(dtype=wp.int32), f: int, g: int) -> bool:
+def _faces_share_a_vertex(indices: wp.array(dtype=wp.int32), f: int, g: int) -> bool:
     for a in range(3):
         for b in range(3):
             if indices[3 * f + a] == indices[3 * g + b]:
@@ -138,7 +138,7 @@ def _overlap_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), indices: w
         k = offsets[i]
     c = int(0)
     for g in q:
-        if g > i and not _face_box_shares_corner(indices, i, g):
+        if g > i and not _faces_share_a_vertex(indices, i, g):
             if fill == 1:
                 out_pairs[2 * k] = i
                 out_pairs[2 * k + 1] = g
@@ -219,6 +219,8 @@ class MeshQuery:
         none = wp.zeros(0, dtype=int, device="cpu")
         launch_split(_overlap_kernel, m, [*args, none, 0], [counts, none])
         offsets = np.concatenate([[0], np.cumsum(counts.numpy())]).astype(np.int64)
+        if 2 * offsets[-1] > np.iinfo(np.int32).max:  # Warp's int: the kernel's indices would wrap
+            raise ValueError(f"overlapping_faces: {offsets[-1]} pairs of boxes overlap, more than it can list")
         pairs = wp.zeros(2 * int(offsets[-1]), dtype=int, device="cpu")
         if offsets[-1]:
             launch_split(_overlap_kernel, m, [*args, wp.array(offsets[:-1].astype(np.int32), dtype=int, device="cpu"), 1],

@@ -175,8 +175,9 @@ def guard_folds(particle_q: wp.array(dtype=wp.vec3), triangles: wp.array(dtype=G
                 bone_rotation: wp.array(dtype=wp.mat33), min_area: float, triangle_count: int, chunk: int,
                 particle_move: wp.array(dtype=wp.vec3), particle_moves: wp.array(dtype=float),
                 touched: wp.array(dtype=int), pass_counts: wp.array(dtype=int)):
-    """A pass over every triangle (a substep's first). pass_counts[0] counts the triangles
-    guarded, pass_counts[1] the particles put on `touched` (see _count_move)."""
+    """A pass over every triangle (a substep's first). pass_counts[0] counts the moves asked
+    (triangles guarded here; crease and strain moves, lip pairs in the other kernels),
+    pass_counts[1] the particles put on `touched` (see _count_move)."""
     start = wp.tid() * chunk
     R0 = bone_rotation[0]
     R1 = bone_rotation[1]
@@ -327,7 +328,9 @@ def smooth_creases_near(particle_q: wp.array(dtype=wp.vec3), vertices: wp.array(
                         particle_crease: wp.array(dtype=wp.vec3)):
     """smooth_creases in a later pass: only the particles the previous pass moved
     (moved[:moved_counts[which]]) and their neighbours, each once: from the lowest-numbered
-    of itself and its neighbours that moved."""
+    of itself and its neighbours that moved. (That needs each edge once and the neighbour
+    relation symmetric among movable particles, as crease_vertices makes it from the
+    unique edges of a layer: a moved particle is movable, so its rows list every edge.)"""
     start = wp.tid() * chunk
     R0 = bone_rotation[0]
     R1 = bone_rotation[1]

@@ -147,7 +147,8 @@ class SkinSolver:
         self.particle_move = wp.zeros(model.particle_count, dtype=wp.vec3, device=model.device)
         self.particle_moves = wp.zeros(model.particle_count, dtype=float, device=model.device)
         self.particle_crease = wp.zeros(model.particle_count, dtype=wp.vec3, device=model.device)
-        # [triangles and particles guarded, particles on `touched`] in the current pass
+        # [moves asked (triangles, creases, strained edges, lip pairs), particles on `touched`]
+        # in the current pass
         self.pass_counts = wp.zeros(2, dtype=int, device=model.device)
         self.touched = wp.zeros(model.particle_count, dtype=int, device=model.device)
         # the particles the last pass moved: flagged, and listed in one of two lists (the
@@ -194,7 +195,9 @@ class SkinSolver:
 
     def _substep_launches(self, src: State, dst: State, control: Control, h: float) -> list:
         """[springs, particles, guard, apply guard, h] recorded launches from src to dst, their
-        step set to h (the guard launches None for a model without guarded triangles)."""
+        step set to h: guard (the first pass's launches, [the later passes' launches] per moved
+        list read), apply guard [(forget_moved, apply_guard)] per moved list read; both None
+        for a model without guarded triangles."""
         def record() -> list:
             m = self.model
             spring_start, spring_records, particle_static = packed_arrays(m)
@@ -261,6 +264,27 @@ class SkinSolver:
             entry[4] = h
         return entry
 
+    def _guard(self, model: SkinModel, first: list, later: list, apply: list) -> None:
+        """The fold guard's passes over one substep's result (fae.sim.folds)."""
+        for pass_index in range(model.fold_passes):
+            self.pass_counts.zero_()
+            which = self._moved_list
+            for launch in first if pass_index == 0 else later[which]:
+                launch.launch()
+            if self._cpu and self.pass_counts.numpy()[0] == 0:
+                break  # nothing near folding (on CUDA, reading this would stall the queue)
+            for launch in apply[which]:
+                launch.launch()
+            self._moved_list = 1 - which
+
+    def _forget_guard(self) -> None:
+        """The guard's moves, flags and lists cleared (its kernels keep them consistent only
+        from pass to pass)."""
+        for a in (self.particle_move, self.particle_moves, self.particle_crease, self.particle_moved,
+                  self.moved_counts, self.pass_counts):
+            a.zero_()
+        self._moved_list = 0
+
     def step(self, model: SkinModel, state_in: State, control: Control, dt: float,
              state_out: State | None = None) -> State:
         """Advance dt seconds (split into stable substeps); returns state_out (new if None).
@@ -285,17 +309,11 @@ class SkinSolver:
                 springs.launch()
             particles.launch()
             if guard is not None:
-                first, later = guard
-                for pass_index in range(model.fold_passes):
-                    self.pass_counts.zero_()
-                    which = self._moved_list
-                    for launch in first if pass_index == 0 else later[which]:
-                        launch.launch()
-                    if self._cpu and self.pass_counts.numpy()[0] == 0:
-                        break  # nothing near folding (on CUDA, reading this would stall the queue)
-                    for launch in apply[which]:
-                        launch.launch()
-                    self._moved_list = 1 - which
+                try:
+                    self._guard(model, *guard, apply)
+                except BaseException:
+                    self._forget_guard()  # moves left half applied would never be listed again
+                    raise
             src = dst
         if src is not state_out:
             state_out.assign(src)
