@@ -171,6 +171,7 @@ class SkinModel:
     # arrays made from the ones above when first needed (not copied by dataclasses.replace)
     _skin_arrays: tuple | None = field(default=None, init=False, repr=False, compare=False)
     _packed: tuple | None = field(default=None, init=False, repr=False, compare=False)  # fae.sim.solver.packed_arrays
+    _triangles_of: tuple | None = field(default=None, init=False, repr=False, compare=False)  # fae.sim.solver
     # what a part of the face shares with the whole (fae.sim.build.skin_model's `like`)
     _face_setup: tuple | None = field(default=None, init=False, repr=False, compare=False)
 

@@ -119,9 +119,15 @@ def _pack(model: SkinModel) -> tuple[wp.array, wp.array, wp.array]:
             wp.array(static, dtype=_integrate.ParticleStatic, device=model.device))
 
 
-def _triangles_of_particles(model: SkinModel) -> tuple[wp.array, wp.array]:
+def triangles_of_particles(model: SkinModel) -> tuple[wp.array, wp.array]:
     """(start (P+1,) int, triangles (3T,) int): the guarded triangles of particle p are
-    triangles[start[p]:start[p + 1]] (fae.sim.folds.guard_folds_near)."""
+    triangles[start[p]:start[p + 1]] (fae.sim.folds.guard_folds_near); made once per model
+    and shared by its solvers, as packed_arrays."""
+    return model.made_once("_triangles_of", _make_triangles_of)
+
+
+def _make_triangles_of(model: SkinModel) -> tuple[wp.array, wp.array]:
+    """The arrays of `triangles_of_particles`, made now."""
     P = model.particle_count
     if not model.triangle_count:
         return wp.zeros(P + 1, dtype=int, device=model.device), wp.zeros(1, dtype=int, device=model.device)
@@ -157,7 +163,7 @@ class SkinSolver:
         self.moved = [wp.zeros(model.particle_count, dtype=int, device=model.device) for _ in range(2)]
         self.moved_counts = wp.zeros(2, dtype=int, device=model.device)
         self._moved_list = 0
-        self.triangle_start, self.particle_triangles = _triangles_of_particles(model)
+        self.triangle_start, self.particle_triangles = triangles_of_particles(model)
         self._cpu = cpu
         self._scratch = (model.state(), model.state())
         no_grid = wp.full((2, 2, 2), 1.0, dtype=float, device=model.device)  # far outside everywhere
