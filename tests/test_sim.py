@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import trimesh
@@ -101,6 +103,38 @@ def test_warp_step_matches_numpy_reference(model):
     assert moved > 1e-3  # the comparison is about real motion
     assert np.abs(state.particle_q.numpy() - q).max() < 1e-5 * max(1.0, moved / 1e-3)
     assert np.abs(state.particle_qd.numpy() - qd).max() < 1e-3
+
+
+def test_skin_carried_by_a_moving_jaw_keeps_up_with_it_as_its_numpy_twin_does(model):
+    """A jaw moved from rest to 0.15 rad over one 40 ms step (a Control set `moving`): the
+    holds go with it over the step and the drag resists only `drag_carried` of the motion
+    relative to them. The Warp step equals its numpy twin; the jaw's skin covers more of
+    its way than with the whole drag against its motion (drag_carried 0); a control set
+    without motion gives both poses alike."""
+    from fae.sim.model import BONE_COUNT, POSE_COUNT
+
+    rot, tr = _jaw_pose(0.15, model.jaw_pivot)
+    control = model.control()
+    control.set(bone_rotation=rot, bone_translation=tr, moving=True)
+    R, t = control.bone_rotation.numpy(), control.bone_translation.numpy()
+    assert len(R) == POSE_COUNT and np.allclose(R[:BONE_COUNT], rot) and np.allclose(R[BONE_COUNT:], np.eye(3))
+    assert np.allclose(t[BONE_COUNT:], 0.0)
+    activation = np.zeros(model.muscle_count)
+    moving_rot, moving_tr = R.astype(np.float64), t.astype(np.float64)
+    state, q, qd, ref = _twin_steps(model, activation, moving_rot, moving_tr, frames=1)
+    moved = np.abs(q - model.particle_q.numpy()).max()
+    assert moved > 1e-3
+    assert np.abs(state.particle_q.numpy() - q).max() < 1e-5 * max(1.0, moved / 1e-3)
+    assert np.abs(state.particle_qd.numpy() - qd).max() < 1e-3
+    uncarried = dataclasses.replace(model, drag_carried=0.0)
+    dragged, _, _, _ = _twin_steps(uncarried, activation, moving_rot, moving_tr, frames=1)
+    hold = ref.holds(rot, tr)
+    jaw = model.particle_jaw.numpy() > 0.9
+    left = np.linalg.norm(state.particle_q.numpy() - hold, axis=1)[jaw].mean()
+    left_dragged = np.linalg.norm(dragged.particle_q.numpy() - hold, axis=1)[jaw].mean()
+    assert left < 0.8 * left_dragged
+    control.set(bone_rotation=rot, bone_translation=tr)
+    assert np.allclose(control.bone_rotation.numpy()[BONE_COUNT:], rot, atol=1e-6)
 
 
 def test_a_field_with_less_drag_moves_its_skin_sooner_to_the_same_place(face):

@@ -4,7 +4,7 @@ Per frame (only precomputed arrays are used): FAP 1/2 records -> low-level value
 the frame's own; clamp (fae.mpeg4.faptables); one matmul to muscle/field activations and
 the jaw pose (fae.animate.controls), the closing lids' pulls led so that they reach the
 frame's pose by its end (ActivationLead, per face); one solver step of the skin in the head's frame
-(fae.sim); FaceDefTable offsets added (a frame that repeats the previous one on skin that has
+(fae.sim), the jaw moving from its last pose over the frame and carrying the skin's holds; FaceDefTable offsets added (a frame that repeats the previous one on skin that has
 settled skips the solver); then the head pose (rotation about 7.1) carries
 skin and parts. What all faces of one head share is a PlayableHead, built once; a head
 without a calibrated `fap_mapping` is calibrated by `playable_head` (fae.animate.calibrate,
@@ -168,6 +168,7 @@ class Player:
         self._t = np.zeros((2, 3))
         self.fps = DEFAULT_FPS
         self.lead = ActivationLead(head.controls.lid_rows, LID_RESPONSE_SECONDS)
+        self._carry = True  # the jaw moves over a frame, carrying the holds (else it is placed)
         self.reset()
 
     # what the head shares, read through the player
@@ -185,15 +186,17 @@ class Player:
 
     @contextmanager
     def lead_off(self):
-        """Steps inside go without the lids' lead (ActivationLead): a pose held from rest and
-        settled as the calibration settles it (fae.animate.verify.settled_skin). Led, a lid
-        held at 720 settled 0.2 mm further open: its contact with the lower lid keeps how
-        it got there."""
+        """Steps inside go without the lids' lead (ActivationLead), and the jaw is placed
+        where a frame puts it rather than moved there (its carry not taken from the drag):
+        a pose held from rest and settled as the calibration settles it
+        (fae.animate.verify.settled_skin). Led, a lid held at 720 settled 0.2 mm further
+        open: its contact with the lower lid keeps how it got there."""
         lead, self.lead = self.lead, ActivationLead(np.zeros(0, dtype=np.int64), LID_RESPONSE_SECONDS)
+        carry, self._carry = self._carry, False
         try:
             yield self
         finally:
-            self.lead = lead
+            self.lead, self._carry = lead, carry
 
     def reset(self) -> None:
         """Back to the neutral face at rest (in place: the solver's recorded launches stay valid)."""
@@ -243,7 +246,9 @@ class Player:
         self._R[1], self._t[1] = J[:3, :3], J[:3, 3]
         if not (self._settled and dt == self._last_dt and np.array_equal(v, self.values)):
             # a held frame on settled skin needs no step (SETTLED_MOTION: its fixed point)
-            self.control.set(muscle_activation=activation, bone_rotation=self._R, bone_translation=self._t)
+            # the jaw moves from its last pose over the frame, carrying the skin's holds
+            self.control.set(muscle_activation=activation, bone_rotation=self._R, bone_translation=self._t,
+                             moving=self._carry)
             self.solver.step(self.sim, self.state, self.control, dt, self.state)
             q = self.state.particle_q.numpy()
             self._settled = bool(np.abs(q - self._q).max() < SETTLED_MOTION) if len(q) else True

@@ -23,7 +23,10 @@ them directly (fae.animate.ears).
 Parameters (keys of `layer_params`, else these defaults): stiffness per unit mass kappa
 (1/s^2) `kappa_epidermis` 600, `kappa_middle` 300, `kappa_deep` 300, `kappa_vertical`
 1000, `kappa_cross` 400, `kappa_anchor` 10000 (deepest layer to its hold), `kappa_tether`
-500 (upper layers to theirs); `drag` 70 1/s; `density` 1100 kg/m^3;
+500 (upper layers to theirs); `drag` 70 1/s, of which `drag_carried` 0.4 is taken
+relative to the hold as a bone moves it (fae.sim.integrate: a jaw opened in one frame left
+the chin at 31 % of its drop, the whole drag against the motion; 42 % now); `density` 1100
+kg/m^3;
 (a pull field may lower the drag of the skin it pulls: `PullField.drag`, the eyelids'
 30, fae.animate.calibrate);
 `muscle_acceleration` 50 m/s^2 (force per unit activation and weight, per kg);
@@ -88,6 +91,7 @@ DEFAULTS = {
     "kappa_anchor": 10000.0,
     "kappa_tether": 500.0,
     "drag": 70.0,
+    "drag_carried": 0.4,
     "density": 1100.0,
     "muscle_acceleration": 50.0,
     "active_rings": 3,
@@ -134,6 +138,7 @@ COUNT_PARAMS = ("active_rings", "jaw_blend_rings", "fold_passes")
 MAX_RINGS = 50
 PARAM_SPAN = 1000.0
 POSITIVE_PARAMS = ("density", "cfl", "sdf_cell")
+FRACTION_PARAMS = ("cfl", "drag_carried")  # at most 1
 MIN_SDF_CELL = 0.0005
 
 
@@ -157,7 +162,7 @@ def checked_params(p: dict) -> dict:
             if not whole or not 0 <= value <= MAX_RINGS:
                 raise ValueError(f"{where}: expected a whole number 0..{MAX_RINGS}, got {value!r}")
             continue
-        top = PARAM_SPAN * DEFAULTS[key] if key != "cfl" else 1.0
+        top = 1.0 if key in FRACTION_PARAMS else PARAM_SPAN * DEFAULTS[key]
         try:
             number = float(value)
         except (TypeError, ValueError):
@@ -786,6 +791,7 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
         influence_particle=arr(inf_p.astype(np.int32), int),
         influence_weight=arr(inf_w.astype(np.float32), float),
         contact_depth=float(p["contact_depth"]),
+        drag_carried=float(p["drag_carried"]),
         triangle_count=len(guard),
         triangle_guard=wp.array(guard, dtype=GuardedTriangle, device=device),
         fold_min_area=float(p["fold_min_area"]),

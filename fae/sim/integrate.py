@@ -6,7 +6,15 @@ takes a symplectic Euler step in which its velocity drag c and its anchor (a zer
 spring of stiffness k_a to its hold: its rest place carried by the skull, the jaw, or a
 blend of both, `particle_jaw`) are implicit:
 
-    v' = (v + h/m (f + k_a (hold - x))) / (1 + h c + h^2 k_a / m),   x' = x + h v'.
+    v' = (v + h/m (f + k_a (hold - x)) + h c a u) / (1 + h c + h^2 k_a / m),   x' = x + h v'.
+
+The bones move over a step from the Control's poses at its start to those at its end: the
+hold moves with them, substep by substep, at velocity u, and `drag_carried` a of the drag
+resists motion relative to it, the rest absolute motion (tissue is carried by the bone
+beneath it, so the whole drag against the jaw's carry left the chin 110 ms behind the
+mandible, and a lip whose FAP takes back part of that carry through its muscles first
+moved the wrong way; all of it carried, the lips ran 2.2x past their place as the jaw
+opened, the muscles' take-back still lagging).
 
 Both are per particle (diagonal), so implicit costs nothing more than explicit, and they
 widen the stable substep (see fae.sim.solver): the anchors are the stiffest part of the
@@ -75,18 +83,29 @@ def step_particles(particle_q: wp.array(dtype=wp.vec3), particle_qd: wp.array(dt
                    bone_translation: wp.array(dtype=wp.vec3),
                    head_sdf: wp.array3d(dtype=float), head_sdf_origin: wp.vec3, head_sdf_spacing: float,
                    jaw_sdf: wp.array3d(dtype=float), jaw_sdf_origin: wp.vec3, jaw_sdf_spacing: float,
-                   contact_depth: float, dt: float, particle_count: int, chunk: int,
-                   particle_q_out: wp.array(dtype=wp.vec3), particle_qd_out: wp.array(dtype=wp.vec3)):
+                   contact_depth: float, drag_carried: float, dt: float, step_phase: wp.array(dtype=float),
+                   particle_count: int,
+                   chunk: int, particle_q_out: wp.array(dtype=wp.vec3), particle_qd_out: wp.array(dtype=wp.vec3)):
     start = wp.tid() * chunk
     R0 = bone_rotation[0]
     R1 = bone_rotation[1]
     t0 = bone_translation[0]
     t1 = bone_translation[1]
+    # the bones at the step's start (fae.sim.model.POSE_COUNT); the holds move from there
+    R2 = bone_rotation[2]
+    R3 = bone_rotation[3]
+    t2 = bone_translation[2]
+    t3 = bone_translation[3]
+    reached = step_phase[0]  # the share of the step done at this substep's end
+    per_step = step_phase[1]  # 1 / the step's length, 1/s
     for tid in range(start, wp.min(start + chunk, particle_count)):
         ps = particle_static[tid]
         rest = ps.rest
         jaw = ps.jaw
-        target = (R0 * rest + t0) * (1.0 - jaw) + (R1 * rest + t1) * jaw
+        end = (R0 * rest + t0) * (1.0 - jaw) + (R1 * rest + t1) * jaw
+        begin = (R2 * rest + t2) * (1.0 - jaw) + (R3 * rest + t3) * jaw
+        target = begin + (end - begin) * reached
+        carried = (end - begin) * (per_step * drag_carried)
         w = ps.inv_mass
         if w == 0.0:
             particle_q_out[tid] = target
@@ -106,7 +125,9 @@ def step_particles(particle_q: wp.array(dtype=wp.vec3), particle_qd: wp.array(dt
                 f = f + dirm * (act * influence_weight[r])
                 ka = ka + km * wp.abs(act) * influence_weight[r]
         f = f + (target - x) * ps.anchor_stiffness
-        v = (v + f * (w * dt)) / (1.0 + dt * ps.drag + dt * dt * w * ka)
+        # the drag resists motion relative to the hold: skin carried by a moving bone
+        # is not held back (tissue moves with the bone beneath it)
+        v = (v + f * (w * dt) + carried * (dt * ps.drag)) / (1.0 + dt * ps.drag + dt * dt * w * ka)
         x = x + v * dt
         k = ps.below
         if k >= 0:
@@ -121,7 +142,8 @@ def step_particles(particle_q: wp.array(dtype=wp.vec3), particle_qd: wp.array(dt
                 if vn < 0.0:
                     v = v - n * vn
         if ps.collider != 0:
-            x, v = skull_then_jaw_contact(x0, x, v, rest, target, ps.clearance, head_sdf, head_sdf_origin,
+            # the bones are where the step ends, and so is the hold that tells their sides
+            x, v = skull_then_jaw_contact(x0, x, v, rest, end, ps.clearance, head_sdf, head_sdf_origin,
                                           head_sdf_spacing, R0, t0, jaw_sdf, jaw_sdf_origin, jaw_sdf_spacing, R1, t1,
                                           contact_depth)
         if ps.sphere[3] > 0.0 or ps.sphere_max > 0.0:

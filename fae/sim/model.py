@@ -26,6 +26,9 @@ import warp as wp
 
 BONE_NAMES = ("head", "jaw")
 BONE_COUNT = len(BONE_NAMES)
+# A Control's poses: the bones' now, then where they were at the step's start (the holds
+# move from those to these over the step, and the skin's drag is taken relative to them)
+POSE_COUNT = 2 * BONE_COUNT
 
 MUSCLE_LINEAR = 0
 MUSCLE_SPHINCTER = 1
@@ -61,6 +64,8 @@ class SkinModel:
     particle_drag       (P,) float 1/s: velocity drag applied implicitly each substep (`damping`,
                                    less where a pull field asks for a quicker skin)
     contact_depth       metres: deeper penetrations are left to the springs (fae.sim.collision)
+    drag_carried        0..1: the share of the drag taken relative to the skin's moving hold
+                        (fae.sim.integrate)
     triangle_count      triangles of the two upper layers guarded against folding (fae.sim.folds)
     triangle_guard      (T,) fae.sim.folds.GuardedTriangle: particles, rest shape, rest normal
     fold_min_area       a guarded triangle below this fraction of its rest area is restored
@@ -146,6 +151,7 @@ class SkinModel:
     influence_particle: wp.array
     influence_weight: wp.array
     contact_depth: float
+    drag_carried: float
     triangle_count: int
     triangle_guard: wp.array
     fold_min_area: float
@@ -185,8 +191,8 @@ class SkinModel:
         """A Control at rest: no activation, bones at their rest pose."""
         return Control(
             muscle_activation=wp.zeros(self.muscle_count, dtype=wp.float32, device=self.device),
-            bone_rotation=wp.array(np.tile(np.eye(3, dtype=np.float32), (BONE_COUNT, 1, 1)), dtype=wp.mat33, device=self.device),
-            bone_translation=wp.zeros(BONE_COUNT, dtype=wp.vec3, device=self.device),
+            bone_rotation=wp.array(np.tile(np.eye(3, dtype=np.float32), (POSE_COUNT, 1, 1)), dtype=wp.mat33, device=self.device),
+            bone_translation=wp.zeros(POSE_COUNT, dtype=wp.vec3, device=self.device),
         )
 
     def skin_arrays(self) -> tuple[wp.array, wp.array, wp.array]:
@@ -236,8 +242,9 @@ class Control:
     """Inputs of a step.
 
     muscle_activation (M,) float, dimensionless (muscle force = activation x weight)
-    bone_rotation     (BONE_COUNT,) mat33, rest -> now
-    bone_translation  (BONE_COUNT,) vec3 metres, rest -> now
+    bone_rotation     (POSE_COUNT,) mat33, rest -> now for each bone, then rest -> the
+                      step's start (the bones move between the two over the next step)
+    bone_translation  (POSE_COUNT,) vec3 metres, likewise
     """
 
     muscle_activation: wp.array
@@ -246,8 +253,17 @@ class Control:
     _views: dict = field(default_factory=dict, repr=False, compare=False)  # numpy views of CPU arrays
 
     def set(self, muscle_activation: np.ndarray | None = None, bone_rotation: np.ndarray | None = None,
-            bone_translation: np.ndarray | None = None) -> None:
-        """Copy numpy values in: (M,), (BONE_COUNT, 3, 3), (BONE_COUNT, 3)."""
+            bone_translation: np.ndarray | None = None, moving: bool = False) -> None:
+        """Copy numpy values in: (M,), (BONE_COUNT, 3, 3), (BONE_COUNT, 3). The bones are
+        placed there (no motion in the next step), or, `moving`, move there from the poses
+        this control held over the next step: the skin's holds go with them and its drag
+        resists only what moves relative to its hold (a player stepping frame by frame:
+        set, step once, set again). Both poses of a bone given alone are set."""
+        if moving:
+            bone_rotation, bone_translation = self._moved(self.bone_rotation, bone_rotation), \
+                self._moved(self.bone_translation, bone_translation)
+        else:
+            bone_rotation, bone_translation = _placed(bone_rotation), _placed(bone_translation)
         for array, value in ((self.muscle_activation, muscle_activation), (self.bone_rotation, bone_rotation),
                              (self.bone_translation, bone_translation)):
             if value is None:
@@ -260,3 +276,18 @@ class Control:
                 np.copyto(view, np.reshape(value, view.shape), casting="unsafe")
             else:
                 array.assign(np.asarray(value, dtype=np.float32))
+
+    def _moved(self, array: wp.array, now: np.ndarray | None) -> np.ndarray | None:
+        """(POSE_COUNT, ...) values: `now` (BONE_COUNT, ...) then what `array` holds now."""
+        if now is None:
+            return None
+        before = array.numpy()[:BONE_COUNT]  # a copy on a GPU; on the CPU a view, read before it is written
+        return np.concatenate([np.asarray(now, dtype=np.float64).reshape(before.shape), before])
+
+
+def _placed(now: np.ndarray | None) -> np.ndarray | None:
+    """(POSE_COUNT, ...) values: the poses `now` (BONE_COUNT, ...) at the step's start too."""
+    if now is None:
+        return None
+    now = np.asarray(now, dtype=np.float64)
+    return np.concatenate([now, now]) if len(now) == BONE_COUNT else now

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from fae.sim.model import MUSCLE_FIELD, MUSCLE_LINEAR, MUSCLE_SPHINCTER, SkinModel
+from fae.sim.model import BONE_COUNT, MUSCLE_FIELD, MUSCLE_LINEAR, MUSCLE_SPHINCTER, POSE_COUNT, SkinModel
 from fae.sim.collision import ENTRY_BISECTIONS, ON_SURFACE, TRACE_STEPS, TRACE_TOLERANCE, WRONG_SIDE_COS
 from fae.sim.sdf import sample_grid
 from fae.sim.solver import substep_count
@@ -393,22 +393,26 @@ class ReferenceSolver:
         h = dt / n
         w = self.inv_mass[:, None]
         fixed = self.inv_mass == 0.0
-        hold = self.holds(R, t)
+        end = self.holds(R, t)
+        # the bones at the step's start (POSE_COUNT poses; BONE_COUNT alone: placed, not moving)
+        begin = self.holds(R[BONE_COUNT:], t[BONE_COUNT:]) if len(R) == POSE_COUNT else end
+        carried = (end - begin) * (self.model.drag_carried / dt)
         ka = self.a["particle_anchor_stiffness"][:, None]
-        for _ in range(n):
+        for k in range(n):
+            hold = begin + (end - begin) * ((k + 1) / n)
             f_muscle, k_muscle = self.muscles(q, act, R, t)
             f = self.spring_forces(q) + (hold - q) * ka + f_muscle
             implicit = 1.0 + h * self.drag + h * h * (self.anchor_rate + k_muscle * self.inv_mass)
-            qd = (qd + f * w * h) / implicit[:, None]
+            qd = (qd + f * w * h + carried * (h * self.drag)[:, None]) / implicit[:, None]
             qd[fixed] = 0.0
             q_prev = q
             q = q + qd * h
             q[fixed] = hold[fixed]
             self.layer_order(q, qd, q_prev, R)
-            self.collide(q, qd, q_prev, R, t, hold)
+            self.collide(q, qd, q_prev, R, t, end)
             moved = None
             for _ in range(self.model.fold_passes):
-                guarded, moved = self.guard_folds(q, qd, R, t, hold, moved)
+                guarded, moved = self.guard_folds(q, qd, R, t, end, moved)
                 if guarded == 0:
                     break
         return q, qd

@@ -156,6 +156,10 @@ class SkinSolver:
         # [moves asked (triangles, creases, strained edges, lip pairs), particles on `touched`]
         # in the current pass
         self.pass_counts = wp.zeros(2, dtype=int, device=model.device)
+        # [the share of the step done at the current substep's end, 1 / the step's length]:
+        # the holds move with the bones over a step (fae.sim.integrate)
+        self.step_phase = wp.zeros(2, dtype=float, device=model.device)
+        self._step_phase = self.step_phase.numpy() if cpu else None
         self.touched = wp.zeros(model.particle_count, dtype=int, device=model.device)
         # the particles the last pass moved: flagged, and listed in one of two lists (the
         # next pass reads one while its moves fill the other), `_moved_list` the current one
@@ -217,8 +221,8 @@ class SkinSolver:
                         m.influence_muscle, m.influence_weight,
                         m.muscle_kind, self._muscle_point, self._muscle_axis_u, self._muscle_axis_v,
                         m.muscle_scale, control.muscle_activation, control.bone_rotation,
-                        control.bone_translation, *self._grids, float(m.contact_depth),
-                        float(h), m.particle_count, self.particle_chunk],
+                        control.bone_translation, *self._grids, float(m.contact_depth), float(m.drag_carried),
+                        float(h), self.step_phase, m.particle_count, self.particle_chunk],
                 outputs=[dst.particle_q, dst.particle_qd], record_cmd=True)
             guard = apply = None
             if m.triangle_count:
@@ -310,6 +314,11 @@ class SkinSolver:
             if dst is src:
                 dst = self._scratch[(k + 1) % 2]
             springs, particles, guard, apply = self._substep_launches(src, dst, control, h)[:4]
+            phase = ((k + 1) / n, 1.0 / dt)
+            if self._step_phase is not None:
+                self._step_phase[:] = phase
+            else:
+                self.step_phase.assign(np.array(phase, dtype=np.float32))
             self.particle_f.zero_()
             if model.spring_count:
                 springs.launch()
