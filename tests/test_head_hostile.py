@@ -27,7 +27,7 @@ def shipped():
     ({"layer_depth_fractions": [0.0, 1.0, 0.5]}, "layer_depth_fractions"),  # a traceback
     ({"cfl": 1e-9}, "cfl"),  # a billion times the substeps: a frame took minutes, `template check` said valid
     ({"density": 1e-9}, "density"),  # the same through the particles' mass
-    ({"drag_carried": 1.5}, "drag_carried"),  # skin pushed ahead of its moving hold
+    ({"drag_carried_skin": 1.5}, "drag_carried_skin"),  # skin pushed ahead of its moving hold
 ])
 def test_layer_params_the_simulation_cannot_use_are_named(shipped, tmp_path, capsys, params, field):
     path = tmp_path / "head.glb"

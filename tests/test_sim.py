@@ -107,9 +107,9 @@ def test_warp_step_matches_numpy_reference(model):
 
 def test_skin_carried_by_a_moving_jaw_keeps_up_with_it_as_its_numpy_twin_does(model):
     """A jaw moved from rest to 0.15 rad over one 40 ms step (a Control set `moving`): the
-    holds go with it over the step and the drag resists only `drag_carried` of the motion
+    holds go with it over the step and the carried part of the drag resists motion
     relative to them. The Warp step equals its numpy twin; the jaw's skin covers more of
-    its way than with the whole drag against its motion (drag_carried 0); a control set
+    its way than with the whole drag against its motion (nothing carried); a control set
     without motion gives both poses alike."""
     from fae.sim.model import BONE_COUNT, POSE_COUNT
 
@@ -126,7 +126,7 @@ def test_skin_carried_by_a_moving_jaw_keeps_up_with_it_as_its_numpy_twin_does(mo
     assert moved > 1e-3
     assert np.abs(state.particle_q.numpy() - q).max() < 1e-5 * max(1.0, moved / 1e-3)
     assert np.abs(state.particle_qd.numpy() - qd).max() < 1e-3
-    uncarried = dataclasses.replace(model, drag_carried=0.0)
+    uncarried = dataclasses.replace(model, particle_carried_drag=wp.zeros_like(model.particle_carried_drag))
     dragged, _, _, _ = _twin_steps(uncarried, activation, moving_rot, moving_tr, frames=1)
     hold = ref.holds(rot, tr)
     jaw = model.particle_jaw.numpy() > 0.9

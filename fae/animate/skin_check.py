@@ -44,7 +44,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fae.mesh import triangle_normals, triangle_pairs
-from fae.sim.build import HIDDEN_REGIONS, UPPER_LID_REGIONS
+from fae.sim.build import HIDDEN_REGIONS, LIP_REGIONS, UPPER_LID_REGIONS
 
 FOLD_COS = 0.0  # cos 90 degrees: a normal turned further than this is folded
 # a crease: two neighbours at most 45 degrees apart at rest, more than 90 degrees apart now
@@ -60,7 +60,6 @@ STRAIN_MIN_EDGE = 0.05
 SLIVER_HEIGHT = 0.01
 SWEEP_RAMP, SWEEP_HOLD = 4, 8  # frames of the FAP sweep: rise, hold at the limit
 EXPRESSION_RAMP, EXPRESSION_HOLD = 8, 12
-LIP_REGIONS = ("lip_upper", "lip_lower")
 # a hidden edge is tested against the visible triangles within this many metres of it at
 # rest (beyond each one's own size): the lining lies a few millimetres behind the skin
 LINING_REACH = 0.003

@@ -6,21 +6,16 @@ takes a symplectic Euler step in which its velocity drag c and its anchor (a zer
 spring of stiffness k_a to its hold: its rest place carried by the skull, the jaw, or a
 blend of both, `particle_jaw`) are implicit:
 
-    v' = (v + h/m (f + k_a (hold - x)) + h c a u) / (1 + h c + h^2 k_a / m),   x' = x + h v'.
+    v' = (v + h/m (f + k_a (hold - x)) + h c_a u) / (1 + h c + h^2 k_a / m),   x' = x + h v'.
 
 The bones move over a step from the Control's poses at its start to those at its end: the
-hold moves with them, substep by substep, at velocity u, and `drag_carried` a of the drag
-resists motion relative to it, the rest absolute motion (tissue is carried by the bone
-beneath it, so the whole drag against the jaw's carry left the chin 110 ms behind the
-mandible, and a lip whose FAP takes back part of that carry through its muscles first
-moved the wrong way; all of it carried, the lips ran 2.2x past their place as the jaw
-opened, the muscles' take-back still lagging).
-
-Both are per particle (diagonal), so implicit costs nothing more than explicit, and they
-widen the stable substep (see fae.sim.solver): the anchors are the stiffest part of the
-skin, and the drag also damps the springs' fastest modes. The stiffness of contracted muscles (fae.sim.muscles) joins k_a in the denominator:
-a linearized implicit step for them, which changes no equilibrium (at rest v' = v = 0 and
-f = 0 whatever the denominator). Only the springs are explicit.
+hold moves with them, substep by substep, at velocity u, and the particle's carried drag
+c_a (`particle_carried_drag`, a share of c: fae.sim.build.carried_share) resists motion
+relative to it, the rest of c absolute motion. Tissue is carried by the bone beneath it:
+the whole drag against the jaw's carry left the chin 110 ms behind the mandible, and a lip
+whose FAP takes back part of that carry through its muscles first moved the wrong way;
+the lips carried as much as the chin ran past their place as the jaw opened, the muscles'
+take-back still lagging.
 
 Then the layer order: an epidermis particle is kept at least `particle_height` above the
 previous position of its own vertex in the middle layer, along its rest normal carried by
@@ -54,7 +49,8 @@ class ParticleStatic:
     for a negative index; the pass is 18 % faster on the CPU). Fields as the SkinModel's
     particle_q (rest), particle_jaw, particle_inv_mass, particle_anchor_stiffness,
     row_influence_start[i] and [i + 1], particle_below, particle_normal, particle_height,
-    particle_collider, particle_clearance, particle_sphere, particle_sphere_max, particle_drag."""
+    particle_collider, particle_clearance, particle_sphere, particle_sphere_max, particle_drag,
+    particle_carried_drag."""
 
     rest: wp.vec3
     jaw: float
@@ -70,6 +66,7 @@ class ParticleStatic:
     sphere: wp.vec4
     sphere_max: float
     drag: float
+    carried_drag: float
 
 
 @wp.kernel
@@ -83,7 +80,7 @@ def step_particles(particle_q: wp.array(dtype=wp.vec3), particle_qd: wp.array(dt
                    bone_translation: wp.array(dtype=wp.vec3),
                    head_sdf: wp.array3d(dtype=float), head_sdf_origin: wp.vec3, head_sdf_spacing: float,
                    jaw_sdf: wp.array3d(dtype=float), jaw_sdf_origin: wp.vec3, jaw_sdf_spacing: float,
-                   contact_depth: float, drag_carried: float, dt: float, step_phase: wp.array(dtype=float),
+                   contact_depth: float, dt: float, step_phase: wp.array(dtype=float),
                    particle_count: int,
                    chunk: int, particle_q_out: wp.array(dtype=wp.vec3), particle_qd_out: wp.array(dtype=wp.vec3)):
     start = wp.tid() * chunk
@@ -105,7 +102,7 @@ def step_particles(particle_q: wp.array(dtype=wp.vec3), particle_qd: wp.array(dt
         end = (R0 * rest + t0) * (1.0 - jaw) + (R1 * rest + t1) * jaw
         begin = (R2 * rest + t2) * (1.0 - jaw) + (R3 * rest + t3) * jaw
         target = begin + (end - begin) * reached
-        carried = (end - begin) * (per_step * drag_carried)
+        carried = (end - begin) * per_step
         w = ps.inv_mass
         if w == 0.0:
             particle_q_out[tid] = target
@@ -127,7 +124,7 @@ def step_particles(particle_q: wp.array(dtype=wp.vec3), particle_qd: wp.array(dt
         f = f + (target - x) * ps.anchor_stiffness
         # the drag resists motion relative to the hold: skin carried by a moving bone
         # is not held back (tissue moves with the bone beneath it)
-        v = (v + f * (w * dt) + carried * (dt * ps.drag)) / (1.0 + dt * ps.drag + dt * dt * w * ka)
+        v = (v + f * (w * dt) + carried * (dt * ps.carried_drag)) / (1.0 + dt * ps.drag + dt * dt * w * ka)
         x = x + v * dt
         k = ps.below
         if k >= 0:

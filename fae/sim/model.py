@@ -63,9 +63,9 @@ class SkinModel:
                                    behind the lid's front); 0: no limit
     particle_drag       (P,) float 1/s: velocity drag applied implicitly each substep (`damping`,
                                    less where a pull field asks for a quicker skin)
+    particle_carried_drag (P,) float 1/s: the part of particle_drag that resists motion
+                        relative to the particle's hold as the bones move it (fae.sim.integrate)
     contact_depth       metres: deeper penetrations are left to the springs (fae.sim.collision)
-    drag_carried        0..1: the share of the drag taken relative to the skin's moving hold
-                        (fae.sim.integrate)
     triangle_count      triangles of the two upper layers guarded against folding (fae.sim.folds)
     triangle_guard      (T,) fae.sim.folds.GuardedTriangle: particles, rest shape, rest normal
     fold_min_area       a guarded triangle below this fraction of its rest area is restored
@@ -128,6 +128,7 @@ class SkinModel:
     particle_sphere: wp.array
     particle_sphere_max: wp.array
     particle_drag: wp.array
+    particle_carried_drag: wp.array
     spring_count: int
     spring_indices: wp.array
     spring_rest_length: wp.array
@@ -151,7 +152,6 @@ class SkinModel:
     influence_particle: wp.array
     influence_weight: wp.array
     contact_depth: float
-    drag_carried: float
     triangle_count: int
     triangle_guard: wp.array
     fold_min_area: float

@@ -111,7 +111,8 @@ def _pack(model: SkinModel) -> tuple[wp.array, wp.array, wp.array]:
                          ("below", model.particle_below), ("normal", model.particle_normal),
                          ("height", model.particle_height), ("collider", model.particle_collider),
                          ("clearance", model.particle_clearance), ("sphere", model.particle_sphere),
-                         ("sphere_max", model.particle_sphere_max), ("drag", model.particle_drag)):
+                         ("sphere_max", model.particle_sphere_max), ("drag", model.particle_drag),
+                         ("carried_drag", model.particle_carried_drag)):
         static[name] = values.numpy()
     static["influence_first"], static["influence_end"] = start[:-1], start[1:]
     return (wp.array(spring_start.astype(np.int32), dtype=int, device=model.device),
@@ -221,7 +222,7 @@ class SkinSolver:
                         m.influence_muscle, m.influence_weight,
                         m.muscle_kind, self._muscle_point, self._muscle_axis_u, self._muscle_axis_v,
                         m.muscle_scale, control.muscle_activation, control.bone_rotation,
-                        control.bone_translation, *self._grids, float(m.contact_depth), float(m.drag_carried),
+                        control.bone_translation, *self._grids, float(m.contact_depth),
                         float(h), self.step_phase, m.particle_count, self.particle_chunk],
                 outputs=[dst.particle_q, dst.particle_qd], record_cmd=True)
             guard = apply = None
