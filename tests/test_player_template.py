@@ -445,6 +445,21 @@ def test_the_chin_and_lower_lip_keep_up_with_a_jaw_opened_in_one_frame(player):
     assert lip[0] > 0.2 and lip.max() < 1.15
 
 
+def test_a_jaw_moved_in_a_vanishing_frame_leaves_the_skin_finite(player):
+    """The jaw carries the skin's holds over a frame of any length: after one of 1e-300 s
+    (whose 1 / dt is infinite in float32) the skin is finite, and the frames after it open
+    the mouth as usual."""
+    face = player.face
+    v = np.zeros(68)
+    v[2] = 600.0
+    player.reset()
+    assert np.all(np.isfinite(player.step(v, dt=1e-300)))
+    for _ in range(3):
+        skin = player.step(v, dt=1 / 25)
+    chin = face.surface_point_position(face.feature_points["2.1"], skin)[1]
+    assert np.all(np.isfinite(skin)) and chin < face.feature_point_positions()["2.1"][1] - 0.008
+
+
 def test_a_shut_upper_lid_rests_on_the_lower_lids_margin(player):
     """Through a blink as streams send it (512, 1024, 1024, 512, 0) and a lid held at 1024,
     the upper lid's skin within 3 mm of its margin (away from the eye's corners) never lies

@@ -94,7 +94,7 @@ def step_particles(particle_q: wp.array(dtype=wp.vec3), particle_qd: wp.array(dt
     t2 = bone_translation[2]
     t3 = bone_translation[3]
     reached = step_phase[0]  # the share of the step done at this substep's end
-    per_step = step_phase[1]  # 1 / the step's length, 1/s
+    substep_share = step_phase[1]  # h / the step's length: 1 / substeps
     for tid in range(start, wp.min(start + chunk, particle_count)):
         ps = particle_static[tid]
         rest = ps.rest
@@ -102,7 +102,9 @@ def step_particles(particle_q: wp.array(dtype=wp.vec3), particle_qd: wp.array(dt
         end = (R0 * rest + t0) * (1.0 - jaw) + (R1 * rest + t1) * jaw
         begin = (R2 * rest + t2) * (1.0 - jaw) + (R3 * rest + t3) * jaw
         target = begin + (end - begin) * reached
-        carried = (end - begin) * per_step
+        # h u, the hold's move in this substep (u itself would need 1 / dt, which overflows
+        # float32 for a frame shorter than 3e-39 s)
+        carried = (end - begin) * substep_share
         w = ps.inv_mass
         if w == 0.0:
             particle_q_out[tid] = target
@@ -124,7 +126,7 @@ def step_particles(particle_q: wp.array(dtype=wp.vec3), particle_qd: wp.array(dt
         f = f + (target - x) * ps.anchor_stiffness
         # the drag resists motion relative to the hold: skin carried by a moving bone
         # is not held back (tissue moves with the bone beneath it)
-        v = (v + f * (w * dt) + carried * (dt * ps.carried_drag)) / (1.0 + dt * ps.drag + dt * dt * w * ka)
+        v = (v + f * (w * dt) + carried * ps.carried_drag) / (1.0 + dt * ps.drag + dt * dt * w * ka)
         x = x + v * dt
         k = ps.below
         if k >= 0:

@@ -397,14 +397,14 @@ class ReferenceSolver:
         end = self.holds(R, t)
         # the bones at the step's start (POSE_COUNT poses; BONE_COUNT alone: placed, not moving)
         begin = self.holds(R[BONE_COUNT:], t[BONE_COUNT:]) if len(R) == POSE_COUNT else end
-        carried = (end - begin) / dt
+        carried = (end - begin) / n  # h u: the hold's move in a substep
         ka = self.a["particle_anchor_stiffness"][:, None]
         for k in range(n):
             hold = begin + (end - begin) * ((k + 1) / n)
             f_muscle, k_muscle = self.muscles(q, act, R, t)
             f = self.spring_forces(q) + (hold - q) * ka + f_muscle
             implicit = 1.0 + h * self.drag + h * h * (self.anchor_rate + k_muscle * self.inv_mass)
-            qd = (qd + f * w * h + carried * (h * self.carried_drag)[:, None]) / implicit[:, None]
+            qd = (qd + f * w * h + carried * self.carried_drag[:, None]) / implicit[:, None]
             qd[fixed] = 0.0
             q_prev = q
             q = q + qd * h

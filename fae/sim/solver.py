@@ -157,7 +157,7 @@ class SkinSolver:
         # [moves asked (triangles, creases, strained edges, lip pairs), particles on `touched`]
         # in the current pass
         self.pass_counts = wp.zeros(2, dtype=int, device=model.device)
-        # [the share of the step done at the current substep's end, 1 / the step's length]:
+        # [the share of the step done at the current substep's end, one substep's share]:
         # the holds move with the bones over a step (fae.sim.integrate)
         self.step_phase = wp.zeros(2, dtype=float, device=model.device)
         self._step_phase = self.step_phase.numpy() if cpu else None
@@ -315,7 +315,7 @@ class SkinSolver:
             if dst is src:
                 dst = self._scratch[(k + 1) % 2]
             springs, particles, guard, apply = self._substep_launches(src, dst, control, h)[:4]
-            phase = ((k + 1) / n, 1.0 / dt)
+            phase = ((k + 1) / n, 1.0 / n)
             if self._step_phase is not None:
                 self._step_phase[:] = phase
             else:
