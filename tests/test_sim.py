@@ -537,3 +537,27 @@ def test_each_lip_particle_is_paired_with_its_nearest_on_the_other_lip_within_re
     pairs = sorted(map(tuple, np.column_stack([more["upper"], more["lower"]]).tolist()))
     assert pairs == [(0, 3), (0, 4), (1, 3), (1, 4), (1, 5), (2, 4), (2, 5)]
     assert np.all(more["gap"] == 0.0) and np.all(more["upper_share"] == 0.5)
+
+
+def test_a_control_set_in_parts_never_replays_an_old_motion(model):
+    """Poses not given in a `set` stay where they are and do not move in the next step:
+    after a moving set, activations alone (or one pose array alone) leave the start and
+    end poses equal for what was not given; a flat pose array is read as the bones' poses;
+    a pose array of the wrong size is named."""
+    from fae.sim.model import BONE_COUNT
+
+    rot, tr = _jaw_pose(0.3, model.jaw_pivot)
+    control = model.control()
+    control.set(bone_rotation=rot, bone_translation=tr, moving=True)
+    control.set(muscle_activation=np.zeros(model.muscle_count))
+    R, t = control.bone_rotation.numpy(), control.bone_translation.numpy()
+    assert np.allclose(R[:BONE_COUNT], rot, atol=1e-6) and np.allclose(R[BONE_COUNT:], rot, atol=1e-6)
+    assert np.allclose(t[BONE_COUNT:], t[:BONE_COUNT])
+    control.set(bone_rotation=np.tile(np.eye(3), (2, 1, 1)), bone_translation=np.zeros((2, 3)), moving=True)
+    control.set(bone_rotation=rot, moving=True)  # the rotation moves back; the translation stays at 0
+    t = control.bone_translation.numpy()
+    assert np.allclose(t, 0.0)
+    control.set(bone_translation=tr.ravel())
+    assert np.allclose(control.bone_translation.numpy()[:BONE_COUNT], tr, atol=1e-7)
+    with pytest.raises(ValueError, match="bone poses: expected 6 values"):
+        control.set(bone_translation=np.zeros(5))

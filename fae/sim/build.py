@@ -24,7 +24,7 @@ Parameters (keys of `layer_params`, else these defaults): stiffness per unit mas
 (1/s^2) `kappa_epidermis` 600, `kappa_middle` 300, `kappa_deep` 300, `kappa_vertical`
 1000, `kappa_cross` 400, `kappa_anchor` 10000 (deepest layer to its hold), `kappa_tether`
 500 (upper layers to theirs); `drag` 70 1/s, of which `drag_carried_skin` 0.8 is taken
-relative to the hold as a bone moves it, `drag_carried` 0.4 on the lips (`carried_share`,
+relative to the hold as a bone moves it, `drag_carried` 0.3 on the lips (`carried_share`,
 fae.sim.integrate: a jaw opened in one frame left the chin at 31 % of its drop in that
 frame with the whole drag against the motion, 66 % now); `density` 1100 kg/m^3;
 (a pull field may lower the drag of the skin it pulls: `PullField.drag`, the eyelids'
@@ -93,7 +93,7 @@ DEFAULTS = {
     "kappa_anchor": 10000.0,
     "kappa_tether": 500.0,
     "drag": 70.0,
-    "drag_carried": 0.4,
+    "drag_carried": 0.3,
     "drag_carried_skin": 0.8,
     "density": 1100.0,
     "muscle_acceleration": 50.0,
@@ -184,7 +184,8 @@ def carried_share(face: FaceModel, A: sp.csr_matrix, params: dict) -> np.ndarray
     vertex adjacency). The more of its drag is carried, the sooner skin keeps up with the
     bone under it; but a lip's FAP takes back part of the jaw's carry through muscles the
     drag still holds back, and the lips carried as much as the chin ran past their place as
-    the jaw opened (2.2x with the whole drag carried, 1.3x with 0.6)."""
+    the jaw opened (2.2x with the whole drag carried, 1.3x with 0.6, 1.25x at 60 frames/s
+    with 0.4; 1.07x at most with 0.3, at 25 to 100 frames/s)."""
     lip_share, skin_share = float(params["drag_carried"]), float(params["drag_carried_skin"])
     names = list(face.region_names)
     lips = np.isin(np.asarray(face.skin_region), [names.index(r) for r in LIP_REGIONS if r in names])

@@ -254,40 +254,40 @@ class Control:
 
     def set(self, muscle_activation: np.ndarray | None = None, bone_rotation: np.ndarray | None = None,
             bone_translation: np.ndarray | None = None, moving: bool = False) -> None:
-        """Copy numpy values in: (M,), (BONE_COUNT, 3, 3), (BONE_COUNT, 3). The bones are
-        placed there (no motion in the next step), or, `moving`, move there from the poses
-        this control held over the next step: the skin's holds go with them and its drag
-        resists only what moves relative to its hold (a player stepping frame by frame:
-        set, step once, set again). Both poses of a bone given alone are set."""
-        if moving:
-            bone_rotation, bone_translation = self._moved(self.bone_rotation, bone_rotation), \
-                self._moved(self.bone_translation, bone_translation)
-        else:
-            bone_rotation, bone_translation = _placed(bone_rotation), _placed(bone_translation)
-        for array, value in ((self.muscle_activation, muscle_activation), (self.bone_rotation, bone_rotation),
-                             (self.bone_translation, bone_translation)):
-            if value is None:
-                continue
+        """Copy numpy values in: (M,), bone poses (BONE_COUNT, 3, 3) and (BONE_COUNT, 3) (or
+        the same values flat). The bones are placed there (no motion in the next step), or,
+        `moving`, move there over the next step from the poses this control held: the
+        skin's holds go with them and part of its drag resists only what moves relative to
+        its hold. A moving control describes one step: a player sets it, steps once, and
+        sets it again (stepped twice, the motion plays twice). A pose not given stays where
+        it is, unmoving. Placed bones may also be given as all POSE_COUNT poses."""
+        for array, value in ((self.muscle_activation, muscle_activation),
+                             (self.bone_rotation, self._poses(self.bone_rotation, bone_rotation, moving)),
+                             (self.bone_translation, self._poses(self.bone_translation, bone_translation, moving))):
             if array.device.is_cpu:
                 # the array's own memory: no temporary Warp array per frame
                 view = self._views.get(id(array))
                 if view is None:
                     view = self._views[id(array)] = array.numpy()
-                np.copyto(view, np.reshape(value, view.shape), casting="unsafe")
-            else:
+                if value is not None:
+                    np.copyto(view, np.reshape(value, view.shape), casting="unsafe")
+            elif value is not None:
                 array.assign(np.asarray(value, dtype=np.float32))
 
-    def _moved(self, array: wp.array, now: np.ndarray | None) -> np.ndarray | None:
-        """(POSE_COUNT, ...) values: `now` (BONE_COUNT, ...) then what `array` holds now."""
+    def _poses(self, array: wp.array, now: np.ndarray | None, moving: bool) -> np.ndarray:
+        """(POSE_COUNT, ...) values for a pose array: the poses `now` (BONE_COUNT, ...; None:
+        the ones it holds) at the step's end, then at its start what it held (`moving`) or
+        `now` again."""
+        view = self._views.get(id(array))
+        held = (view if view is not None else array.numpy())[:BONE_COUNT].astype(np.float64)  # a copy
         if now is None:
-            return None
-        before = array.numpy()[:BONE_COUNT]  # a copy on a GPU; on the CPU a view, read before it is written
-        return np.concatenate([np.asarray(now, dtype=np.float64).reshape(before.shape), before])
-
-
-def _placed(now: np.ndarray | None) -> np.ndarray | None:
-    """(POSE_COUNT, ...) values: the poses `now` (BONE_COUNT, ...) at the step's start too."""
-    if now is None:
-        return None
-    now = np.asarray(now, dtype=np.float64)
-    return np.concatenate([now, now]) if len(now) == BONE_COUNT else now
+            return np.concatenate([held, held])
+        now = np.asarray(now, dtype=np.float64)
+        if now.size == 2 * held.size and not moving:  # every pose given
+            return now.reshape((POSE_COUNT,) + held.shape[1:])
+        if now.size != held.size:
+            raise ValueError(f"bone poses: expected {held.size} values ({BONE_COUNT} bones"
+                             f"{'' if moving else f', or {2 * held.size} for all {POSE_COUNT} poses placed'}), "
+                             f"got shape {now.shape}")
+        now = now.reshape(held.shape)
+        return np.concatenate([now, held if moving else now])

@@ -4,7 +4,9 @@ Scheme. A frame of length dt is split into n = ceil(dt / dt_max) equal substeps 
 
     f = springs (a scatter over rows of springs, fae.sim.springs);
     one pass over particles (fae.sim.integrate): f += muscles;
-        v' = (v + h/m (f + k_a (hold - x))) / (1 + h c + h^2 (k_a + k_m) / m);  x' = x + h v';
+        v' = (v + h/m (f + k_a (hold - x)) + h c_a u) / (1 + h c + h^2 (k_a + k_m) / m);  x' = x + h v'
+        (the hold moving with the bones over the frame at velocity u, c_a the part of the
+        drag carried with it);
         upper layers kept above the next; contact with skull and mandible (fae.sim.collision);
     then up to `fold_passes` passes of the fold guard, crease smoothing and lip contact
     (fae.sim.folds), each move stopping at the bones.
