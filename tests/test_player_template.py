@@ -460,6 +460,34 @@ def test_a_jaw_moved_in_a_vanishing_frame_leaves_the_skin_finite(player):
     assert np.all(np.isfinite(skin)) and chin < face.feature_point_positions()["2.1"][1] - 0.008
 
 
+def test_the_upper_lids_follow_the_eyes_turned_down_and_a_little_up(player):
+    """Both eyes turned down 0.2 rad (pitch 20000 AU): the iris's top drops 2.4 mm (12 mm
+    eyeballs) and the upper lids' points (3.1, 3.2) follow it by 1.5 mm or more (1.97 mm
+    measured; before, the lids stayed and a band of white showed over each iris); turned
+    up, they rise 0.5-1.8 mm (1.13); the lower lids stay; the FAP values themselves are
+    not changed (lids_following_gaze works on a copy)."""
+    face = player.face
+    rest = face.feature_point_positions()
+    moved = {}
+    for pitch in (20000.0, -20000.0):
+        v = np.zeros(68)
+        v[[24, 25]] = pitch
+        skin = settle(player, v)
+        moved[pitch] = {n: face.surface_point_position(face.feature_points[n], skin)[1] - rest[n][1]
+                        for n in ("3.1", "3.2", "3.3", "3.4")}
+    for n in ("3.1", "3.2"):
+        assert moved[20000.0][n] < -0.0015
+        assert 0.0005 < moved[-20000.0][n] < 0.0018
+    for n in ("3.3", "3.4"):
+        assert abs(moved[20000.0][n]) < 3e-4 and abs(moved[-20000.0][n]) < 3e-4
+    from fae.animate.controls import lids_following_gaze
+
+    v = np.zeros(68)
+    v[[24, 25]] = 20000.0
+    lids = lids_following_gaze(v, player.controls.lid_gaze)
+    assert lids[18] > 100.0 and lids[19] > 100.0 and v[18] == 0.0  # the values given are not changed
+
+
 def test_a_shut_upper_lid_rests_on_the_lower_lids_margin(player):
     """Through a blink as streams send it (512, 1024, 1024, 512, 0) and a lid held at 1024,
     the upper lid's skin within 3 mm of its margin (away from the eye's corners) never lies

@@ -19,6 +19,7 @@ import numpy as np
 
 from fae.animate.mapping import FORMAT_VERSION, JAW_CONTROLS, JAW_OPEN, LIP_PAIRS, field_faps
 from fae.mpeg4.faps import FAP_COUNT
+from fae.mpeg4.faptables import fapu_of
 
 ACTIVATION_LIMIT = 50.0
 # rad: the widest opening; below the angle where the chin (2.1) is lowest (about 0.6 rad
@@ -98,6 +99,49 @@ def merge_lip_pairs(values: np.ndarray, overlap: np.ndarray) -> np.ndarray:
     return out
 
 
+# The upper lids follow the eyes' vertical turn, as a person's do: an eye turned down 0.2
+# rad under a still lid showed a band of white over its iris, a stare. A lid's close value
+# (IRISD units) gains LID_FOLLOWS_GAZE x the eyeball's radius x its pitch (down +), the
+# lid's margin then moving with the top of the iris (lids_following_gaze); turned up, half
+# as much (followed as far, the lid bared the white over the iris, a startled look).
+LID_FOLLOWS_GAZE = 0.8
+LID_FOLLOWS_GAZE_UP = 0.5  # of LID_FOLLOWS_GAZE
+PITCH_FAPS = (25, 26)  # pitch_l_eyeball, pitch_r_eyeball (AU, down +), moving lids 19, 20
+
+
+def lids_following_gaze(values: np.ndarray, follow: np.ndarray) -> np.ndarray:
+    """(68,) FAP values with the upper lids' close values (19, 20) raised by `follow` (2,)
+    IRISD units per AU times their eye's pitch (25, 26; turned up, LID_FOLLOWS_GAZE_UP of
+    that): the lids the physics and the FaceDefTables move. `values` itself is not
+    changed; follow 0 returns it."""
+    if not np.any(follow):
+        return values
+    out = np.array(values, dtype=np.float64)
+    for k, (lid, pitch) in enumerate(zip(LID_FAPS[:2], PITCH_FAPS)):
+        turn = out[pitch - 1]
+        out[lid - 1] += follow[k] * turn * (1.0 if turn > 0.0 else LID_FOLLOWS_GAZE_UP)
+    return out
+
+
+def lid_gaze_follow(face, fapu: dict[str, float]) -> np.ndarray:
+    """(2,) IRISD units of upper lid close per AU of eye pitch (left, right) for `face`:
+    LID_FOLLOWS_GAZE x the eyeball's radius (its mesh's median distance from its centre) in
+    IRISD units x AU; 0 for a side without an eyeball."""
+    out = np.zeros(2)
+    for k, side in enumerate(("eye_l", "eye_r")):
+        centre = getattr(face, "eye_centers", {}).get(side)
+        if centre is None:
+            continue
+        try:
+            V = np.asarray(face.mesh(side)[0], dtype=np.float64)
+        except (KeyError, ValueError):
+            continue
+        if len(V):
+            radius = float(np.median(np.linalg.norm(V - np.asarray(centre, dtype=np.float64), axis=1)))
+            out[k] = LID_FOLLOWS_GAZE * radius * fapu["AU"] / fapu["IRISD"]
+    return out
+
+
 class MappingMismatch(ValueError):
     """The head's fap_mapping does not fit its muscles and fields (recalibrate)."""
 
@@ -149,6 +193,7 @@ class FapControls:
         self.model_muscles = nm
         # the lids' pull fields among the controls (ActivationLead)
         self.lid_rows = np.array([nm + fields.index(k) for k in LID_FAPS if k in fields], dtype=np.int64)
+        self.lid_gaze = lid_gaze_follow(face, fapu_of(face))  # (2,) IRISD units per AU
         tv, ts = self.table_values, self.table_scale
         # per-FAP slopes of the scale tables, for a vectorized interpolation
         self._x = tv
@@ -165,8 +210,9 @@ class FapControls:
         return self.table_scale[r, seg] + self._slope[r, seg] * (v - self._x[r, seg])
 
     def controls(self, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(activation (M,) for muscles then fields, jaw (3,) angle rad, thrust m, shift m)."""
-        v = np.asarray(values, dtype=np.float64)
+        """(activation (M,) for muscles then fields, jaw (3,) angle rad, thrust m, shift m);
+        the upper lids follow the eyes' pitch (lids_following_gaze)."""
+        v = lids_following_gaze(np.asarray(values, dtype=np.float64), self.lid_gaze)
         u = v - self.jaw_follow * v[JAW_OPEN - 1]
         s = merge_lip_pairs(np.where(u * v > 0.0, self.scale(u), self.hold_scale) * u, self.pair_overlap)
         c = np.concatenate([np.maximum(s, 0.0), np.maximum(-s, 0.0)]) @ self._gains

@@ -2,7 +2,7 @@
 
 Per frame (only precomputed arrays are used): FAP 1/2 records -> low-level values, added to
 the frame's own; clamp (fae.mpeg4.faptables); one matmul to muscle/field activations and
-the jaw pose (fae.animate.controls), the closing lids' pulls led so that they reach the
+the jaw pose (fae.animate.controls; the upper lids following the eyes' pitch), the closing lids' pulls led so that they reach the
 frame's pose by its end (ActivationLead, per face); one solver step of the skin in the head's frame
 (fae.sim), the jaw moving from its last pose over the frame and carrying the skin's holds; FaceDefTable offsets added (a frame that repeats the previous one on skin that has
 settled skips the solver); then the head pose (rotation about 7.1) carries
@@ -34,7 +34,8 @@ import numpy as np
 from fae.animate.bake import bake_tables, baked_model, has_baked_tables
 from fae.animate.calibrate import calibrate, pull_fields
 from fae.animate.ears import ear_tables
-from fae.animate.controls import LID_RESPONSE_SECONDS, ActivationLead, FapControls, MappingMismatch, merge_lip_pairs
+from fae.animate.controls import (LID_RESPONSE_SECONDS, ActivationLead, FapControls, MappingMismatch, lids_following_gaze,
+                                  merge_lip_pairs)
 from fae.animate.facedef import FaceDefOffsets
 from fae.mpeg4.faptables import FAP_COUNT, clamp_values, fapu_of
 from fae.animate.highlevel import highlevel_values
@@ -272,7 +273,8 @@ class Player:
         them (merge_lip_pairs), or a corner both move would move twice as far."""
         _, jaw = self.controls.controls(v)
         bones = self.rig.poses(v, self.rig.jaw(*jaw))
-        skin = self.facedef.displaced(merge_lip_pairs(v, self.controls.pair_overlap), self.head.rest_skin,
+        lids = lids_following_gaze(v, self.controls.lid_gaze)
+        skin = self.facedef.displaced(merge_lip_pairs(lids, self.controls.pair_overlap), self.head.rest_skin,
                                       bones["head"])
         self.bone_transforms = bones
         self.pupil_scale = self.rig.pupil_scale(v)
