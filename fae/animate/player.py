@@ -2,11 +2,12 @@
 
 Per frame (only precomputed arrays are used): FAP 1/2 records -> low-level values, added to
 the frame's own; clamp (fae.mpeg4.faptables); one matmul to muscle/field activations and
-the jaw pose (fae.animate.controls; the upper lids following the eyes' pitch), the closing lids' pulls led so that they reach the
-frame's pose by its end (ActivationLead, per face); one solver step of the skin in the head's frame
-(fae.sim), the jaw moving from its last pose over the frame and carrying the skin's holds; FaceDefTable offsets added (a frame that repeats the previous one on skin that has
-settled skips the solver); then the head pose (rotation about 7.1) carries
-skin and parts. What all faces of one head share is a PlayableHead, built once; a head
+the jaw pose (fae.animate.controls; the upper lids following the eyes' pitch), the closing
+lids' pulls led so that they reach the frame's pose by its end (ActivationLead, per face);
+one solver step of the skin in the head's frame (fae.sim), the jaw moving from its last
+pose over the frame and carrying the skin's holds; FaceDefTable offsets added (a frame
+that repeats the previous one on skin that has settled skips the solver); then the head
+pose (rotation about 7.1) carries skin and parts. What all faces of one head share is a PlayableHead, built once; a head
 without a calibrated `fap_mapping` is calibrated by `playable_head` (fae.animate.calibrate,
 tens of seconds; shipped heads carry theirs), never by a constructor.
 
