@@ -484,7 +484,7 @@ def test_the_upper_lids_follow_the_eyes_turned_down_and_a_little_up(player):
 
     v = np.zeros(68)
     v[[24, 25]] = 20000.0
-    lids = lids_following_gaze(v, player.controls.lid_gaze)
+    lids = lids_following_gaze(v, player.lid_gaze)
     assert lids[18] > 100.0 and lids[19] > 100.0 and v[18] == 0.0  # the values given are not changed
 
 

@@ -19,7 +19,6 @@ import numpy as np
 
 from fae.animate.mapping import FORMAT_VERSION, JAW_CONTROLS, JAW_OPEN, LIP_PAIRS, field_faps
 from fae.mpeg4.faps import FAP_COUNT
-from fae.mpeg4.faptables import fapu_of
 
 ACTIVATION_LIMIT = 50.0
 # rad: the widest opening; below the angle where the chin (2.1) is lowest (about 0.6 rad
@@ -193,7 +192,6 @@ class FapControls:
         self.model_muscles = nm
         # the lids' pull fields among the controls (ActivationLead)
         self.lid_rows = np.array([nm + fields.index(k) for k in LID_FAPS if k in fields], dtype=np.int64)
-        self.lid_gaze = lid_gaze_follow(face, fapu_of(face))  # (2,) IRISD units per AU
         tv, ts = self.table_values, self.table_scale
         # per-FAP slopes of the scale tables, for a vectorized interpolation
         self._x = tv
@@ -210,9 +208,8 @@ class FapControls:
         return self.table_scale[r, seg] + self._slope[r, seg] * (v - self._x[r, seg])
 
     def controls(self, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(activation (M,) for muscles then fields, jaw (3,) angle rad, thrust m, shift m);
-        the upper lids follow the eyes' pitch (lids_following_gaze)."""
-        v = lids_following_gaze(np.asarray(values, dtype=np.float64), self.lid_gaze)
+        """(activation (M,) for muscles then fields, jaw (3,) angle rad, thrust m, shift m)."""
+        v = np.asarray(values, dtype=np.float64)
         u = v - self.jaw_follow * v[JAW_OPEN - 1]
         s = merge_lip_pairs(np.where(u * v > 0.0, self.scale(u), self.hold_scale) * u, self.pair_overlap)
         c = np.concatenate([np.maximum(s, 0.0), np.maximum(-s, 0.0)]) @ self._gains

@@ -2,12 +2,12 @@
 
 Per frame (only precomputed arrays are used): FAP 1/2 records -> low-level values, added to
 the frame's own; clamp (fae.mpeg4.faptables); one matmul to muscle/field activations and
-the jaw pose (fae.animate.controls; the upper lids following the eyes' pitch), the closing
-lids' pulls led so that they reach the frame's pose by its end (ActivationLead, per face);
-one solver step of the skin in the head's frame (fae.sim), the jaw moving from its last
-pose over the frame and carrying the skin's holds; FaceDefTable offsets added (a frame
-that repeats the previous one on skin that has settled skips the solver); then the head
-pose (rotation about 7.1) carries skin and parts. What all faces of one head share is a PlayableHead, built once; a head
+the jaw pose (fae.animate.controls; the upper lids following the eyes' pitch,
+lids_following_gaze), the closing lids' pulls led so that they reach the frame's pose by
+its end (ActivationLead, per face); one solver step of the skin in the head's frame
+(fae.sim), the jaw moving from its last pose over the frame and carrying the skin's holds;
+FaceDefTable offsets added (a frame that repeats the previous one on skin that has settled
+skips the solver); then the head pose (rotation about 7.1) carries skin and parts. What all faces of one head share is a PlayableHead, built once; a head
 without a calibrated `fap_mapping` is calibrated by `playable_head` (fae.animate.calibrate,
 tens of seconds; shipped heads carry theirs), never by a constructor.
 
@@ -35,8 +35,8 @@ import numpy as np
 from fae.animate.bake import bake_tables, baked_model, has_baked_tables
 from fae.animate.calibrate import calibrate, pull_fields
 from fae.animate.ears import ear_tables
-from fae.animate.controls import (LID_RESPONSE_SECONDS, ActivationLead, FapControls, MappingMismatch, lids_following_gaze,
-                                  merge_lip_pairs)
+from fae.animate.controls import (LID_RESPONSE_SECONDS, ActivationLead, FapControls, MappingMismatch, lid_gaze_follow,
+                                  lids_following_gaze, merge_lip_pairs)
 from fae.animate.facedef import FaceDefOffsets
 from fae.mpeg4.faptables import FAP_COUNT, clamp_values, fapu_of
 from fae.animate.highlevel import highlevel_values
@@ -109,6 +109,7 @@ class PlayableHead:
         self.device = device
         self.engine = engine
         self.fapu = fapu_of(model)
+        self.lid_gaze = lid_gaze_follow(model, self.fapu)  # (2,) IRISD units of lid close per AU of eye pitch
         authored = [t for t in model.face_def_tables if t.source == "authored"] + ear_tables(model, self.fapu)
         if engine == "fdt":
             baked = [t for t in model.face_def_tables if t.source == "physics"]
@@ -179,6 +180,7 @@ class Player:
     sim = property(lambda self: self.head.sim)
     controls = property(lambda self: self.head.controls)
     tables = property(lambda self: self.head.tables)
+    lid_gaze = property(lambda self: self.head.lid_gaze)
     engine = property(lambda self: self.head.engine)
 
     @property
@@ -242,7 +244,7 @@ class Player:
         dt = min(dt, MAX_STEP_SECONDS)
         if self.sim is None:
             return self._table_step(v)
-        activation, jaw = self.controls.controls(v)
+        activation, jaw = self.controls.controls(lids_following_gaze(v, self.lid_gaze))
         activation = self.lead.apply(activation, dt)
         J = self.rig.jaw(*jaw)
         self._R[1], self._t[1] = J[:3, :3], J[:3, 3]
@@ -274,7 +276,7 @@ class Player:
         them (merge_lip_pairs), or a corner both move would move twice as far."""
         _, jaw = self.controls.controls(v)
         bones = self.rig.poses(v, self.rig.jaw(*jaw))
-        lids = lids_following_gaze(v, self.controls.lid_gaze)
+        lids = lids_following_gaze(v, self.lid_gaze)
         skin = self.facedef.displaced(merge_lip_pairs(lids, self.controls.pair_overlap), self.head.rest_skin,
                                       bones["head"])
         self.bone_transforms = bones
