@@ -17,6 +17,13 @@ whose FAP takes back part of that carry through its muscles first moved the wron
 the lips carried as much as the chin ran past their place as the jaw opened, the muscles'
 take-back still lagging.
 
+The drag and the anchor are per particle (diagonal), so implicit costs nothing more than
+explicit, and they widen the stable substep (see fae.sim.solver): the anchors are the
+stiffest part of the skin, and the drag also damps the springs' fastest modes. The
+stiffness of contracted muscles (fae.sim.muscles) joins k_a in the denominator: a
+linearized implicit step for them, which changes no equilibrium (at rest v' = v = 0 and
+f = 0 whatever the denominator). Only the springs are explicit.
+
 Then the layer order: an epidermis particle is kept at least `particle_height` above the
 previous position of its own vertex in the middle layer, along its rest normal carried by
 its hold (a position projection; the inward normal velocity is removed). Without it an
@@ -80,8 +87,7 @@ def step_particles(particle_q: wp.array(dtype=wp.vec3), particle_qd: wp.array(dt
                    bone_translation: wp.array(dtype=wp.vec3),
                    head_sdf: wp.array3d(dtype=float), head_sdf_origin: wp.vec3, head_sdf_spacing: float,
                    jaw_sdf: wp.array3d(dtype=float), jaw_sdf_origin: wp.vec3, jaw_sdf_spacing: float,
-                   contact_depth: float, dt: float, step_phase: wp.array(dtype=float),
-                   particle_count: int,
+                   contact_depth: float, dt: float, step_phase: wp.array(dtype=float), particle_count: int,
                    chunk: int, particle_q_out: wp.array(dtype=wp.vec3), particle_qd_out: wp.array(dtype=wp.vec3)):
     start = wp.tid() * chunk
     R0 = bone_rotation[0]
