@@ -539,6 +539,22 @@ def test_each_lip_particle_is_paired_with_its_nearest_on_the_other_lip_within_re
     assert np.all(more["gap"] == 0.0) and np.all(more["upper_share"] == 0.5)
 
 
+def test_lips_pressed_together_keep_a_clearance_but_are_never_pushed_apart_at_rest():
+    """lip_pairs' clearance: an upper particle 1.5 mm over its partner at rest keeps at least
+    0.3 mm over it (pairs hold points apart while the other lip's wall slopes between its
+    particles: pressed level, a lower lip's particle poked 0.2 mm through the upper lip), one
+    0.1 mm over it keeps that 0.1 mm (the mouth's corners, where the lips meet at rest, are
+    not pushed apart), one lower at rest may stay as low."""
+    from fae.sim.folds import lip_pairs
+
+    q = np.array([[0.0, 1.5e-3, 0.0], [4e-3, 0.1e-3, 0.0], [8e-3, -0.2e-3, 0.0],
+                  [0.0, 0.0, 0.0], [4e-3, 0.0, 0.0], [8e-3, 0.0, 0.0]])
+    pairs = lip_pairs(q, np.arange(3), np.arange(3, 6), np.zeros(6), 0.003, clearance=3e-4)
+    gap = {(int(p["upper"]), int(p["lower"])): float(p["gap"]) for p in pairs}
+    assert gap == pytest.approx({(0, 3): 3e-4, (1, 4): 1e-4, (2, 5): -2e-4})
+    assert np.all(lip_pairs(q, np.arange(3), np.arange(3, 6), np.zeros(6), 0.003)["gap"] <= 0.0)
+
+
 def test_a_control_set_in_parts_never_replays_an_old_motion(model):
     """Poses not given in a `set` stay where they are and do not move in the next step:
     after a moving set, activations alone (or one pose array alone) leave the start and

@@ -368,6 +368,12 @@ LID_MARGIN_SLACK = 0.0005
 # frames, 30 now; xface_beg 3 -> 0, xface_hate 2 -> 0)
 LIP_PAIR_REACH = 0.006
 LIP_PAIR_NEIGHBOURS = 6
+# and a lip particle that lay above (below) its partner at rest stays LIP_CLEARANCE above
+# (below) it, or as far as it lay: the slit's walls slope between their particles, and
+# pressed level with its partners, a lower lip's particle still poked 0.2 mm through the
+# upper lip's wall (the shipped head's anger in expressions.fap: 11 lip edges through it in
+# 33 frames; none with 0.3 mm, the lips still meet in a line)
+LIP_CLEARANCE = 0.0003
 # An adapted head's upper lid can stand off its eyeball: fitted to a bust's sculpted eye, the
 # lid's margin and lining lay 5-10 mm in front of the eyeball placed in its socket. Such
 # lining (beyond LINING_STANDOFF; the generic head's lies within 3.5 mm) has no eyeball to
@@ -694,7 +700,8 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
     for name in ("lip_upper", "lip_lower"):
         v = sim_vertices[region[sim_vertices] == names.index(name)] if name in names else np.zeros(0, dtype=np.int64)
         lips.append(pid(0, v))
-    lip = lip_pairs(q, lips[0], lips[1], particle_jaw, LIP_PAIR_REACH, neighbours=LIP_PAIR_NEIGHBOURS)
+    lip = lip_pairs(q, lips[0], lips[1], particle_jaw, LIP_PAIR_REACH, neighbours=LIP_PAIR_NEIGHBOURS,
+                    clearance=LIP_CLEARANCE)
     from fae.adapt.transfer import visible_skin
 
     seen_skin = shared[4] if shared else visible_skin(face)

@@ -377,11 +377,14 @@ class LipPair:
 
 
 def lip_pairs(q: np.ndarray, upper: np.ndarray, lower: np.ndarray, jaw: np.ndarray, reach: float,
-              most_slack: float | None = None, neighbours: int = 1) -> np.ndarray:
+              most_slack: float | None = None, neighbours: int = 1, clearance: float = 0.0) -> np.ndarray:
     """Structured array of `LipPair`: each particle of `upper` (ids) within `reach` metres of
     one of `lower` at rest q (P, 3), with its `neighbours` nearest within it, and each of
     `lower` likewise; with `most_slack` (metres), the upper rises at most that much above
-    its rest height over the lower (else without limit)."""
+    its rest height over the lower (else without limit). clearance (metres): the least
+    height of an upper over a lower particle that lay higher at rest (at most its rest
+    height): pairs keep points apart, and the other lip's surface between its particles
+    slopes, so particles pressed level can still leave one poking through it."""
     from scipy.spatial import cKDTree
 
     out = []
@@ -397,7 +400,7 @@ def lip_pairs(q: np.ndarray, upper: np.ndarray, lower: np.ndarray, jaw: np.ndarr
     rec = np.zeros(len(pairs), dtype=LipPair.numpy_dtype())
     rec["upper"], rec["lower"] = pairs[:, 0], pairs[:, 1]
     rec["jaw"] = 0.5 * (jaw[pairs[:, 0]] + jaw[pairs[:, 1]])
-    rec["gap"] = np.minimum(0.0, q[pairs[:, 0], 1] - q[pairs[:, 1], 1])
+    rec["gap"] = np.minimum(clearance, q[pairs[:, 0], 1] - q[pairs[:, 1], 1])
     rec["most"] = np.inf if most_slack is None else np.maximum(0.0, q[pairs[:, 0], 1] - q[pairs[:, 1], 1]) + most_slack
     rec["upper_share"] = 0.5
     return rec
