@@ -63,6 +63,29 @@ def test_the_lower_lids_lining_come_out_through_the_skin_is_caught(face, check):
     assert r.back_area > 100e-6  # the lining's back, seen from in front: 232 mm^2 measured
 
 
+def test_the_lips_inner_edge_seen_by_its_back_counts_and_the_mouths_lining_does_not(face, check):
+    """Where a lip meets the mouth's lining, the triangles are hidden at rest and were left
+    out of the back check with the lining (dark from either side): a mouth corner pinched
+    inward (viseme 14, "U") flips them out beside the lips as dark spikes, and the check saw
+    nothing. Mirrored in front of the face, that edge now shows about 200 mm^2 by its back
+    (130 of them the lips' own skin it drags along); the lining mirrored so shows none."""
+    V0 = np.asarray(face.skin_vertices, dtype=np.float64)
+    F = np.asarray(face.skin_faces)
+    front = V0[:, 2].max() + 0.01
+    names = list(face.region_names)
+    region = np.asarray(face.skin_region)
+    lips = np.isin(region, [names.index("lip_upper"), names.index("lip_lower")])
+    lining = region == names.index("mouth_cavity")
+    seen = {}
+    for name, triangles in (("lip edge", lips[F].any(axis=1) & lining[F].any(axis=1)), ("lining", lining[F].all(axis=1))):
+        V = V0.copy()
+        ids = np.unique(F[triangles])
+        V[ids, 2] = 2.0 * front - V[ids, 2]  # mirrored about a plane 1 cm in front of the face
+        seen[name] = check.frame(V).back_area
+    assert seen["lip edge"] > 150e-6, seen
+    assert seen["lining"] == 0.0, seen
+
+
 def test_a_hidden_pit_pressed_flat_against_the_skin_is_not_called_lining(face, check):
     """An adapted head's fit can press a hidden pit (a nostril's, a corner's under the lid)
     flat against the visible skin: on the busts an edge 0.03 mm long lay on a triangle 0.06
@@ -384,12 +407,14 @@ def test_the_projects_own_streams_keep_the_skin_nearly_whole(name, most_folded, 
     away: the visemes' turned ones are at the mouth corners as viseme 14 narrows them,
     frames 25-27, which the calibration's noise moves; 18 / 56 / 49 before the closing
     lids' pulls were led),
-    no lining out and no skin's back seen. Not 0 yet: the upper lids' margins as blinks
+    no lining out and no skin's back seen but for a frame of visemes. Not 0 yet: the upper lids' margins as blinks
     close them (6 a lid in eyes_head; 16 before their caps were flipped away, 38 in all
     and 4 turned over), the lower lip's inner rim as the lips press, the mouth corners of
     the visemes (all on the lips: 46 and 2 turned over before the lids' flips, which shift
     the calibration a little; the limit of 8 leaves that room), the forehead under fear's
-    raised brows."""
+    raised brows; the mouth corners as viseme 14 ("U") pinches them, which flips the lips'
+    inner edge out beside them at its peak, dark specks of 2-3 mm^2 a corner (seen since the
+    back check counts that edge)."""
     from fae.animate.player import Player, playable_head
     from fae.io.fap import read_fap
 
@@ -398,7 +423,9 @@ def test_the_projects_own_streams_keep_the_skin_nearly_whole(name, most_folded, 
     assert r["frames_not_finite"] == 0, r
     assert r["triangles_folded"] <= most_folded, r
     assert r["triangles_turned"] <= most_turned, r
-    assert r["frames_lining_shown"] == 0 and r["frames_back_shown"] == 0, r
+    assert r["frames_lining_shown"] == 0, r
+    # viseme 14's pinched mouth corners flip the lips' inner edge out for a frame (6 mm^2)
+    assert r["frames_back_shown"] <= (1 if name == "visemes.fap" else 0), r
     assert r["frames_lips_crossed"] == 0, r  # 0 / 33 / 2 before the lips kept a clearance
     assert r["max_stretch"] <= 2.8, r
 

@@ -24,10 +24,11 @@ swaps sides at the slightest motion, unseen). The skin's
 **back shows** where a viewer in front of the face (the head's own frame, looking along -z)
 first meets a skin triangle from behind: rays on a `BACK_RAY_SPACING` grid over the face
 (scalp, neck, ears and the mouth's lining left out of the grid's extent; a ray meeting the
-mouth's lining, as dark from either side, not counted); the area they cover is what a
-viewer sees inside out, whatever made it (a lid's
-margin rolled out, a lip turned inside out, a fold), and a frame shows it when that area
-exceeds `BACK_AREA_LIMIT`.
+mouth's lining, as dark from either side, not counted; one meeting the lips' inner edge,
+where they join the lining, by its back is: a pinched mouth corner has flipped it out); the
+area they cover is what a viewer sees inside out, whatever made it (a lid's margin rolled
+out, a lip turned inside out, a fold), and a frame shows it when that area exceeds
+`BACK_AREA_LIMIT`.
 
     check = SkinCheck(face)
     for name, frames in default_streams(): ...          # the FAP sweep and the six expressions
@@ -252,6 +253,11 @@ class SkinCheck:
             self.lips = [(F[up], _triangle_edges(F[low])), (F[low], _triangle_edges(F[up]))]
         self.lining = lining_pairs(face, self.visible, hidden=hidden_skin)
         self.front_rays = front_ray_origins(face, self.visible)
+        # the lips' inner edge, where a lip meets the mouth's lining: hidden at rest, and no
+        # viewer in front ever meets it by its back first unless a lip has turned inside out
+        # there (a pinched mouth corner flips it out as a dark spike beside the lips)
+        lips = np.isin(region, [names.index(r) for r in LIP_REGIONS if r in names])
+        self.lip_edge = ~self.visible & lips[F].any(axis=1) & hidden[F].any(axis=1)
         self._query = None
 
     def frame(self, skin: np.ndarray) -> FrameCheck:
@@ -293,7 +299,8 @@ class SkinCheck:
         hit, _, tri, _ = self._query.ray_hits(origins, directions, 1.0)
         n = triangle_normals(skin, self.faces) if normals is None else normals
         tri = np.maximum(tri, 0)
-        back = hit & self.visible[tri] & (n[tri, 2] < 0.0)  # (the mouth's lining is dark either side)
+        # (the mouth's lining is dark either side; the lips' inner edge is not, seen from in front)
+        back = hit & (self.visible[tri] | self.lip_edge[tri]) & (n[tri, 2] < 0.0)
         return float(back.sum()) * BACK_RAY_SPACING ** 2
 
 
