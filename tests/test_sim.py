@@ -555,6 +555,26 @@ def test_lips_pressed_together_keep_a_clearance_but_are_never_pushed_apart_at_re
     assert np.all(lip_pairs(q, np.arange(3), np.arange(3, 6), np.zeros(6), 0.003)["gap"] <= 0.0)
 
 
+def test_the_shipped_heads_lips_keep_the_clearance_and_its_lids_lining_none():
+    """The built model of the shipped head: each pair of the mouth's lips (half the
+    correction each, no most height) keeps min(LIP_CLEARANCE, its rest height); the upper
+    lids' lining pairs (a most height) keep none (at most their rest height, as before)."""
+    from fae.data import shipped_head_path
+    from fae.io.facemodel_gltf import read_facemodel
+    from fae.sim.build import LIP_CLEARANCE
+
+    built = skin_model(read_facemodel(shipped_head_path()))
+    pairs = built.lip_pair.numpy()
+    q = built.particle_q.numpy().astype(np.float64)
+    rest = q[pairs["upper"], 1] - q[pairs["lower"], 1]
+    mouth = (pairs["upper_share"] == 0.5) & np.isinf(pairs["most"])
+    lining = np.isfinite(pairs["most"])
+    assert mouth.sum() > 200 and lining.sum() > 50
+    assert np.allclose(pairs["gap"][mouth], np.minimum(LIP_CLEARANCE, rest[mouth]), atol=1e-6)
+    assert np.all(pairs["gap"][mouth & (rest > 0.001)] == pytest.approx(LIP_CLEARANCE))
+    assert np.allclose(pairs["gap"][lining], np.minimum(0.0, rest[lining]), atol=1e-6)
+
+
 def test_a_control_set_in_parts_never_replays_an_old_motion(model):
     """Poses not given in a `set` stay where they are and do not move in the next step:
     after a moving set, activations alone (or one pose array alone) leave the start and

@@ -221,8 +221,8 @@ class SkinCheck:
         # degenerate rest triangles and needles have no direction to turn from
         longest = np.linalg.norm(V[F] - V[F][:, [1, 2, 0]], axis=2).max(axis=1)
         median_edge = median_edge_length(V, F)
-        self.visible = (~hidden[F].any(axis=1) & (area2 > 1e-14)
-                        & (area2 >= SLIVER_HEIGHT * median_edge * longest))
+        sized = (area2 > 1e-14) & (area2 >= SLIVER_HEIGHT * median_edge * longest)
+        self.visible = ~hidden[F].any(axis=1) & sized
         self.rest_normals = n / np.maximum(area2, 1e-30)[:, None]
         # a triangle's region: the most common of its corners' (ties: the first corner's)
         r = region[F]
@@ -257,7 +257,7 @@ class SkinCheck:
         # viewer in front ever meets it by its back first unless a lip has turned inside out
         # there (a pinched mouth corner flips it out as a dark spike beside the lips)
         lips = np.isin(region, [names.index(r) for r in LIP_REGIONS if r in names])
-        self.lip_edge = ~self.visible & lips[F].any(axis=1) & hidden[F].any(axis=1)
+        self.lip_edge = sized & lips[F].any(axis=1) & hidden[F].any(axis=1)
         self._query = None
 
     def frame(self, skin: np.ndarray) -> FrameCheck:
