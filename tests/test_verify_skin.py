@@ -300,6 +300,32 @@ def test_skin_that_is_not_finite_is_not_whole(face, check):
     assert check_stream(_SkinPlayer(face), [rest, rest], "fine", check=check)["ok"]
 
 
+def test_the_report_says_where_the_skin_shows_its_back(face, check):
+    """A stream whose second frame brings the lower lids' lining 6 mm forward, out through
+    the lids: the report names that frame as the worst for the skin's back and the regions
+    it is seen on (the lower lids), their areas adding up to the frame's."""
+    from fae.adapt.transfer import visible_skin
+
+    names = list(face.region_names)
+    lids = np.isin(np.asarray(face.skin_region), [names.index("eyelid_lower_l"), names.index("eyelid_lower_r")])
+    lining = lids & ~visible_skin(face)
+
+    def rest(skin):
+        return skin
+
+    def lining_out(skin):
+        skin[lining, 2] += 0.006
+        return skin
+
+    report = check_stream(_SkinPlayer(face), [rest, lining_out, rest], "lining out", check=check)
+    assert report["frames_back_shown"] == 1 and report["worst_back_frame"] == 1 and not report["ok"]
+    where = report["back_by_region"]
+    assert set(where) <= {"eyelid_lower_l", "eyelid_lower_r", "cheek_l", "cheek_r"} and where, where
+    assert where.get("eyelid_lower_l", 0) > 20 and where.get("eyelid_lower_r", 0) > 20, where
+    assert sum(where.values()) == pytest.approx(report["max_back_area_mm2"], abs=1.0)
+    assert check_stream(_SkinPlayer(face), [rest], "rest", check=check)["back_by_region"] == {}
+
+
 def test_a_stretch_just_past_the_limit_never_reads_as_within_it(face, check):
     """Every edge at 2.0003x its rest length failed, and the report said "max_stretch": 2.0
     (the table 2.00) beside the failure."""

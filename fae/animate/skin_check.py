@@ -40,7 +40,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -80,7 +80,9 @@ class FrameCheck:
     (the rest sit on a crease); stretch and compression: the largest and smallest edge
     length over rest length of visible edges; lip_crossings: lip edges that pass through
     the other lip; lining_crossings: edges of skin hidden at rest that pass through a
-    visible triangle; back_area: m^2 of the face a viewer in front sees by the skin's back."""
+    visible triangle; back_area: m^2 of the face a viewer in front sees by the skin's back;
+    back_rays: (T,) int per skin triangle, the rays that meet it first and by its back
+    (BACK_RAY_SPACING^2 each; empty where not measured)."""
 
     folded: np.ndarray
     turned: np.ndarray
@@ -89,6 +91,7 @@ class FrameCheck:
     lip_crossings: int
     lining_crossings: int = 0
     back_area: float = 0.0
+    back_rays: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
 
 
 def segments_through_triangles(a: np.ndarray, b: np.ndarray, T: np.ndarray) -> np.ndarray:
@@ -277,16 +280,19 @@ class SkinCheck:
         L = self.lining
         through = segment_triangle_pairs_crossing(skin[L[:, 0]], skin[L[:, 1]], skin[self.faces[L[:, 2]]])
         lining = len(np.unique(L[through, :2], axis=0))
+        back = self.back_rays(skin, n)
         return FrameCheck(folded=folded, turned=turned, stretch=float(ratio.max(initial=1.0)),
                           compression=float(ratio.min(initial=1.0)), lip_crossings=crossings,
-                          lining_crossings=lining, back_area=self.back_area(skin, n))
+                          lining_crossings=lining, back_area=float(back.sum()) * BACK_RAY_SPACING ** 2,
+                          back_rays=back)
 
-    def back_area(self, skin: np.ndarray, normals: np.ndarray | None = None) -> float:
-        """m^2 of the face that a viewer in front (along -z, head frame) sees by the skin's
-        back, for skin (V, 3) metres in the head's own frame (normals: its triangle normals,
-        when at hand)."""
+    def back_rays(self, skin: np.ndarray, normals: np.ndarray | None = None) -> np.ndarray:
+        """(T,) int: per skin triangle, the rays of the front grid (BACK_RAY_SPACING apart,
+        along -z in the head's own frame) that meet it first and by its back, for skin (V, 3)
+        metres in that frame (normals: its triangle normals, when at hand); their count times
+        BACK_RAY_SPACING^2 is the area a viewer in front sees by the skin's back."""
         if len(self.front_rays) == 0:
-            return 0.0
+            return np.zeros(len(self.faces), dtype=np.int64)
         from fae.adapt.query import MeshQuery
 
         if self._query is None:
@@ -301,7 +307,7 @@ class SkinCheck:
         tri = np.maximum(tri, 0)
         # (the mouth's lining is dark either side; the lips' inner edge is not, seen from in front)
         back = hit & (self.visible[tri] | self.lip_edge[tri]) & (n[tri, 2] < 0.0)
-        return float(back.sum()) * BACK_RAY_SPACING ** 2
+        return np.bincount(tri[back], minlength=len(self.faces))
 
 
 def front_ray_origins(face, visible_triangles: np.ndarray, spacing: float = BACK_RAY_SPACING) -> np.ndarray:
@@ -342,7 +348,8 @@ def check_stream(player, frames: Iterable, name: str = "", fps: float | None = N
     those, the ones whose own normal ever turned over; the rest only sat on a crease), "folded_by_region"
     {region: triangles}, "worst_frame", "worst_frame_folded", "max_stretch", "min_compression",
     "frames_lips_crossed", "max_lip_crossings", "frames_lining_shown", "max_lining_crossings",
-    "frames_back_shown", "max_back_area_mm2", "worst_back_frame", "ok"}; ok: every frame finite, nothing folded,
+    "frames_back_shown", "max_back_area_mm2", "worst_back_frame", "back_by_region" {region: mm^2
+    of the back seen in that worst frame}, "ok"}; ok: every frame finite, nothing folded,
     strain within [MIN_COMPRESSION, MAX_STRETCH], the lips never cross, no lining comes out
     through the skin and no frame shows the skin's back over more than BACK_AREA_LIMIT."""
     check = check or SkinCheck(player.face)
@@ -351,7 +358,7 @@ def check_stream(player, frames: Iterable, name: str = "", fps: float | None = N
     turned = np.zeros(len(check.faces), dtype=bool)
     count = folded_frames = lip_frames = max_crossings = lining_frames = max_lining = back_frames = 0
     worst, worst_count = -1, 0
-    worst_back, back_area = -1, 0.0
+    worst_back, back_area, back_rays = -1, 0.0, np.zeros(len(check.faces), dtype=np.int64)
     stretch, compression = 1.0, 1.0
     broken = 0  # frames whose skin is not finite: nothing of it can be measured, and it is not whole
     for frame in player.play(frames, fps=fps):
@@ -376,12 +383,16 @@ def check_stream(player, frames: Iterable, name: str = "", fps: float | None = N
         if r.back_area > BACK_AREA_LIMIT:
             back_frames += 1
         if r.back_area > back_area:
-            worst_back, back_area = frame.index, r.back_area
+            worst_back, back_area, back_rays = frame.index, r.back_area, r.back_rays
         stretch, compression = max(stretch, r.stretch), min(compression, r.compression)
     player.reset()
     regions = {}
     for rid in np.unique(check.triangle_region[ever]):
         regions[check.region_names[rid]] = int(np.sum(check.triangle_region[ever] == rid))
+    back_regions = {}  # mm^2 of the back seen in the worst frame, by the region of the triangles
+    for rid in np.unique(check.triangle_region[back_rays > 0]):
+        area = float(back_rays[check.triangle_region == rid].sum()) * BACK_RAY_SPACING ** 2 * 1e6
+        back_regions[check.region_names[rid]] = round(area, 1)
     ok = (not ever.any()) and stretch <= MAX_STRETCH and compression >= MIN_COMPRESSION and lip_frames == 0 \
         and lining_frames == 0 and back_frames == 0 and broken == 0
     return {"stream": name, "frames": count, "frames_not_finite": broken, "frames_folded": folded_frames, "triangles_folded": int(ever.sum()),
@@ -392,7 +403,7 @@ def check_stream(player, frames: Iterable, name: str = "", fps: float | None = N
             "frames_lips_crossed": lip_frames, "max_lip_crossings": max_crossings,
             "frames_lining_shown": lining_frames, "max_lining_crossings": max_lining,
             "frames_back_shown": back_frames, "max_back_area_mm2": round(back_area * 1e6, 1),
-            "worst_back_frame": worst_back, "ok": bool(ok)}
+            "worst_back_frame": worst_back, "back_by_region": back_regions, "ok": bool(ok)}
 
 
 def rounded_up(x: float, places: int) -> float:

@@ -104,6 +104,9 @@ def run(args) -> int:
             regions = [f"{k} {v}" for k, v in sorted(r["folded_by_region"].items(), key=lambda kv: -kv[1])[:4]]
             if r["frames_not_finite"]:
                 regions.insert(0, f"{r['frames_not_finite']} frames not finite (NaN or inf)")
+            if r["frames_back_shown"]:
+                back = sorted(r["back_by_region"].items(), key=lambda kv: -kv[1])[:2]
+                regions.append(f"back at frame {r['worst_back_frame']}: " + ", ".join(f"{k} {v:.0f} mm^2" for k, v in back))
             regions = ", ".join(regions)
             print(f"{_column(str(r['stream'])):<44} {r['frames']:>6} {r['triangles_folded']:>7} {r['triangles_turned']:>6} "
                   f"{r['frames_folded']:>8} "
