@@ -365,10 +365,11 @@ class LipPair:
     lower along the head's up direction carried by that hold: the lips' clearance
     (fae.sim.build.LIP_CLEARANCE) or the rest height where less (negative where the upper
     lies lower at rest; a lid's lining 0 at most; a closing lid's, the lower lid's margin
-    at its own x, fae.sim.folds.lid_pairs), and the most (+inf for the lips, which part freely; an upper lid's margin
-    keeps its lining within a little of its rest height over the front), and the share of
-    a correction the upper particle takes (the lower takes the rest: half each for the lips;
-    all of it for a closing lid, which stops on the lower lid without pushing it down)."""
+    at its own x, fae.sim.folds.lid_pairs), and the most (+inf for the lips, which part
+    freely; an upper lid's margin keeps its lining within a little of its rest height over
+    the front), and the share of a correction the upper particle takes (the lower takes the
+    rest: half each for the lips; all of it for a closing lid, which stops on the lower lid
+    without pushing it down)."""
 
     upper: int
     lower: int
