@@ -124,20 +124,15 @@ def lids_following_gaze(values: np.ndarray, follow: np.ndarray) -> np.ndarray:
 
 def lid_gaze_follow(face, fapu: dict[str, float]) -> np.ndarray:
     """(2,) IRISD units of upper lid close per AU of eye pitch (left, right) for `face`:
-    LID_FOLLOWS_GAZE x the eyeball's radius (its mesh's median distance from its centre) in
-    IRISD units x AU; 0 for a side without an eyeball."""
+    LID_FOLLOWS_GAZE x the eyeball's radius (fae.sim.build.eyeball_sphere, the one the skin
+    slides over) in IRISD units x AU; 0 for a side without an eyeball."""
+    from fae.sim.build import eyeball_sphere
+
     out = np.zeros(2)
     for k, side in enumerate(("eye_l", "eye_r")):
-        centre = getattr(face, "eye_centers", {}).get(side)
-        if centre is None:
-            continue
-        try:
-            V = np.asarray(face.mesh(side)[0], dtype=np.float64)
-        except (KeyError, ValueError):
-            continue
-        if len(V):
-            radius = float(np.median(np.linalg.norm(V - np.asarray(centre, dtype=np.float64), axis=1)))
-            out[k] = LID_FOLLOWS_GAZE * radius * fapu["AU"] / fapu["IRISD"]
+        sphere = eyeball_sphere(face, side)
+        if sphere is not None:
+            out[k] = LID_FOLLOWS_GAZE * sphere[1] * fapu["AU"] / fapu["IRISD"]
     return out
 
 
