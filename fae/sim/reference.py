@@ -49,22 +49,23 @@ class ReferenceSolver:
         n = q[self.j] - q[self.i]
         n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
         blocks = a["spring_stiffness"][:, None, None] * n[:, :, None] * n[:, None, :]
-        rows, cols, vals = [], [], []
-        ii, jj = self.i, self.j
-        for r in range(3):
-            for c in range(3):
-                for (x, y, s) in ((ii, ii, 1.0), (jj, jj, 1.0), (ii, jj, -1.0), (jj, ii, -1.0)):
-                    rows.append(3 * x + r)
-                    cols.append(3 * y + c)
-                    vals.append(s * blocks[:, r, c])
+        # 3x3 blocks (particle row, particle column): +k n n^T on both ends' diagonals, - off them
         ap = np.arange(P)
-        for r in range(3):
-            rows.append(3 * ap + r)
-            cols.append(3 * ap + r)
-            vals.append(a["particle_anchor_stiffness"].astype(np.float64))
-        K = sp.coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(3 * P, 3 * P)).tocsc()
-        free = np.repeat(a["particle_inv_mass"] > 0, 3)
-        return K[free][:, free].tocsc(), free
+        rows = np.concatenate([self.i, self.j, self.i, self.j, ap])
+        cols = np.concatenate([self.i, self.j, self.j, self.i, ap])
+        anchor = a["particle_anchor_stiffness"].astype(np.float64)[:, None, None] * np.eye(3)
+        data = np.concatenate([blocks, blocks, -blocks, -blocks, anchor])
+        # only the free particles' rows and columns, numbered among themselves
+        moving = a["particle_inv_mass"] > 0
+        keep = moving[rows] & moving[cols]
+        number = np.cumsum(moving) - 1
+        rows, cols, data = number[rows[keep]], number[cols[keep]], data[keep]
+        r3 = np.arange(3)
+        rr = np.broadcast_to(3 * rows[:, None, None] + r3[None, :, None], data.shape).reshape(-1)
+        cc = np.broadcast_to(3 * cols[:, None, None] + r3[None, None, :], data.shape).reshape(-1)
+        size = 3 * int(moving.sum())
+        K = sp.csc_matrix((data.reshape(-1), (rr, cc)), shape=(size, size))
+        return K, np.repeat(moving, 3)
 
     def spring_forces(self, q: np.ndarray) -> np.ndarray:
         """(P, 3) N: the springs' forces at positions q (P, 3) metres."""
