@@ -69,7 +69,7 @@ from __future__ import annotations
 import copy
 import queue
 import threading
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 
 import numpy as np
 import scipy.sparse as sp
@@ -638,6 +638,7 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
         return parts[key]
 
     def settled(job):
+        # job: (side, FAPs, values (68,), kind "probe" / "hold" / "whole", FapControls)
         key = -1 if job[3] in ("hold", "whole") or any(k in JAW_FAPS for k in job[1]) else batch_of[job[1][0]]
         part = model if key < 0 else part_of(key)
         try:
@@ -645,10 +646,7 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
         except queue.Empty:
             solver, scratch = SkinSolver(part), settle_scratch(part)
         try:
-            # open_jaw is probed without the lips taking back what it carries (jaw_follow):
-            # that is what it measures; the "hold" job probes it with them
-            controls = jaw_alone if JAW_OPEN in job[1] and job[3] == "probe" else ctl
-            return settle(part, solver, controls, job[2], rig, frames=settle_frames, scratch=scratch,
+            return settle(part, solver, job[4], job[2], rig, frames=settle_frames, scratch=scratch,
                           watch=None if job[3] == "hold" or not early_stop else watch_points(job[1]))
         finally:
             contexts[key].put((solver, scratch))
@@ -675,59 +673,110 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
         # metres FAP k's probe on `side` should move its point (amplitude |side| half-ranges)
         return abs(side) * half[k - 1] * unit[k - 1]
 
+    def controls_now(scale: np.ndarray | None = None, jaw_free: bool = False) -> FapControls:
+        # the controls of the mapping as it stands, on copies of its arrays: the jobs run
+        # while the scales of other FAPs change (table scale `scale` instead, where given;
+        # jaw_free: without the lips taking back what the jaw carries)
+        controls_face.fap_mapping = {**mapping, "table_scale": (table_scale if scale is None else scale).copy(),
+                                     "jaw_follow": np.zeros(FAP_COUNT) if jaw_free else jaw_follow.copy(),
+                                     "hold_scale": hold_scale.copy()}
+        return FapControls(controls_face, model)
+
+    def refine_job(side: float, todo: list[int]) -> tuple:
+        # FAPs `todo` of one batch probed again at `side` with their scales as they stand
+        return (*_probe_jobs(batches, [(k, side) for k in todo], half)[0], controls_now())
+
+    def refined(job: tuple, skin: np.ndarray) -> list[int]:
+        # a refinement's measurement: its FAPs that missed again, at the next scale to try
+        side, todo = job[0], job[1]
+        again = []
+        for k in todo:
+            cols = _scale_columns(k, side)
+            seen = measured[(k, side)]
+            along = moved_along(FAP_FEATURE_POINT[k - 1], k, skin) * np.sign(side)
+            seen.append((float(table_scale[k - 1, cols[0]]), along / expected_motion(k, side)))
+            step = _next_scale(seen) if _miss(seen[-1][1]) > REFINE_TOLERANCE else None
+            if step is not None:
+                table_scale[k - 1, cols] = step
+                again.append(k)
+        return again
+
     overlap: dict[int, list[float]] = {}  # twin-over-own motion ratios of the last pass (none: 0)
     # every (FAP, side) measured: [(table scale, measured over expected)], for the refinement
     measured: dict[tuple[int, float], list[tuple[float, float]]] = {}
     for pass_index in range(passes):
         last = pass_index == passes - 1
-        controls_face.fap_mapping = mapping
         overlap = {}
-        ctl = FapControls(controls_face, model)
-        jaw_alone = FapControls(controls_face, model)
-        jaw_alone.jaw_follow = np.zeros(FAP_COUNT)
+        # open_jaw is probed without the lips taking back what it carries (jaw_follow): that
+        # is what it measures; the "hold" job probes it with them
+        ctl, jaw_alone = controls_now(), controls_now(jaw_free=True)
         follow_asked = jaw_follow.copy()  # what the lips take back in this pass's hold job
         jobs = _probe_jobs(batches, [(k, side) for side in SCALE_COLUMNS for k in faps
                                      if (side == 1.0 and np.any(gain_pos[k - 1]))
                                      or (side == 2.0 and k in FULL_RANGE_FAPS and np.any(gain_pos[k - 1]))
                                      or (side < 0 and FAP_LIMITS[k - 1, 0] < 0 and np.any(gain_neg[k - 1]))], half)
+        jobs = [(*job, jaw_alone if JAW_OPEN in job[1] else ctl) for job in jobs]
         if JAW_OPEN in faps and np.any(follow_asked):
             values = np.zeros(FAP_COUNT)
             values[JAW_OPEN - 1] = half[JAW_OPEN - 1]
-            jobs.append((1.0, [JAW_OPEN], values, "hold"))
+            jobs.append((1.0, [JAW_OPEN], values, "hold", ctl))
+        # Refinement (after the last pass): a FAP whose last correction was large is measured
+        # again at its new scale (beside its batch mates that are measured again too); where
+        # the skin snaps between two settled states (a pull that stretches edges to the strain
+        # limit drags the tissue beside it along), the scale is searched between the largest
+        # that fell short and the smallest that overshot, at most REFINE_PASSES times. A
+        # batch's refinement starts as soon as its last probe is read, while the pass's other
+        # probes still run (a pass at a time left a core idle at the end of each).
+        refining: dict = {}  # future -> (job, how many times its FAPs were refined)
         with ThreadPoolExecutor(threads) as pool:
-            skins = list(pool.map(settled, jobs))
-        carried = {}
-        for (side, todo, _, kind), skin in zip(jobs, skins):
-            if kind == "hold":
-                held = skin
-                continue
-            if side == 1.0 and JAW_OPEN in todo:
-                # what open_jaw alone carries the lip points by, to be taken back by their FAPs
-                for k in LIP_FAPS:
-                    fdp = FAP_FEATURE_POINT[k - 1]
-                    if fdp in probe.fdp and (np.any(gain_pos[k - 1]) or np.any(gain_neg[k - 1])):
-                        jaw_follow[k - 1] = moved_along(fdp, k, skin) / (half[JAW_OPEN - 1] * unit[k - 1])
-                        carried[k] = jaw_follow[k - 1]
-            for k in todo:
-                along = moved_along(FAP_FEATURE_POINT[k - 1], k, skin) * np.sign(side)
-                twin = twin_of.get(k)
-                if twin is not None and FAP_FEATURE_POINT[twin - 1] in probe.fdp and abs(along) > 0:
-                    # the twin's point moves with k only inside k's footprint (elsewhere a
-                    # batch mate may move it): outside, the two do not overlap
-                    tp = FAP_FEATURE_POINT[twin - 1]
-                    ratio = 0.0
-                    if footprint[k][probe.fdp[tp][0]].all():
-                        ratio = float(np.clip(moved_along(tp, twin, skin) * np.sign(side) / along, 0.0, 1.0))
-                    overlap.setdefault(k, []).append(ratio)
-                expected = expected_motion(k, side)
-                cols = _scale_columns(k, side)
-                measured.setdefault((k, side), []).append((float(table_scale[k - 1, cols[0]]), along / expected))
-                g = float(np.clip(expected / along, 0.5, 2.0)) if along > 1e-3 * expected else 2.0
-                if last and k not in JAW_FAPS and _miss(along / expected) <= REFINE_TOLERANCE:
-                    continue  # near its value at a measured scale: a step more might cross a snap
-                table_scale[k - 1, cols] *= g
-                if k == JAW_OPEN and side == 1.0:
-                    jaw_follow *= g  # the jaw carries the lips as far as it opens
+            futures = [pool.submit(settled, job) for job in jobs]
+            carried = {}
+            for job, future in zip(jobs, futures):
+                side, todo, _, kind, _ = job
+                skin = future.result()
+                if kind == "hold":
+                    held = skin
+                    continue
+                if side == 1.0 and JAW_OPEN in todo:
+                    # what open_jaw alone carries the lip points by, to be taken back by their FAPs
+                    for k in LIP_FAPS:
+                        fdp = FAP_FEATURE_POINT[k - 1]
+                        if fdp in probe.fdp and (np.any(gain_pos[k - 1]) or np.any(gain_neg[k - 1])):
+                            jaw_follow[k - 1] = moved_along(fdp, k, skin) / (half[JAW_OPEN - 1] * unit[k - 1])
+                            carried[k] = jaw_follow[k - 1]
+                for k in todo:
+                    along = moved_along(FAP_FEATURE_POINT[k - 1], k, skin) * np.sign(side)
+                    twin = twin_of.get(k)
+                    if twin is not None and FAP_FEATURE_POINT[twin - 1] in probe.fdp and abs(along) > 0:
+                        # the twin's point moves with k only inside k's footprint (elsewhere a
+                        # batch mate may move it): outside, the two do not overlap
+                        tp = FAP_FEATURE_POINT[twin - 1]
+                        ratio = 0.0
+                        if footprint[k][probe.fdp[tp][0]].all():
+                            ratio = float(np.clip(moved_along(tp, twin, skin) * np.sign(side) / along, 0.0, 1.0))
+                        overlap.setdefault(k, []).append(ratio)
+                    expected = expected_motion(k, side)
+                    cols = _scale_columns(k, side)
+                    measured.setdefault((k, side), []).append((float(table_scale[k - 1, cols[0]]), along / expected))
+                    g = float(np.clip(expected / along, 0.5, 2.0)) if along > 1e-3 * expected else 2.0
+                    if last and k not in JAW_FAPS and _miss(along / expected) <= REFINE_TOLERANCE:
+                        continue  # near its value at a measured scale: a step more might cross a snap
+                    table_scale[k - 1, cols] *= g
+                    if k == JAW_OPEN and side == 1.0:
+                        jaw_follow *= g  # the jaw carries the lips as far as it opens
+                again = [k for k in todo if last and k not in JAW_FAPS
+                         and _miss(measured[(k, side)][-1][1]) > REFINE_TOLERANCE]
+                if again and REFINE_PASSES:
+                    job = refine_job(side, again)
+                    refining[pool.submit(settled, job)] = (job, 1)
+            while refining:
+                done, _ = wait(refining, return_when=FIRST_COMPLETED)
+                for future in done:
+                    job, times = refining.pop(future)
+                    again = refined(job, future.result())
+                    if again and times < REFINE_PASSES:
+                        job = refine_job(job[0], again)
+                        refining[pool.submit(settled, job)] = (job, times + 1)
         if carried and jobs[-1][3] == "hold":
             # the lips' hold against the jaw: what they took back (the jaw's carry less what
             # is left) against what they were asked to (follow_asked), per lip FAP
@@ -739,32 +788,6 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
                 taken = (carry - left) / follow_asked[k - 1]
                 hold_scale[k - 1] *= float(np.clip(1.0 / taken, 0.5, 2.0)) if taken > 0.0 else 2.0
 
-    # Refinement: a FAP whose last correction was large is measured again at its new scale
-    # (in its batch, beside the mates that are measured again too); where the skin snaps
-    # between two settled states (a pull that stretches edges to the strain limit drags the
-    # tissue beside it along), the scale is searched between the largest that fell short and
-    # the smallest that overshot. In the end each keeps the scale measured nearest its value.
-    refining = [key for key, seen in measured.items()
-                if key[0] not in JAW_FAPS and _miss(seen[-1][1]) > REFINE_TOLERANCE]
-    for _ in range(REFINE_PASSES):
-        if not refining:
-            break
-        controls_face.fap_mapping = mapping
-        ctl = FapControls(controls_face, model)
-        jobs = _probe_jobs(batches, refining, half)
-        with ThreadPoolExecutor(threads) as pool:
-            skins = list(pool.map(settled, jobs))
-        refining = []
-        for (side, todo, _, _), skin in zip(jobs, skins):
-            for k in todo:
-                cols = _scale_columns(k, side)
-                seen = measured[(k, side)]
-                along = moved_along(FAP_FEATURE_POINT[k - 1], k, skin) * np.sign(side)
-                seen.append((float(table_scale[k - 1, cols[0]]), along / expected_motion(k, side)))
-                step = _next_scale(seen) if _miss(seen[-1][1]) > REFINE_TOLERANCE else None
-                if step is not None:
-                    table_scale[k - 1, cols] = step
-                    refining.append((k, side))
     for (k, side), seen in measured.items():
         if k not in JAW_FAPS and _miss(seen[-1][1]) > REFINE_TOLERANCE:
             # the scale now set was never measured (or was, and missed): the best one that was
@@ -773,25 +796,26 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
     if warm_start_usable(start):
         start_scale = np.asarray(start["table_scale"], dtype=np.float64)
 
-        def measure_whole(tries: list[tuple[int, float, float]]) -> None:
+        def measure_whole(*tries: list[tuple[int, float, float]]) -> None:
             # each (FAP, side, scale) held alone on the whole skin with that table scale: its
-            # measured / expected motion joins seen[(FAP, side)]
-            nonlocal ctl
-            if not tries:
+            # measured / expected motion joins seen[(FAP, side)]; the lists of `tries` all at
+            # once (a list takes one FAP's side once)
+            jobs, done = [], []
+            for some in tries:
+                trial = table_scale.copy()
+                for k, side, scale in some:
+                    trial[k - 1, _scale_columns(k, side)] = scale
+                controls = controls_now(trial)
+                for k, side, scale in some:
+                    values = np.zeros(FAP_COUNT)
+                    values[k - 1] = side * half[k - 1]
+                    jobs.append((side, [k], values, "whole", controls))
+                    done.append((k, side, scale))
+            if not jobs:
                 return
-            trial = table_scale.copy()
-            for k, side, scale in tries:
-                trial[k - 1, _scale_columns(k, side)] = scale
-            controls_face.fap_mapping = {**mapping, "table_scale": trial}
-            ctl = FapControls(controls_face, model)
-            jobs = []
-            for k, side, _ in tries:
-                values = np.zeros(FAP_COUNT)
-                values[k - 1] = side * half[k - 1]
-                jobs.append((side, [k], values, "whole"))
             with ThreadPoolExecutor(threads) as pool:
                 skins = list(pool.map(settled, jobs))
-            for (k, side, scale), skin in zip(tries, skins):
+            for (k, side, scale), skin in zip(done, skins):
                 along = moved_along(FAP_FEATURE_POINT[k - 1], k, skin) * np.sign(side)
                 seen[(k, side)].append((scale, along / expected_motion(k, side)))
 
@@ -799,8 +823,8 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
                  and abs(table_scale[k - 1, _scale_columns(k, side)[0]]
                          / start_scale[k - 1, _scale_columns(k, side)[0]] - 1.0) > WHOLE_CHECK_SHIFT]
         seen = {key: [] for key in moved}  # (k, side) -> [(scale, ratio on the whole skin)]
-        for scales in (table_scale, start_scale):
-            measure_whole([(k, side, float(scales[k - 1, _scale_columns(k, side)[0]])) for k, side in moved])
+        measure_whole(*([(k, side, float(scales[k - 1, _scale_columns(k, side)[0]])) for k, side in moved]
+                        for scales in (table_scale, start_scale)))
         # one more try where neither was near: the next scale those two suggest (nearest last)
         nearest_last = {key: sorted(s_r, key=lambda sr: _miss(sr[1]), reverse=True) for key, s_r in seen.items()}
         measure_whole([(k, side, scale) for (k, side), s_r in nearest_last.items()
