@@ -15,7 +15,10 @@
   sides of a thin bone move together (push_under_skin);
 - teeth, tongue: rigid (eq. 25-28): moved with interior_field at their centre and scaled
   uniformly by the mouth-width ratio |8.3-8.4|, no rotation (the scan is already
-  calibrated into the face frame);
+  calibrated into the face frame); then each row of teeth up or down until its incisors'
+  edge lies as far below the lips' meeting line as on the template (mouth_parts_at_lips;
+  the tongue with the lower row), and back wherever they show through the lips
+  (mouth_parts_behind_lips);
 - eyes: fitted into the adapted socket (eye_in_socket: centre and scale by least squares
   on the socket's template gaps, capped so the eyelids are never crossed), no smaller than
   EYE_MIN_SHARE of the eye width's ratio: an eye that would cross its lids moves back, and
@@ -552,6 +555,9 @@ MOUTH_SCALE_SPREAD = 0.05  # teeth and tongue scale within 5 % of the face's sca
 MOUTH_SINK_STEP = 0.0005  # m: teeth or tongue that show through the lips move back this much at a time
 MOUTH_MAX_SINK_STEPS = 30
 MOUTH_POKE_REACH = 0.006  # m behind a tooth where the skin it pokes through is looked for
+INCISOR_DEPTH = 0.004  # m: the upper teeth's front, where their edge is read (incisal_edge)
+INCISOR_SPAN = 0.1  # of the upper teeth's width about their middle: the incisors
+MOUTH_MAX_SHIFT = 0.01  # m: teeth and tongue move at most this far to meet the lips (mouth_parts_at_lips)
 
 
 def teeth_through_skin(model: FaceModel, skin: MeshQuery, X: np.ndarray) -> np.ndarray:
@@ -572,6 +578,51 @@ def teeth_through_skin(model: FaceModel, skin: MeshQuery, X: np.ndarray) -> np.n
     behind, t, face, _ = skin.ray_hits(X, np.tile([0.0, 0.0, -1.0], (len(X), 1)), MOUTH_POKE_REACH)
     face = np.maximum(face, 0)
     return ~ahead & behind & (t < MOUTH_POKE_REACH) & (normal_z[face] > 0.0) & ~lining[face]
+
+
+def incisal_edge(teeth: np.ndarray, upper: bool = True) -> float:
+    """y (metres, face frame) of a row of teeth's biting edge: the lowest of the upper row's
+    vertices (k, 3) (upper=False: the highest of the lower row's) at the front (within
+    INCISOR_DEPTH of the foremost) and the middle (within INCISOR_SPAN of their width about
+    their centre across the face): the incisors."""
+    T = np.asarray(teeth, dtype=np.float64)
+    front = T[:, 2] > T[:, 2].max() - INCISOR_DEPTH
+    middle = np.abs(T[:, 0] - 0.5 * (T[:, 0].max() + T[:, 0].min())) < INCISOR_SPAN * np.ptp(T[:, 0])
+    edge = T[front & middle, 1] if np.any(front & middle) else T[front, 1]
+    return float(edge.min() if upper else edge.max())
+
+
+# each row of teeth, whether it is the upper one, and the parts that move with it
+TEETH_ROWS = (("upper_teeth", True, ("upper_teeth",)), ("lower_teeth", False, ("lower_teeth", "tongue")))
+
+
+def mouth_parts_at_lips(template: FaceModel, model: FaceModel, scale: float) -> dict[str, float]:
+    """Move each row of teeth up or down (y, rigidly; the tongue with the lower row) so that
+    its incisors' edge (incisal_edge) lies as far below the lips' meeting line (the mean
+    height of the inner lip points 2.2 and 2.3) as on the template, that distance times
+    `scale` (the mouth's): parted lips show the teeth as the template's do, and the rows
+    meet in the template's bite. Carried by the interior field alone, the teeth follow the
+    skin around the mouth as a whole, not the lips, and each row its own way: the marble
+    bust's upper incisors stood 2.6 mm above its upper lip's inner point (the template's
+    2.7 mm below it), 2.5 mm above the lower row's edge, and its smile showed no teeth,
+    only the mouth's dark. Changes `model` in place; returns row -> metres moved up."""
+    old, new = template.feature_point_positions(), model.feature_point_positions()
+    if not all(n in old and n in new for n in ("2.2", "2.3")):
+        return {}
+    line_old = 0.5 * (old["2.2"][1] + old["2.3"][1])
+    line_new = 0.5 * (new["2.2"][1] + new["2.3"][1])
+    moved = {}
+    for row, upper, parts in TEETH_ROWS:
+        if row not in model.parts or row not in template.parts:
+            continue
+        below = line_old - incisal_edge(template.parts[row].vertices, upper)
+        shift = float(np.clip(line_new - below * scale - incisal_edge(model.parts[row].vertices, upper),
+                              -MOUTH_MAX_SHIFT, MOUTH_MAX_SHIFT))
+        for name in parts:
+            if name in model.parts:
+                model.parts[name].vertices = model.parts[name].vertices + np.array([0.0, shift, 0.0])
+        moved[row] = shift
+    return moved
 
 
 def mouth_parts_behind_lips(model: FaceModel, skin: MeshQuery) -> dict[str, float]:
@@ -729,6 +780,7 @@ def personalize(template: FaceModel, skin: np.ndarray, T: np.ndarray, unit: str,
             model.parts[name].vertices = rel * s + c
             model.eye_centers[name] = c
             eye_scale[name] = s
+    mouth_raised = mouth_parts_at_lips(template, model, mouth)
     mouth_moved = mouth_parts_behind_lips(model, skin.query)
     model.jaw_pivot = carried(field, np.asarray(template.jaw_pivot)[None])[0]
     pushed = 0
@@ -775,7 +827,7 @@ def personalize(template: FaceModel, skin: np.ndarray, T: np.ndarray, unit: str,
     model.meta.update({"generator": "fae adapt", "adapt_method": method, "scan_unit": unit, "symmetric": False})
     report = {"method": method, "scan_unit": unit, "bone_vertices_pushed_under_skin": pushed,
               "fapu_ratio": fapu_ratio, "eye_scale": eye_scale, "orbits_deepened": orbits_deepened,
-              "mouth_parts_moved_back_m": mouth_moved,
+              "mouth_parts_moved_back_m": mouth_moved, "mouth_parts_moved_up_m": mouth_raised,
               "muscle_attachments_moved": moved_muscles, "hidden_skin_lifted_off_bone": lifted,
               "hidden_skin_moved_behind_visible": lining_moved}
     return model, report
