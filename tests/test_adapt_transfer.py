@@ -537,30 +537,32 @@ def test_an_eye_above_its_opening_turns_its_gaze_down_through_the_middle(templat
 def test_teeth_carried_above_the_lips_come_down_to_meet_them(template):
     """Rows of teeth carried too high for the lips (as the skin around a bust's mouth
     carried the marble bust's: the upper row 5 mm, the lower 3 mm, the tongue with it) move
-    down, each until its incisors' edge lies below the lips' meeting line by the template's
-    distance times the mouth's scale: the rows meet in the template's bite again. The
-    template's own stay where they are."""
+    down, each until its incisors' edge lies below its lip's inner point by the template's
+    distance times the mouth's scale: the rows meet in the template's bite again. Teeth
+    that show more than the template's (a photo smiling with parted lips) stay, and so do
+    the template's own."""
     import copy
 
     from fae.adapt.transfer import incisal_edge, mouth_parts_at_lips
 
-    assert all(abs(v) < 1e-9 for v in mouth_parts_at_lips(template, copy.deepcopy(template), 1.0).values())
+    assert mouth_parts_at_lips(template, copy.deepcopy(template), 1.0) == {}
+    lower = copy.deepcopy(template)
+    for name in ("upper_teeth", "lower_teeth", "tongue"):
+        lower.parts[name].vertices = lower.parts[name].vertices - [0.0, 0.002, 0.0]
+    assert mouth_parts_at_lips(template, lower, 1.0) == {}
     head = copy.deepcopy(template)
     lift = {"upper_teeth": 0.005, "lower_teeth": 0.003, "tongue": 0.003}
     for name, dy in lift.items():
         head.parts[name].vertices = head.parts[name].vertices + [0.0, dy, 0.0]
     before = {name: head.parts[name].vertices.copy() for name in lift}
-    fp0 = template.feature_point_positions()
-    line0 = 0.5 * (fp0["2.2"][1] + fp0["2.3"][1])
-    below0 = {row: line0 - incisal_edge(template.parts[row].vertices, row == "upper_teeth")
-              for row in ("upper_teeth", "lower_teeth")}
-    assert below0["upper_teeth"] > 0.001  # the template's incisors show below its lips' line (1.8 mm)
+    fp0, fp = template.feature_point_positions(), head.feature_point_positions()
+    rows = (("upper_teeth", True, "2.2"), ("lower_teeth", False, "2.3"))
+    below0 = {row: fp0[lip][1] - incisal_edge(template.parts[row].vertices, upper) for row, upper, lip in rows}
+    assert below0["upper_teeth"] > 0.002  # the template's upper incisors show under its upper lip (2.7 mm)
     moved = mouth_parts_at_lips(template, head, 1.1)
-    fp = head.feature_point_positions()
-    line = 0.5 * (fp["2.2"][1] + fp["2.3"][1])
-    for row, upper in (("upper_teeth", True), ("lower_teeth", False)):
+    for row, upper, lip in rows:
         assert moved[row] == pytest.approx(-lift[row] - 0.1 * below0[row], abs=1e-6)
-        assert line - incisal_edge(head.parts[row].vertices, upper) == pytest.approx(1.1 * below0[row], abs=1e-6)
+        assert fp[lip][1] - incisal_edge(head.parts[row].vertices, upper) == pytest.approx(1.1 * below0[row], abs=1e-6)
     for name in lift:  # each part moved rigidly, straight down; the tongue with the lower row
         d = head.parts[name].vertices - before[name]
         assert np.allclose(d, d[0], atol=1e-12) and d[0][1] < 0.0 and d[0][0] == 0.0 and d[0][2] == 0.0

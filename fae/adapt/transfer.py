@@ -15,10 +15,10 @@
   sides of a thin bone move together (push_under_skin);
 - teeth, tongue: rigid (eq. 25-28): moved with interior_field at their centre and scaled
   uniformly by the mouth-width ratio |8.3-8.4|, no rotation (the scan is already
-  calibrated into the face frame); then each row of teeth up or down until its incisors'
-  edge lies as far below the lips' meeting line as on the template (mouth_parts_at_lips;
-  the tongue with the lower row), and back wherever they show through the lips
-  (mouth_parts_behind_lips);
+  calibrated into the face frame); where the upper incisors then show less under the upper
+  lip than the template's, each row of teeth down until its incisors' edge lies as far
+  below its lip's inner point as on the template (mouth_parts_at_lips; the tongue with the
+  lower row); and back wherever they show through the lips (mouth_parts_behind_lips);
 - eyes: fitted into the adapted socket (eye_in_socket: centre and scale by least squares
   on the socket's template gaps, capped so the eyelids are never crossed), no smaller than
   EYE_MIN_SHARE of the eye width's ratio: an eye that would cross its lids moves back, and
@@ -592,37 +592,37 @@ def incisal_edge(teeth: np.ndarray, upper: bool = True) -> float:
     return float(edge.min() if upper else edge.max())
 
 
-# each row of teeth, whether it is the upper one, and the parts that move with it
-TEETH_ROWS = (("upper_teeth", True, ("upper_teeth",)), ("lower_teeth", False, ("lower_teeth", "tongue")))
+# each row of teeth, whether it is the upper one, its lip's inner point, and the parts that move with it
+TEETH_ROWS = (("upper_teeth", True, "2.2", ("upper_teeth",)), ("lower_teeth", False, "2.3", ("lower_teeth", "tongue")))
 
 
 def mouth_parts_at_lips(template: FaceModel, model: FaceModel, scale: float) -> dict[str, float]:
-    """Move each row of teeth up or down (y, rigidly; the tongue with the lower row) so that
-    its incisors' edge (incisal_edge) lies as far below the lips' meeting line (the mean
-    height of the inner lip points 2.2 and 2.3) as on the template, that distance times
-    `scale` (the mouth's): parted lips show the teeth as the template's do, and the rows
-    meet in the template's bite. Carried by the interior field alone, the teeth follow the
+    """Where the upper incisors show less below the upper lip than the template's, move each
+    row of teeth down (y, rigidly; the tongue with the lower row) until its incisors' edge
+    (incisal_edge) lies as far below its lip's inner point (2.2 for the upper row, 2.3 for
+    the lower) as on the template, that distance times `scale` (the mouth's): the upper
+    incisors show under the upper lip as the template's do, and lips that meet put the
+    rows in the template's bite. Carried by the interior field alone, the teeth follow the
     skin around the mouth as a whole, not the lips, and each row its own way: the marble
     bust's upper incisors stood 2.6 mm above its upper lip's inner point (the template's
-    2.7 mm below it), 2.5 mm above the lower row's edge, and its smile showed no teeth,
-    only the mouth's dark. Changes `model` in place; returns row -> metres moved up."""
+    2.7 mm below it), 2.5 mm above the lower row's edge, and its smile showed no teeth, only
+    the mouth's dark. Teeth that show as much or more stay: a photo smiling with parted
+    lips has them filling the gap, where the lips' rest says nothing of the bite. Changes
+    `model` in place; returns row -> metres moved up (empty: none moved)."""
     old, new = template.feature_point_positions(), model.feature_point_positions()
-    if not all(n in old and n in new for n in ("2.2", "2.3")):
+    shifts = {}
+    for row, upper, lip, _ in TEETH_ROWS:
+        if row in model.parts and row in template.parts and lip in old and lip in new:
+            below = old[lip][1] - incisal_edge(template.parts[row].vertices, upper)
+            shifts[row] = float(np.clip(new[lip][1] - below * scale - incisal_edge(model.parts[row].vertices, upper),
+                                        -MOUTH_MAX_SHIFT, MOUTH_MAX_SHIFT))
+    if shifts.get("upper_teeth", 0.0) >= 0.0:
         return {}
-    line_old = 0.5 * (old["2.2"][1] + old["2.3"][1])
-    line_new = 0.5 * (new["2.2"][1] + new["2.3"][1])
-    moved = {}
-    for row, upper, parts in TEETH_ROWS:
-        if row not in model.parts or row not in template.parts:
-            continue
-        below = line_old - incisal_edge(template.parts[row].vertices, upper)
-        shift = float(np.clip(line_new - below * scale - incisal_edge(model.parts[row].vertices, upper),
-                              -MOUTH_MAX_SHIFT, MOUTH_MAX_SHIFT))
-        for name in parts:
+    for row, _, _, parts in TEETH_ROWS:
+        for name in parts if row in shifts else ():
             if name in model.parts:
-                model.parts[name].vertices = model.parts[name].vertices + np.array([0.0, shift, 0.0])
-        moved[row] = shift
-    return moved
+                model.parts[name].vertices = model.parts[name].vertices + np.array([0.0, shifts[row], 0.0])
+    return shifts
 
 
 def mouth_parts_behind_lips(model: FaceModel, skin: MeshQuery) -> dict[str, float]:
