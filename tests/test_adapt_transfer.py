@@ -537,34 +537,41 @@ def test_an_eye_above_its_opening_turns_its_gaze_down_through_the_middle(templat
 def test_teeth_carried_above_the_lips_come_down_to_meet_them(template):
     """Rows of teeth carried too high for the lips (as the skin around a bust's mouth
     carried the marble bust's: the upper row 5 mm, the lower 3 mm, the tongue with it) move
-    down, each until its incisors' edge lies below its lip's inner point by the template's
-    distance times the mouth's scale: the rows meet in the template's bite again. Teeth
-    that show more than the template's (a photo smiling with parted lips) stay, and so do
-    the template's own."""
+    down, each until its incisors' edge (9.10, 9.11) lies below its lip's inner point by
+    the template's distance times the mouth's scale: the rows meet in the template's bite
+    again. Teeth that show as much as the template's or more (a photo smiling with parted
+    lips) stay, so do those a hair too high, and no row moves up."""
     import copy
 
-    from fae.adapt.transfer import incisal_edge, mouth_parts_at_lips
+    from fae.adapt.transfer import MOUTH_MIN_SHIFT, mouth_parts_at_lips
+
+    def lifted(lift):
+        head = copy.deepcopy(template)
+        for name, dy in lift.items():
+            head.parts[name].vertices = head.parts[name].vertices + [0.0, dy, 0.0]
+        return head
 
     assert mouth_parts_at_lips(template, copy.deepcopy(template), 1.0) == {}
-    lower = copy.deepcopy(template)
-    for name in ("upper_teeth", "lower_teeth", "tongue"):
-        lower.parts[name].vertices = lower.parts[name].vertices - [0.0, 0.002, 0.0]
-    assert mouth_parts_at_lips(template, lower, 1.0) == {}
-    head = copy.deepcopy(template)
+    assert mouth_parts_at_lips(template, lifted({"upper_teeth": -0.002, "lower_teeth": -0.002}), 1.0) == {}
+    assert mouth_parts_at_lips(template, lifted({"upper_teeth": 0.5 * MOUTH_MIN_SHIFT}), 1.0) == {}
     lift = {"upper_teeth": 0.005, "lower_teeth": 0.003, "tongue": 0.003}
-    for name, dy in lift.items():
-        head.parts[name].vertices = head.parts[name].vertices + [0.0, dy, 0.0]
+    head = lifted(lift)
     before = {name: head.parts[name].vertices.copy() for name in lift}
     fp0, fp = template.feature_point_positions(), head.feature_point_positions()
-    rows = (("upper_teeth", True, "2.2"), ("lower_teeth", False, "2.3"))
-    below0 = {row: fp0[lip][1] - incisal_edge(template.parts[row].vertices, upper) for row, upper, lip in rows}
+    rows = (("upper_teeth", "9.10", "2.2"), ("lower_teeth", "9.11", "2.3"))
+    below0 = {row: fp0[lip][1] - fp0[edge][1] for row, edge, lip in rows}
     assert below0["upper_teeth"] > 0.002  # the template's upper incisors show under its upper lip (2.7 mm)
     moved = mouth_parts_at_lips(template, head, 1.1)
-    for row, upper, lip in rows:
-        assert moved[row] == pytest.approx(-lift[row] - 0.1 * below0[row], abs=1e-6)
-        assert fp[lip][1] - incisal_edge(head.parts[row].vertices, upper) == pytest.approx(1.1 * below0[row], abs=1e-6)
+    assert set(moved) == set(lift)
+    fp = head.feature_point_positions()
+    for row, edge, lip in rows:
+        assert moved[row] == pytest.approx(lift[row] + 0.1 * below0[row], abs=1e-6)
+        assert fp[lip][1] - fp[edge][1] == pytest.approx(1.1 * below0[row], abs=1e-6)
     for name in lift:  # each part moved rigidly, straight down; the tongue with the lower row
         d = head.parts[name].vertices - before[name]
-        assert np.allclose(d, d[0], atol=1e-12) and d[0][1] < 0.0 and d[0][0] == 0.0 and d[0][2] == 0.0
-    assert np.allclose(head.parts["tongue"].vertices - before["tongue"],
-                       head.parts["lower_teeth"].vertices[0] - before["lower_teeth"][0])
+        assert np.allclose(d, [0.0, -moved[name], 0.0], atol=1e-12)
+    assert moved["tongue"] == moved["lower_teeth"]
+    # the upper row too high, the lower one far too low: the upper comes down, the lower stays
+    head = lifted({"upper_teeth": 0.004, "lower_teeth": -0.008})
+    moved = mouth_parts_at_lips(template, head, 1.0)
+    assert moved["upper_teeth"] == pytest.approx(0.004, abs=1e-6) and moved["lower_teeth"] == 0.0

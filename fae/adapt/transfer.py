@@ -16,9 +16,9 @@
 - teeth, tongue: rigid (eq. 25-28): moved with interior_field at their centre and scaled
   uniformly by the mouth-width ratio |8.3-8.4|, no rotation (the scan is already
   calibrated into the face frame); where the upper incisors then show less under the upper
-  lip than the template's, each row of teeth down until its incisors' edge lies as far
-  below its lip's inner point as on the template (mouth_parts_at_lips; the tongue with the
-  lower row); and back wherever they show through the lips (mouth_parts_behind_lips);
+  lip than the template's, each row of teeth moves down until its incisors' edge lies as
+  far below its lip's inner point as on the template (mouth_parts_at_lips; the tongue with
+  the lower row); and back wherever they show through the lips (mouth_parts_behind_lips);
 - eyes: fitted into the adapted socket (eye_in_socket: centre and scale by least squares
   on the socket's template gaps, capped so the eyelids are never crossed), no smaller than
   EYE_MIN_SHARE of the eye width's ratio: an eye that would cross its lids moves back, and
@@ -555,9 +555,8 @@ MOUTH_SCALE_SPREAD = 0.05  # teeth and tongue scale within 5 % of the face's sca
 MOUTH_SINK_STEP = 0.0005  # m: teeth or tongue that show through the lips move back this much at a time
 MOUTH_MAX_SINK_STEPS = 30
 MOUTH_POKE_REACH = 0.006  # m behind a tooth where the skin it pokes through is looked for
-INCISOR_DEPTH = 0.004  # m: the upper teeth's front, where their edge is read (incisal_edge)
-INCISOR_SPAN = 0.1  # of the upper teeth's width about their middle: the incisors
-MOUTH_MAX_SHIFT = 0.01  # m: teeth and tongue move at most this far to meet the lips (mouth_parts_at_lips)
+MOUTH_MIN_SHIFT = 0.0005  # m: teeth within this of the template's place under the lips stay (mouth_parts_at_lips)
+MOUTH_MAX_SHIFT = 0.01  # m: and move at most this far down to it
 
 
 def teeth_through_skin(model: FaceModel, skin: MeshQuery, X: np.ndarray) -> np.ndarray:
@@ -580,49 +579,40 @@ def teeth_through_skin(model: FaceModel, skin: MeshQuery, X: np.ndarray) -> np.n
     return ~ahead & behind & (t < MOUTH_POKE_REACH) & (normal_z[face] > 0.0) & ~lining[face]
 
 
-def incisal_edge(teeth: np.ndarray, upper: bool = True) -> float:
-    """y (metres, face frame) of a row of teeth's biting edge: the lowest of the upper row's
-    vertices (k, 3) (upper=False: the highest of the lower row's) at the front (within
-    INCISOR_DEPTH of the foremost) and the middle (within INCISOR_SPAN of their width about
-    their centre across the face): the incisors."""
-    T = np.asarray(teeth, dtype=np.float64)
-    front = T[:, 2] > T[:, 2].max() - INCISOR_DEPTH
-    middle = np.abs(T[:, 0] - 0.5 * (T[:, 0].max() + T[:, 0].min())) < INCISOR_SPAN * np.ptp(T[:, 0])
-    edge = T[front & middle, 1] if np.any(front & middle) else T[front, 1]
-    return float(edge.min() if upper else edge.max())
-
-
-# each row of teeth, whether it is the upper one, its lip's inner point, and the parts that move with it
-TEETH_ROWS = (("upper_teeth", True, "2.2", ("upper_teeth",)), ("lower_teeth", False, "2.3", ("lower_teeth", "tongue")))
+# each row of teeth, its incisors' edge (the feature point on it: 9.10 the upper row's
+# bottom, 9.11 the lower row's top), its lip's inner point, and the parts that move with it
+TEETH_ROWS = (("upper_teeth", "9.10", "2.2", ("upper_teeth",)), ("lower_teeth", "9.11", "2.3", ("lower_teeth", "tongue")))
 
 
 def mouth_parts_at_lips(template: FaceModel, model: FaceModel, scale: float) -> dict[str, float]:
-    """Where the upper incisors show less below the upper lip than the template's, move each
-    row of teeth down (y, rigidly; the tongue with the lower row) until its incisors' edge
-    (incisal_edge) lies as far below its lip's inner point (2.2 for the upper row, 2.3 for
-    the lower) as on the template, that distance times `scale` (the mouth's): the upper
-    incisors show under the upper lip as the template's do, and lips that meet put the
-    rows in the template's bite. Carried by the interior field alone, the teeth follow the
-    skin around the mouth as a whole, not the lips, and each row its own way: the marble
-    bust's upper incisors stood 2.6 mm above its upper lip's inner point (the template's
-    2.7 mm below it), 2.5 mm above the lower row's edge, and its smile showed no teeth, only
-    the mouth's dark. Teeth that show as much or more stay: a photo smiling with parted
-    lips has them filling the gap, where the lips' rest says nothing of the bite. Changes
-    `model` in place; returns row -> metres moved up (empty: none moved)."""
+    """Where the upper incisors show less below the upper lip than the template's (by more
+    than MOUTH_MIN_SHIFT), move each row of teeth down (y, rigidly; the tongue with the
+    lower row) until its incisors' edge (9.10, 9.11) lies as far below its lip's inner point
+    (2.2 for the upper row, 2.3 for the lower) as on the template, that distance times
+    `scale` (the mouth's), by at most MOUTH_MAX_SHIFT: the upper incisors show under the
+    upper lip as the template's do, and lips that meet put the rows in the template's bite.
+    Carried by the interior field alone, the teeth follow the skin around the mouth as a
+    whole, not the lips, and each row its own way: the marble bust's upper incisors stood
+    2.6 mm above its upper lip's inner point (the template's 2.7 mm below it), 2.5 mm above
+    the lower row's edge, and its smile showed no teeth, only the mouth's dark. Teeth that
+    show as much or more stay, and no row moves up: a photo smiling with parted lips has
+    them filling the gap, where the lips' rest says nothing of the bite. Changes `model` in
+    place; returns part -> metres moved down (empty: none moved)."""
     old, new = template.feature_point_positions(), model.feature_point_positions()
-    shifts = {}
-    for row, upper, lip, _ in TEETH_ROWS:
-        if row in model.parts and row in template.parts and lip in old and lip in new:
-            below = old[lip][1] - incisal_edge(template.parts[row].vertices, upper)
-            shifts[row] = float(np.clip(new[lip][1] - below * scale - incisal_edge(model.parts[row].vertices, upper),
-                                        -MOUTH_MAX_SHIFT, MOUTH_MAX_SHIFT))
-    if shifts.get("upper_teeth", 0.0) >= 0.0:
+    down = {}
+    for row, edge, lip, _ in TEETH_ROWS:
+        if all(n in old and n in new for n in (edge, lip)) and row in model.parts:
+            wanted = new[lip][1] - (old[lip][1] - old[edge][1]) * scale
+            down[row] = float(np.clip(new[edge][1] - wanted, 0.0, MOUTH_MAX_SHIFT))
+    if not down.get("upper_teeth", 0.0) > MOUTH_MIN_SHIFT:  # (NaN: a point or scale unknown)
         return {}
+    moved = {}
     for row, _, _, parts in TEETH_ROWS:
-        for name in parts if row in shifts else ():
-            if name in model.parts:
-                model.parts[name].vertices = model.parts[name].vertices + np.array([0.0, shifts[row], 0.0])
-    return shifts
+        for name in parts:
+            if name in model.parts and np.isfinite(down.get(row, np.nan)):
+                model.parts[name].vertices = model.parts[name].vertices - np.array([0.0, down[row], 0.0])
+                moved[name] = down[row]
+    return moved
 
 
 def mouth_parts_behind_lips(model: FaceModel, skin: MeshQuery) -> dict[str, float]:
@@ -780,7 +770,7 @@ def personalize(template: FaceModel, skin: np.ndarray, T: np.ndarray, unit: str,
             model.parts[name].vertices = rel * s + c
             model.eye_centers[name] = c
             eye_scale[name] = s
-    mouth_raised = mouth_parts_at_lips(template, model, mouth)
+    mouth_lowered = mouth_parts_at_lips(template, model, mouth)
     mouth_moved = mouth_parts_behind_lips(model, skin.query)
     model.jaw_pivot = carried(field, np.asarray(template.jaw_pivot)[None])[0]
     pushed = 0
@@ -827,7 +817,7 @@ def personalize(template: FaceModel, skin: np.ndarray, T: np.ndarray, unit: str,
     model.meta.update({"generator": "fae adapt", "adapt_method": method, "scan_unit": unit, "symmetric": False})
     report = {"method": method, "scan_unit": unit, "bone_vertices_pushed_under_skin": pushed,
               "fapu_ratio": fapu_ratio, "eye_scale": eye_scale, "orbits_deepened": orbits_deepened,
-              "mouth_parts_moved_back_m": mouth_moved, "mouth_parts_moved_up_m": mouth_raised,
+              "mouth_parts_moved_back_m": mouth_moved, "mouth_parts_moved_down_m": mouth_lowered,
               "muscle_attachments_moved": moved_muscles, "hidden_skin_lifted_off_bone": lifted,
               "hidden_skin_moved_behind_visible": lining_moved}
     return model, report

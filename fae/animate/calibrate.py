@@ -684,6 +684,9 @@ def calibrate(face, device: str = "cpu", passes: int | None = None, settle_frame
 
     def refine_job(side: float, todo: list[int]) -> tuple:
         # FAPs `todo` of one batch probed again at `side` with their scales as they stand
+        # (a probe at the positive limit reads its half-range column too, to the last bit of
+        # the table's interpolation: whether that side's refinement was read before is the
+        # threads' timing, which moves the mapping by a rounding error at most)
         return (*_probe_jobs(batches, [(k, side) for k in todo], half)[0], controls_now())
 
     def refined(job: tuple, skin: np.ndarray) -> list[int]:
