@@ -83,6 +83,7 @@ def test_json_lists_and_glob_times_heads(corpus, monkeypatch):
     ("stream,head\nstreams/hello.fap,other.obj\n", r"jobs.csv:2: field 'head' 'other.obj': expected a .glb file"),
     ("stream\nstreams/hello.fap,extra\n", r"jobs.csv:2: 2 fields: expected at most 1"),
     ("stream\n", r"jobs.csv: no jobs in the file"),
+    ("stream,output\nstreams/hel\0lo.fap,x.mp4\n", r"jobs.csv:2: field 'stream' .*without control characters"),
     ("", r"jobs.csv: no header row"),
 ])
 def test_bad_csv_names_file_line_and_field(corpus, rows, expected):
@@ -98,6 +99,12 @@ def test_bad_csv_names_file_line_and_field(corpus, rows, expected):
     ('[{"stream": "streams/hello.fap", "zoom": 2}]', r"jobs.json job 1: unknown field 'zoom'"),
     ('[{"stream": ["streams/hello.fap"]}]', r"jobs.json job 1: field 'stream' .*: expected text"),
     ('[{"size": "64x48"}]', r"jobs.json job 1: field 'stream' is empty"),
+    # a NUL in a path raised Python's ValueError from Path.resolve (a traceback); in an
+    # output name it reached the worker, which blamed the stream
+    ('[{"stream": "streams/hel\\u0000lo.fap"}]', r"jobs.json job 1: field 'stream' .*: expected text without control"),
+    ('[{"stream": "streams/hello.fap", "head": "g\\u0000.glb"}]', r"jobs.json job 1: field 'head' .*without control"),
+    ('[{"stream": "streams/hello.fap", "output": "a\\u0000b.mp4"}]', r"jobs.json job 1: field 'output' .*without control"),
+    ('[{"stream": "streams/hello.fap", "output": "a\\nb.mp4"}]', r"jobs.json job 1: field 'output' .*without control"),
 ])
 def test_bad_json_names_file_job_and_field(corpus, text, expected):
     (corpus / "jobs.json").write_text(text)

@@ -144,7 +144,10 @@ def _job(where: str, record: dict, base: Path, defaults: JobDefaults, default_he
             return ""
         if isinstance(value, bool) or not isinstance(value, (str, int, float)):
             raise JobFileError(f"{where}: field '{name}' {value!r}: expected text")
-        return str(value).strip()
+        value = str(value).strip()
+        if any(ord(c) < 32 or ord(c) == 127 for c in value):  # no path or file name holds a NUL or a newline
+            raise JobFileError(f"{where}: field '{name}' {value!r}: expected text without control characters")
+        return value
 
     stream_text = text("stream")
     if not stream_text:
