@@ -78,6 +78,33 @@ def test_scan_reading_merges_components_and_reports_bad_files(tmp_path):
         read_scan(junk)
 
 
+def test_menpo_ljson_every_version_gives_the_same_points(tmp_path):
+    """menpo wrote three layouts over its versions; a file of any of them is the same 68 points
+    (a version 2 file was read as MPEG-4 names: "'points' is not an MPEG-4 feature point")."""
+    pts = np.random.default_rng(1).normal(size=(68, 3)).round(6).tolist()
+    layouts = {
+        "v3": {"version": 3, "groups": {"dlib": {"landmarks": {"points": pts, "connectivity": []},
+                                                 "labels": [{"label": "all", "mask": list(range(68))}]}}},
+        "v2": {"version": 2, "labels": [{"label": "all", "mask": list(range(68))}],
+               "landmarks": {"points": pts, "connectivity": []}},
+        "v1": {"version": 1, "groups": [{"label": "all", "connectivity": [],
+                                         "landmarks": [{"point": p} for p in pts]}]},
+    }
+    read = {}
+    for name, data in layouts.items():
+        path = tmp_path / f"{name}.ljson"
+        path.write_text(json.dumps(data))
+        read[name] = read_landmarks(path)
+    assert np.allclose(read["v3"]["9.3"], pts[30])
+    for name in ("v2", "v1"):
+        assert read[name].keys() == read["v3"].keys()
+        assert all(np.allclose(read[name][k], read["v3"][k]) for k in read["v3"])
+    short = tmp_path / "short.ljson"
+    short.write_text(json.dumps({"version": 2, "landmarks": {"points": pts[:67]}}))
+    with pytest.raises(LandmarkError, match="expected 68 iBUG points"):
+        read_landmarks(short)
+
+
 def test_menpo_ljson_gives_mirror_consistent_fdps():
     path = SHARED / "menpo3d_template" / "template.ljson"
     if not path.exists():

@@ -8,8 +8,9 @@ read_landmarks: MPEG-4 feature point name -> scan coordinates, from
 - JSON `{"9.3": [x, y, z], ...}` or `{"9.3": 1234, ...}` (0-based index into the scan
   file's own vertex list: an OBJ's `v` lines in order, unused ones too), also under a
   top-level "landmarks" key;
-- menpo `.ljson` with 68 iBUG points (groups -> <name> -> landmarks -> points; the group
-  with 68 points when there are several);
+- menpo `.ljson` with 68 iBUG points: version 3 (groups -> <name> -> landmarks -> points;
+  the group with 68 points when there are several), version 2 (landmarks -> points) and
+  version 1 (groups -> [landmarks -> [{point}]]);
 - CSV: rows `name,x,y,z` (MPEG-4 names), or 68 rows `x,y,z` in iBUG order; an optional
   header row, `#` comments and blank lines.
 Names are the standard's 84 feature points, each given once. Text files may start with a
@@ -223,7 +224,9 @@ def _ljson_points(path: str, groups) -> np.ndarray:
     sets = []
     for group in found:
         try:
-            points = group["landmarks"]["points"]
+            points = group["landmarks"]
+            # version 1 lists each point as {"point": [x, y, z]}, version 3 holds them in "points"
+            points = [p["point"] for p in points] if isinstance(points, list) else points["points"]
             sets.append(np.array([[np.nan if c is None else c for c in p] for p in points], dtype=np.float64))
         except (KeyError, TypeError, ValueError, OverflowError):
             sets.append(None)
@@ -245,8 +248,10 @@ def _read_landmarks(path: str, vertices: Callable[[], np.ndarray | None]) -> dic
             raise LandmarkError(f"{path}: {exc}") from None
         except (ValueError, OverflowError) as exc:  # a number too long or too large for a float
             raise LandmarkError(f"{path}: not usable JSON ({exc})") from None
-        if isinstance(data, dict) and "groups" in data:  # menpo ljson
+        if isinstance(data, dict) and "groups" in data:  # menpo ljson, version 3 or 1
             return ibug68_to_fdp(_ljson_points(path, data["groups"]), path)
+        if isinstance(data, dict) and isinstance(data.get("landmarks"), dict) and "points" in data["landmarks"]:
+            return ibug68_to_fdp(_ljson_points(path, [data]), path)  # menpo ljson version 2: one group
         if isinstance(data, dict) and isinstance(data.get("landmarks"), dict):
             data = data["landmarks"]
         if not isinstance(data, dict) or not data:
