@@ -19,7 +19,8 @@ def register(subparsers) -> None:
     parser = subparsers.add_parser(
         "send", help="stream a .fap file to a fae server and report acks and latency",
         description="Send FILE.fap to `fae serve` one frame at a time (native protocol) and report "
-        "acknowledgements, frames/s and latency p50/p99. Exit 1 if the server rejected frames.")
+        "acknowledgements, frames/s and latency p50/p99. Exit 1 if the server rejected frames, 2 if "
+        "what answered is not a fae server or closed before answering the whole stream.")
     parser.add_argument("path", metavar="FILE.fap")
     parser.add_argument("--host", default=DEFAULT_HOST)
     parser.add_argument("--port", type=int, default=DEFAULT_PORT)
@@ -45,6 +46,9 @@ def run(args) -> int:
         return fail("send", f"{args.path}: {exc}")
     except (OSError, asyncio.TimeoutError) as exc:
         return fail("send", f"{args.host}:{args.port}: {exc or 'no reply'}")
+    problem = report.problem()
+    if problem:
+        return fail("send", f"{args.host}:{args.port}: {problem}")
     for line in report.errors[:20]:
         print(f"fae send: server: {line}", file=sys.stderr)
     if len(report.errors) > 20:

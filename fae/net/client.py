@@ -12,6 +12,7 @@ from fae.net.connection import READ_CHUNK
 
 MIN_REPLY_FPS, MAX_REPLY_FPS = 1e-3, 1e4  # frames/s a server's header reply may name (the reader's range)
 CLOSE_SECONDS = 1.0  # the longest a finished connection is waited on to close
+UNKNOWN_KEPT = 3  # reply lines outside the protocol kept for the report
 
 
 @dataclass
@@ -29,6 +30,12 @@ class SendReport:
     started       time.perf_counter() when the first frame was sent
     elapsed       seconds from the first frame sent to the last reply read
     fps           the stream's frame rate from the server's header reply (0 if none)
+    done          whether the server's closing `done ...` line came (it follows the last
+                  reply to a stream sent whole)
+    unknown       reply lines that are none of the protocol's (not a fae server), the first
+                  few
+    header_wait   seconds the header's reply was waited for in vain (0: it came, or the
+                  connection closed first)
     """
 
     frames_sent: int = 0
@@ -41,6 +48,9 @@ class SendReport:
     elapsed: float = 0.0
     fps: float = 0.0
     header_ok: bool = False
+    done: bool = False
+    unknown: list[str] = field(default_factory=list)
+    header_wait: float = 0.0
 
     @property
     def frames_per_second(self) -> float:
@@ -54,6 +64,25 @@ class SendReport:
     def complete(self) -> bool:
         """Every frame acknowledged, no error."""
         return self.header_ok and not self.errors and self.frames_ok == self.frames_sent
+
+    def problem(self) -> str | None:
+        """Why these replies are not a fae server's answer to the whole stream, or None:
+        a summary of such replies ("0/0 frames ok", "100/48 frames ok") says nothing."""
+        seen = f" (it sent {self.unknown[0]!r:.70})" if self.unknown else ""
+        if self.errors:
+            return None  # the server's own words say what went wrong
+        if not self.header_ok:
+            waited = f" for {self.header_wait:g} s" if self.header_wait else ""
+            return f"no reply to the stream's header{waited}: not a fae server, or it closed the connection{seen}"
+        if self.frames_ok > self.frames_sent:
+            return f"{self.frames_ok} frames acknowledged of {self.frames_sent} sent: not a fae server{seen}"
+        if not self.done:
+            return (f"the connection closed after {self.frames_ok} of {self.frames_sent} frames were "
+                    f"acknowledged, without the server's closing `done` line{seen}")
+        if self.frames_ok < self.frames_sent:
+            return (f"the server said `done` after acknowledging {self.frames_ok} of {self.frames_sent} frames, "
+                    f"with no error{seen}")
+        return None
 
     def summary(self) -> str:
         return (f"{self.frames_ok}/{self.frames_sent} frames ok in {self.steps} face steps, "
@@ -117,7 +146,10 @@ async def send_fap(text: str, host: str = "127.0.0.1", port: int = 50011, *, rat
                 if line.startswith("ok header"):
                     report.header_ok = True
                     parts = line.split()
-                    report.fps = float(parts[2]) if len(parts) > 2 else 0.0
+                    try:
+                        report.fps = float(parts[2]) if len(parts) > 2 else 0.0
+                    except ValueError:  # not a rate: paced at 25 frames/s like a missing one
+                        report.fps = 0.0
                     header_seen.set()
                 elif line.startswith("ok "):
                     parts = line.split()
@@ -133,6 +165,10 @@ async def send_fap(text: str, host: str = "127.0.0.1", port: int = 50011, *, rat
                     header_seen.set()
                     if "closing" in line:
                         return
+                elif line.startswith("done "):
+                    report.done = True
+                elif line and len(report.unknown) < UNKNOWN_KEPT:
+                    report.unknown.append(line)
             report.elapsed = now - start[0]
 
     high_water = writer.transport.get_write_buffer_limits()[1]
@@ -153,6 +189,11 @@ async def send_fap(text: str, host: str = "127.0.0.1", port: int = 50011, *, rat
         await sent()
         await asyncio.wait([receiver, asyncio.create_task(header_seen.wait())], timeout=timeout,
                            return_when=asyncio.FIRST_COMPLETED)
+        if not header_seen.is_set():
+            # no answer a fae server gives (report.problem says what came instead); the
+            # frames are not sent, the finally below lets go of the connection
+            report.header_wait = 0.0 if receiver.done() else timeout
+            return report
         # the server's rate paces "realtime"; one beyond any stream's (a reply of 1e-300) is not taken
         fps = report.fps if MIN_REPLY_FPS <= report.fps <= MAX_REPLY_FPS else 25.0
         start[0] = report.started = time.perf_counter()
