@@ -428,6 +428,10 @@ def test_xface_errors_unknown_task_garbage_missing_stream_and_bad_fap():
         writer.write(task("UPLOAD_FAP", me, 3, "2.1 bad 25 1\n0 1\n5 5\n"))
         assert await expect(reader, 4) == [n("UPLOAD_FAP", me, 3, 1), n("UPLOAD_FAP", me, 3, 2),
                                            n("UPLOAD_FAP", me, 3, 7), n("UPLOAD_FAP", me, 3, 3)]
+        # a stream without frames: refused like bad text (it was finished, 3, and playing it found nothing)
+        writer.write(task("UPLOAD_FAP", me, 6, "2.1 x 25 5\n"))
+        assert await expect(reader, 4) == [n("UPLOAD_FAP", me, 6, 1), n("UPLOAD_FAP", me, 6, 2),
+                                           n("UPLOAD_FAP", me, 6, 7), n("UPLOAD_FAP", me, 6, 3)]
         writer.write(task("LOAD_FAP", me, 4, "/etc/passwd"))  # no --fap-dir: refused
         assert await expect(reader, 3) == [n("LOAD_FAP", me, 4, 1), n("LOAD_FAP", me, 4, 2), n("LOAD_FAP", me, 4, 7)]
         writer.write(task("UPLOAD_FAP", 0, 5, fap_text()))  # ownerId 0: only the queued ack

@@ -205,6 +205,11 @@ class XfaceStage:
             log.warning("xface %s: %s", task.name, exc)
             self._route(task, xface.STATUS_ERROR)
         else:
+            if not frames:  # refused as `fae play` refuses it; RESUME_PLAYBACK would find nothing
+                log.warning("xface %s: %s: the stream has no frames; expected at least one", task.name, source)
+                self._route(task, xface.STATUS_ERROR)
+                self._route(task, xface.STATUS_FINISHED)
+                return
             self.frames, self.fps, self.pos = frames, fps, 0
             self._epoch += 1
         self._route(task, xface.STATUS_FINISHED)
