@@ -273,6 +273,22 @@ def test_partial_frame_at_disconnect_is_reported():
                                  "done 0 frames 0 steps 1 errors"]
 
 
+def test_every_half_close_is_answered_with_done_even_without_a_header():
+    """Blank and comment lines only, or a bad header, then EOF: the client was closed without
+    the `done` line the protocol promises after every half-close."""
+    async def main():
+        server = await started()
+        comments = await native_exchange(server.port, b"\n# nothing yet\n\n")
+        bad_header = await native_exchange(server.port, b"hello\n")
+        await well_behaved(server.port)
+        await server.close()
+        return comments, bad_header
+
+    comments, bad_header = run(main())
+    assert comments == ["done 0 frames 0 steps 0 errors"]
+    assert bad_header[-1] == "done 0 frames 0 steps 1 errors" and bad_header[0].startswith("error 1: ")
+
+
 def test_a_client_that_keeps_sending_garbage_is_closed_after_max_errors():
     async def main():
         server = await started(limits=ServerLimits(max_errors=5))

@@ -104,7 +104,7 @@ class NativeSession:
                 await self._error(self.splitter.line_count + 1,
                                   "stream ended inside a frame; expected the rest of the frame")
             await self._finish_steps()
-            if clean_end and self.decoder.header is not None and self.worker is not None:
+            if clean_end:  # also after no header, or a bad one: every half-close is answered
                 await self._reply(f"done {self.frames_done} frames {self.steps} steps {self.errors} errors\n")
         finally:
             if self._stepper is not None and not self._stepper.done():
