@@ -21,7 +21,20 @@ def test_json_summary_of_a_real_file(shared_data, capsys):
     assert summary["frame_count"] == summary["declared_frame_count"] == 43
     assert summary["faps_used"][:3] == [3, 4, 5] and 48 in summary["faps_used"] and 1 not in summary["faps_used"]
     assert summary["faps_used"] == sorted(summary["faps_used"])
-    assert summary["warnings"] == []
+    # Xface's encoder sends the unidirectional cheek lifts slightly negative: played as 0
+    assert summary["warnings"] == [f"FAP {k} lift_{s}_cheek: values -7 .. 15 go beyond the range played, 0 .. 600 ENS: "
+                                   "clamped to it" for k, s in ((41, "l"), (42, "r"))]
+
+
+def test_values_beyond_the_range_played_are_a_warning(tmp_path, capsys):
+    """A value of 1e12 was listed as the FAP's range under "no warnings"; the player clamps it."""
+    path = tmp_path / "far.fap"
+    mask = " ".join("1" if k in (4, 18) else "0" for k in range(68))
+    path.write_text(f"2.1 far 25 2\n{mask}\n0 1e12 40\n{mask}\n1 -30 1000\n")
+    assert main(["inspect", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "warnings (1):" in out
+    assert "FAP 5 raise_b_midlip: values -30 .. 1e+12 go beyond the range played, -1860 .. 1860 MNS: clamped" in out
 
 
 def test_text_summary_names_faps_and_visemes(repo_root, capsys):

@@ -10,7 +10,8 @@ import os
 import numpy as np
 
 from fae.io.fap import read_fap
-from fae.mpeg4.faps import FAP_COUNT
+from fae.mpeg4.faps import FAP_COUNT, FAPS
+from fae.mpeg4.faptables import FAP_LIMITS
 
 
 def summarize_fap(path: str | os.PathLike) -> dict:
@@ -19,7 +20,8 @@ def summarize_fap(path: str | os.PathLike) -> dict:
     Returns {path, version, name, fps, frame_count, declared_frame_count,
     first_frame_number, last_frame_number, duration_s, faps_used (FAP numbers),
     value_ranges (FAP number as str -> [low, high] in the FAP's units), visemes_used,
-    expressions_used, warnings (what was accepted with a warning, one line each)}."""
+    expressions_used, warnings (what was accepted with a warning, one line each; a
+    low-level FAP sent beyond the range the player clamps to, FAP_LIMITS, is one)}."""
     stream = read_fap(path)
     ever = np.zeros(FAP_COUNT, dtype=bool)
     low = np.full(FAP_COUNT, np.inf)
@@ -41,6 +43,10 @@ def summarize_fap(path: str | os.PathLike) -> dict:
             expressions.update((frame.expression.select1, frame.expression.select2))
     header = stream.header
     used = [int(i) + 1 for i in np.flatnonzero(ever)]
+    beyond = [f"FAP {n} {FAPS[n - 1].name}: values {low[n - 1]:g} .. {high[n - 1]:g} go beyond the range played, "
+              f"{FAP_LIMITS[n - 1, 0]:g} .. {FAP_LIMITS[n - 1, 1]:g} {FAPS[n - 1].fapu or ''}".rstrip()
+              + ": clamped to it"
+              for n in used if n >= 3 and (low[n - 1] < FAP_LIMITS[n - 1, 0] or high[n - 1] > FAP_LIMITS[n - 1, 1])]
     frame_count = stream.frame_count or 0
     span = (last_number - first_number + 1) if first_number is not None else 0
     return {
@@ -57,5 +63,5 @@ def summarize_fap(path: str | os.PathLike) -> dict:
         "value_ranges": {str(n): [float(low[n - 1]), float(high[n - 1])] for n in used},
         "visemes_used": sorted(visemes),
         "expressions_used": sorted(expressions),
-        "warnings": list(stream.warnings),
+        "warnings": list(stream.warnings) + beyond,
     }
