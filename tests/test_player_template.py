@@ -221,9 +221,11 @@ def test_an_ear_fap_carries_its_ear_whole_and_leaves_the_other(player):
 
 def test_an_ear_at_the_standards_limits_leaves_the_skin_whole_and_a_twitch_stays_local(player):
     """The standard lets an ear move 900 ENS units (about 5 cm on this head): at both
-    limits of both ear FAPs the skin keeps every visible edge within 0.3-2x its rest length
-    and folds nowhere near the ear (a fixed 1.3 cm fade stretched the scalp 7.5x); a
-    twitch of 50 units moves nothing 3 cm from the ear."""
+    limits of both ear FAPs, at half and a tenth of them, the skin keeps every visible edge
+    within 0.3-2x its rest length and folds nowhere (a fixed 1.3 cm fade stretched the
+    scalp 7.5x; a fade measured from 13 mm off the ear's root left the root's first ring
+    behind, and an ear lowered a tenth of its range folded 8 triangles there, pulled
+    sideways 16); a twitch of 50 units moves nothing 3 cm from the ear."""
     from fae.animate.skin_check import SkinCheck, in_head_frame
 
     face = player.face
@@ -235,13 +237,13 @@ def test_an_ear_at_the_standards_limits_leaves_the_skin_whole_and_a_twitch_stays
     for p in rest[ear_l][::10]:
         far &= np.linalg.norm(rest - p, axis=1) > 0.03
     for k in (65, 67):
-        for limit in FAP_LIMITS[k - 1]:
+        for value in np.outer(FAP_LIMITS[k - 1], [1.0, 0.5, 0.1]).ravel():
             v = np.zeros(68)
-            v[k - 1] = limit
+            v[k - 1] = value
             skin = settle(player, v, frames=3)
             r = check.frame(in_head_frame(skin, player.bone_transforms["head"]))
-            assert r.stretch <= 2.0 and r.compression >= 0.3, (k, limit, r.stretch, r.compression)
-            assert r.folded.sum() <= 10, (k, limit, int(r.folded.sum()))
+            assert r.stretch <= 2.0 and r.compression >= 0.3, (k, value, r.stretch, r.compression)
+            assert r.folded.sum() == 0, (k, value, int(r.folded.sum()))
         v = np.zeros(68)
         v[k - 1] = 50.0
         moved = settle(player, v, frames=3) - rest
