@@ -17,6 +17,8 @@ thread.
 """
 
 import os
+import sys
+import tempfile
 import threading
 from concurrent.futures import ThreadPoolExecutor
 
@@ -37,7 +39,16 @@ wp.config.log_level = 30
 # will not be available: fae runs on the CPU by default and refuses `--device cuda` without
 # one in its own words, so that line is left out (anything else it says is kept)
 with native_stderr_filtered(keep=lambda line: "NVIDIA CUDA driver" not in line):
-    wp.init()
+    try:
+        wp.init()
+    except OSError as exc:
+        # Warp keeps compiled kernels under the user's cache folder; where that cannot be
+        # made (a read-only home) every command that runs a kernel stopped with a traceback
+        fallback = os.path.join(tempfile.gettempdir(), f"fae-warp-cache-{getattr(os, 'getuid', lambda: 0)()}")
+        print(f"fae: Warp's kernel cache cannot be made ({exc.strerror or exc}: {exc.filename}); using {fallback} "
+              "instead (WARP_CACHE_PATH chooses it)", file=sys.stderr)
+        wp.config.kernel_cache_dir = fallback
+        wp.init()
 
 
 
