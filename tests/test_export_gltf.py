@@ -195,14 +195,20 @@ def test_without_a_stream_the_scene_has_no_animation(baked_file, tmp_path):
     (["{head}", "-o", "{tmp}/scene.gltf"], "expected a .glb"),
     (["{head}", "{bad}", "-o", "{out}", "--fps", "0"], "--fps"),
     (["{head}", "{empty}", "-o", "{out}"], "empty.fap: no frames to animate"),  # was: a scene without animation, exit 0
+    # two frames 25 million apart, held as long as they ask: refused before a frame is played
+    # (it ran for minutes and past a gigabyte)
+    (["{head}", "{gap}", "-o", "{out}", "--max-hold", "1e6"], "gap.fap: 25000001 frames at 25 fps would hold"),
 ])
 def test_fae_export_explains_bad_input_in_one_line(tmp_path, baked_file, capsys, argv, expected):
     bad = tmp_path / "bad.fap"
     bad.write_text("not a fap file\n")
     empty = tmp_path / "empty.fap"
     empty.write_text("2.1 empty 25 0\n")
+    mask = " ".join("1" if k == 18 else "0" for k in range(68))
+    gap = tmp_path / "gap.fap"
+    gap.write_text(f"2.1 gap 25 2\n{mask}\n0 100\n{mask}\n25000000 200\n")
     names = {"missing": tmp_path / "none.glb", "out": tmp_path / "o.glb", "head": baked_file, "tmp": tmp_path,
-             "bad": bad, "empty": empty}
+             "bad": bad, "empty": empty, "gap": gap}
     before = baked_file.read_bytes()
     assert run_command("export", [a.format(**names) for a in argv]) == 2
     err = capsys.readouterr().err.strip()

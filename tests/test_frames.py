@@ -153,3 +153,16 @@ def test_a_gap_longer_than_max_hold_is_cut_with_one_warning():
     assert len(list(dense_frames(frames, source_fps=2, max_hold=3, fps=4))) == 20
     assert len(list(dense_frames(frames[:1] + [frame(100, {3: 1})], source_fps=2, max_hold=None))) == 101
     assert len(list(dense_frames([frame(0, {}), frame(10 ** 12, {})], source_fps=25))) == 1502  # 60 s by default
+
+
+@pytest.mark.parametrize("fps", [None, 4.0, 3.0, 0.7])
+@pytest.mark.parametrize("max_hold", [3.0, None])
+def test_count_is_the_length_of_a_pass_without_making_the_held_frames(fps, max_hold):
+    """`count()` gives what a pass yields from the frame numbers alone: a gap of a trillion
+    frames is counted at once (fae export refuses a scene too large before playing it)."""
+    frames = [frame(0, {3: 10}), frame(5, {3: 20}), frame(40, {3: 30}), frame(41, {3: 40})]
+    dense = dense_frames(frames, source_fps=2, fps=fps, max_hold=max_hold)
+    assert dense.count() == len(list(dense))
+    far = dense_frames([frame(0, {}), frame(10 ** 12, {})], source_fps=25, max_hold=None)
+    assert far.count() == 10 ** 12 + 1
+    assert dense_frames([], source_fps=25).count() == 0

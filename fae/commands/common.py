@@ -20,6 +20,9 @@ import tempfile
 from pathlib import Path
 
 
+MAX_SCENE_FRAMES_BYTES = 2 * 2 ** 30  # what a glTF scene's frames (shapes, keyframes) may hold while it is made
+
+
 def fail(command: str, message: str, status: int = 2) -> int:
     """Print `fae COMMAND: MESSAGE` on stderr and return the exit status (2: bad input)."""
     print(f"fae {command}: {message}", file=sys.stderr)

@@ -17,7 +17,8 @@ import contextlib
 import sys
 from pathlib import Path
 
-from fae.commands.common import drawn_skin_colors, fail, load_head, os_error_text, output_problem, timing_problem
+from fae.commands.common import (MAX_SCENE_FRAMES_BYTES, drawn_skin_colors, fail, load_head, os_error_text,
+                                 output_problem, timing_problem)
 from fae.io.frames import MAX_HOLD_SECONDS
 
 
@@ -32,6 +33,20 @@ def register(subparsers) -> None:
     parser.add_argument("--max-hold", type=float, default=MAX_HOLD_SECONDS, metavar="SECONDS",
                         help=f"longest a gap in the frame numbers is held (default {MAX_HOLD_SECONDS:g})")
     parser.set_defaults(func=run)
+
+
+POSED_NODES = 5  # the head, the jaw, the eyes and the tongue: a 4x4 pose each per frame (fae.animate.player)
+
+
+def _keyframes_problem(stream: str, count: int, fps: float, targets: int) -> str | None:
+    """Why `count` frames of `targets` morph weights and the posed nodes are too many to hold
+    while the scene is made (float64 each), or None."""
+    need = count * 8 * (targets + 16 * POSED_NODES)
+    if need <= MAX_SCENE_FRAMES_BYTES:
+        return None
+    return (f"{stream}: {count} frames at {fps:g} fps would hold {need / 2 ** 30:.1f} GiB of keyframes while the "
+            f"scene is made (at most {MAX_SCENE_FRAMES_BYTES / 2 ** 30:.0f} GiB); expected fewer frames: a shorter "
+            "--max-hold for the stream's gaps, or a lower --fps (nothing written)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -56,6 +71,17 @@ def run(args: argparse.Namespace) -> int:
     from fae.io.export_gltf import write_scene
     from fae.io.frames import dense_frames
 
+    frames = fps = None
+    if stream is not None:  # its length first: a scene too large is refused before any bake or play
+        fps = float(args.fps) if args.fps else float(stream.header.fps)
+        frames = dense_frames(stream, fps=args.fps, max_hold=args.max_hold)
+        try:
+            count = frames.count()  # from the frame numbers alone: a gap held for days is counted at once
+        except FapFormatError as exc:
+            return fail("export", f"{exc} (nothing written)")
+        problem = _keyframes_problem(args.stream, count, fps, 0)  # the poses alone
+        if problem:
+            return fail("export", problem)
     if not has_baked_tables(model):
         print(f"fae export: {head.name} has no baked FaceDefTables; baking them first (minutes; "
               "`fae bake` stores them)", file=sys.stderr)
@@ -68,20 +94,18 @@ def run(args: argparse.Namespace) -> int:
         except (RuntimeError, ValueError) as exc:  # data the engine cannot use (fae template check says which)
             return fail("export", f"{head}: cannot animate it: {exc}")
         targets = morph_targets(player.tables)
-        frames = None
-        fps = None
-        try:
-            if stream is not None:
-                fps = float(args.fps) if args.fps else float(stream.header.fps)
-                frames = dense_frames(stream, fps=args.fps, max_hold=args.max_hold)
+        animation = None
+        if frames is not None:
+            problem = _keyframes_problem(args.stream, count, fps, len(targets))
+            if problem:
+                return fail("export", problem)
+            try:
                 animation = keyframes(player, targets, frames, fps)
-                if len(animation.times) == 0:
-                    return fail("export", f"{args.stream}: no frames to animate; expected at least one frame after "
-                                "the header (nothing written)")
-            else:
-                animation = None
-        except FapFormatError as exc:
-            return fail("export", f"{exc} (nothing written)")
+            except FapFormatError as exc:
+                return fail("export", f"{exc} (nothing written)")
+            if len(animation.times) == 0:
+                return fail("export", f"{args.stream}: no frames to animate; expected at least one frame after "
+                            "the header (nothing written)")
     try:
         write_scene(args.output, player.face, targets=targets, skin_colors=drawn_skin_colors(player.face),
                     keyframes=animation, name=head.stem)

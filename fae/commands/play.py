@@ -22,10 +22,9 @@ import argparse
 import sys
 from pathlib import Path
 
-from fae.commands.common import (add_device_argument, add_view_arguments, drawn_skin_colors, fail, load_head,
-                                 memory_message,
-                                 os_error_text, output_problem, overwritten_input, render_size_problem,
-                                 timing_problem, video_size_problem, warp_device)
+from fae.commands.common import (MAX_SCENE_FRAMES_BYTES, add_device_argument, add_view_arguments, drawn_skin_colors,
+                                 fail, load_head, memory_message, os_error_text, output_problem, overwritten_input,
+                                 render_size_problem, timing_problem, video_size_problem, warp_device)
 from fae.io.frames import MAX_HOLD_SECONDS
 
 
@@ -251,7 +250,6 @@ def _write_scene(args: argparse.Namespace, player, stream, fps: float) -> int:
 
 
 MESH_SUFFIXES = (".obj", ".ply", ".stl", ".off")
-MAX_SCENE_FRAMES_BYTES = 2 * 2 ** 30  # the played shapes (float32) held to make a glTF scene
 
 
 def _mesh_without_landmarks(head: str | None) -> str | None:

@@ -170,25 +170,44 @@ class DenseFrames:
             self._pass = iter(self)
         return next(self._pass)
 
-    def _source(self, state: FrameState) -> Iterator[DenseFrame]:
+    def _indexed(self) -> Iterator[tuple[FapFrame, int, int | None]]:
+        """(frame, its index in the source's dense timeline, the frame number before it when
+        the gap between them was cut to max_hold, else None), a frame at a time."""
         first = None
-        previous: DenseFrame | None = None
-        previous_number = 0
+        previous_index = previous_number = None
         cut = 0  # frames left out of long holds so far
         longest = None if self.max_hold is None else math.floor(self.max_hold * self.source_fps + 1e-9)
         for frame in self.frames:
             if first is None:
                 first = frame.number
             index = frame.number - first - cut
-            if previous is not None and longest is not None and index - previous.index - 1 > longest:
-                missing = frame.number - previous_number - 1
+            held_from = None
+            if previous_index is not None and longest is not None and index - previous_index - 1 > longest:
+                held_from = previous_number
+                cut += index - previous_index - 1 - longest
+                index = previous_index + 1 + longest
+            yield frame, index, held_from
+            previous_index, previous_number = index, frame.number
+
+    def count(self) -> int:
+        """The number of frames a pass yields, from the source's frame numbers alone (held
+        frames are not made: a gap of millions of frames is counted at once)."""
+        last = -1
+        for _, index, _ in self._indexed():
+            last = index
+        if self.fps == self.source_fps:
+            return last + 1
+        return math.ceil((last + 1) * self.fps / self.source_fps - 1e-9) if last >= 0 else 0
+
+    def _source(self, state: FrameState) -> Iterator[DenseFrame]:
+        previous: DenseFrame | None = None
+        for frame, index, held_from in self._indexed():
+            if held_from is not None:
+                missing = frame.number - held_from - 1
                 state.warnings.append(
-                    f"{self.source_name}: frames {previous_number + 1}..{frame.number - 1} are missing "
-                    f"({missing / self.source_fps:.6g} s): frame {previous_number} is held for {self.max_hold:g} s "
+                    f"{self.source_name}: frames {held_from + 1}..{frame.number - 1} are missing "
+                    f"({missing / self.source_fps:.6g} s): frame {held_from} is held for {self.max_hold:g} s "
                     "only, and the stream goes on from there")
-                cut += index - previous.index - 1 - longest
-                index = previous.index + 1 + longest
-            previous_number = frame.number
             if previous is not None:
                 for held in range(previous.index + 1, index):  # frame numbers that skip: hold
                     yield DenseFrame(held, held / self.source_fps, previous.values.copy(), previous.viseme, previous.expression)
