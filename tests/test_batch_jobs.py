@@ -67,6 +67,7 @@ def test_json_lists_and_glob_times_heads(corpus, monkeypatch):
 
 @pytest.mark.parametrize("rows, expected", [
     ("stream,size\nstreams/hello.fap,64x\n", r"jobs.csv:2: field 'size' '64x': expected WIDTHxHEIGHT"),
+    ("stream,size\nstreams/hello.fap,6_4x48\n", r"jobs.csv:2: field 'size' '6_4x48': expected WIDTHxHEIGHT"),
     ("stream,size\nstreams/hello.fap,65x48\n", r"jobs.csv:2: field 'size' '65x48': expected .*even"),
     ("\n# c\nstream,colour\n", r"jobs.csv:3: unknown column 'colour': expected .*stream, head, view"),
     ("head\nother.glb\n", r"jobs.csv:1: no 'stream' column"),

@@ -184,6 +184,8 @@ def test_the_readers_warnings_are_shown(tmp_path):
     (["play", str(SHORT_STREAM), "-o", "x.mp4", "--size", "8192x100", "--supersample", "3"], "at most 16384 pixels"),
     (["play", str(SHORT_STREAM), "-o", "x.mp4", "--fps", "0.0001"], "--fps 0.0001: expected a frame rate in"),
     (["bake", "-o", "x.glb", "--faps", "3-300000000"], "expected FAP numbers (1-68)"),
+    # refused once the whole stream had been rendered, as the video could not replace the folder
+    (["play", str(SHORT_STREAM), "-o", "q.mp4", "--frames-dir", "q.mp4"], "--frames-dir q.mp4: the same path as -o"),
 ])
 def test_settings_out_of_reach_are_one_line_naming_them(tmp_path, capsys, monkeypatch, args, expected):
     """A 23200x23200 render killed the process (SIGSEGV), and any side past 16384 drew a
@@ -193,6 +195,17 @@ def test_settings_out_of_reach_are_one_line_naming_them(tmp_path, capsys, monkey
     assert main(args) == 2
     err = capsys.readouterr().err
     assert expected in err and err.count("\n") == 1
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("size", ["64_0x48", "+64x48", "\uff16\uff14x48", "64 x 48"])
+def test_a_size_is_ascii_digits_only(tmp_path, capsys, monkeypatch, size):
+    """int() took "64_0x48" (a 640x48 video), "+64x48" and other scripts' digits."""
+    monkeypatch.chdir(tmp_path)
+    for args in (["play", str(SHORT_STREAM), "-o", "x.mp4"], ["render", "-o", "x.png"]):
+        with pytest.raises(SystemExit) as stop:
+            main([*args, "--size", size])
+        assert stop.value.code == 2 and "expected WIDTHxHEIGHT" in capsys.readouterr().err
     assert list(tmp_path.iterdir()) == []
 
 

@@ -25,6 +25,7 @@ import hashlib
 import json
 import math
 import os
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -90,10 +91,10 @@ def _views() -> tuple[str, ...]:
 
 def parse_size_text(text: str) -> tuple[int, int] | None:
     """'640x480' -> (640, 480); None when it is not an even WIDTHxHEIGHT within 2..8192."""
-    try:
-        w, h = (int(p) for p in text.strip().lower().split("x"))
-    except ValueError:
+    match = re.fullmatch(r"\s*([0-9]+)[xX]([0-9]+)\s*", text)  # ASCII digits: int() takes "1_0" and "+64"
+    if match is None:
         return None
+    w, h = int(match[1]), int(match[2])
     if not (0 < w <= MAX_SIDE and 0 < h <= MAX_SIDE) or w % 2 or h % 2:
         return None
     return w, h

@@ -86,6 +86,10 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         return fail("play", str(exc))
     frames_dir = Path(args.frames_dir) if args.frames_dir else None
+    if frames_dir is not None and frames_dir.resolve() == Path(args.output).resolve():
+        # (found only after the whole stream was rendered, as the video could not replace the folder)
+        return fail("play", f"--frames-dir {frames_dir}: the same path as -o {args.output}; expected a folder of "
+                    "its own for the frames")
     if frames_dir is not None and frames_dir.exists() and not frames_dir.is_dir():
         return fail("play", f"{frames_dir}: not a folder; expected a folder for the frames")
     retargeted = None
