@@ -89,6 +89,12 @@ def test_menpo_ljson_every_version_gives_the_same_points(tmp_path):
                "landmarks": {"points": pts, "connectivity": []}},
         "v1": {"version": 1, "groups": [{"label": "all", "connectivity": [],
                                          "landmarks": [{"point": p} for p in pts]}]},
+        # as landmarker.io writes it: the 68 points as labelled parts, in iBUG order
+        "v1 parts": {"version": 1, "groups": [{"label": label, "connectivity": [],
+                                               "landmarks": [{"point": p} for p in pts[a:b]]}
+                                              for label, a, b in (("chin", 0, 17), ("leye", 17, 22), ("reye", 22, 27),
+                                                                  ("nose", 27, 36), ("leye", 36, 42), ("reye", 42, 48),
+                                                                  ("mouth", 48, 68))]},
     }
     read = {}
     for name, data in layouts.items():
@@ -96,7 +102,7 @@ def test_menpo_ljson_every_version_gives_the_same_points(tmp_path):
         path.write_text(json.dumps(data))
         read[name] = read_landmarks(path)
     assert np.allclose(read["v3"]["9.3"], pts[30])
-    for name in ("v2", "v1"):
+    for name in ("v2", "v1", "v1 parts"):
         assert read[name].keys() == read["v3"].keys()
         assert all(np.allclose(read[name][k], read["v3"][k]) for k in read["v3"])
     short = tmp_path / "short.ljson"

@@ -216,8 +216,9 @@ def _unique_keys(pairs: list[tuple[str, object]]) -> dict:
 
 
 def _ljson_points(path: str, groups) -> np.ndarray:
-    """(p, 3) the points of the menpo ljson `groups` (an object of groups, or a list of
-    them): the group with 68 points when there are several, else the first."""
+    """(p, 3) the points of the menpo ljson `groups`: in version 3 (an object of groups) the
+    group with 68 points when there are several, else the first; in version 1 (a list of
+    labelled parts of one set, each point {"point": [x, y, z]}) all of them in order."""
     found = list(groups.values()) if isinstance(groups, dict) else groups if isinstance(groups, list) else None
     if not found:
         raise LandmarkError(f"{path}: ljson field groups: expected an object of landmark groups")
@@ -233,6 +234,9 @@ def _ljson_points(path: str, groups) -> np.ndarray:
     usable = [p for p in sets if p is not None and p.ndim == 2 and p.shape[1] == 3]
     if not usable:
         raise LandmarkError(f"{path}: ljson field groups.<name>.landmarks.points missing or malformed")
+    if len(usable) == len(found) and all(isinstance(g.get("landmarks"), list) for g in found):
+        # version 1: the groups are labelled parts of one set (jaw, brows, nose, eyes, mouth), in order
+        return np.concatenate(usable)
     return next((p for p in usable if len(p) == 68), usable[0])
 
 
