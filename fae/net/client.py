@@ -68,7 +68,7 @@ class SendReport:
     def problem(self) -> str | None:
         """Why these replies are not a fae server's answer to the whole stream, or None:
         a summary of such replies ("0/0 frames ok", "100/48 frames ok") says nothing."""
-        seen = f" (it sent {self.unknown[0]!r:.70})" if self.unknown else ""
+        seen = f" (it sent {ascii(self.unknown[0])[:70]})" if self.unknown else ""
         if self.errors:
             return None  # the server's own words say what went wrong
         if not self.header_ok:
@@ -187,9 +187,12 @@ async def send_fap(text: str, host: str = "127.0.0.1", port: int = 50011, *, rat
     try:
         writer.write(header.encode("utf-8") + b"\n")
         await sent()
-        await asyncio.wait([receiver, asyncio.create_task(header_seen.wait())], timeout=timeout,
-                           return_when=asyncio.FIRST_COMPLETED)
+        header_wait = asyncio.create_task(header_seen.wait())
+        await asyncio.wait([receiver, header_wait], timeout=timeout, return_when=asyncio.FIRST_COMPLETED)
+        header_wait.cancel()
         if not header_seen.is_set():
+            if receiver.done() and receiver.exception() is not None:
+                raise receiver.exception()  # the connection's own failure (reset, ...) says most
             # no answer a fae server gives (report.problem says what came instead); the
             # frames are not sent, the finally below lets go of the connection
             report.header_wait = 0.0 if receiver.done() else timeout
