@@ -38,17 +38,38 @@ wp.config.log_level = 30
 # Its native core says on stderr, on every machine without an NVIDIA driver, that the GPU
 # will not be available: fae runs on the CPU by default and refuses `--device cuda` without
 # one in its own words, so that line is left out (anything else it says is kept)
+def _private_temporary_cache() -> str:
+    """A kernel cache folder in the system's temporary directory that only this user can
+    write (compiled kernels are loaded from it: a folder someone else made first, or a link,
+    is not used), the same one each run where it can be, so kernels compile once."""
+    uid = getattr(os, "getuid", lambda: None)()
+    path = os.path.join(tempfile.gettempdir(), f"fae-warp-cache-{uid if uid is not None else 'user'}")
+    try:
+        os.makedirs(path, mode=0o700, exist_ok=True)
+        st = os.lstat(path)
+        if (os.path.islink(path) or not os.path.isdir(path) or (uid is not None and st.st_uid != uid)
+                or st.st_mode & 0o077):
+            raise PermissionError(path)
+        return path
+    except OSError:
+        return tempfile.mkdtemp(prefix="fae-warp-cache-")
+
+
 with native_stderr_filtered(keep=lambda line: "NVIDIA CUDA driver" not in line):
     try:
         wp.init()
     except OSError as exc:
         # Warp keeps compiled kernels under the user's cache folder; where that cannot be
         # made (a read-only home) every command that runs a kernel stopped with a traceback
-        fallback = os.path.join(tempfile.gettempdir(), f"fae-warp-cache-{getattr(os, 'getuid', lambda: 0)()}")
-        print(f"fae: Warp's kernel cache cannot be made ({exc.strerror or exc}: {exc.filename}); using {fallback} "
-              "instead (WARP_CACHE_PATH chooses it)", file=sys.stderr)
+        fallback = _private_temporary_cache()
+        print(f"fae: Warp's kernel cache cannot be made ({exc.strerror or exc}: {exc.filename or '?'}); using "
+              f"{fallback} instead (WARP_CACHE_PATH chooses it)", file=sys.stderr)
         wp.config.kernel_cache_dir = fallback
-        wp.init()
+        try:
+            wp.init()
+        except OSError as again:
+            raise SystemExit(f"fae: Warp cannot start: no kernel cache folder can be made ({again}); set "
+                             "WARP_CACHE_PATH to a writable folder") from None
 
 
 

@@ -19,3 +19,5 @@ def test_an_unmakeable_kernel_cache_falls_back_to_the_temporary_directory(tmp_pa
     assert "Warp's kernel cache cannot be made" in done.stderr and "WARP_CACHE_PATH" in done.stderr
     cache = done.stdout.strip().splitlines()[-1]
     assert cache.startswith(str(tmp_path / "fae-warp-cache-")) and os.path.isdir(cache)
+    # compiled kernels are loaded from it: no one else may write there
+    assert os.stat(os.path.dirname(cache)).st_mode & 0o077 == 0
