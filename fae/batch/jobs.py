@@ -89,12 +89,19 @@ def _views() -> tuple[str, ...]:
     return tuple(VIEWS)
 
 
+def size_numbers(text: str) -> tuple[int, int] | None:
+    """'640x480' -> (640, 480), any size; None unless it is WIDTHxHEIGHT in ASCII digits (int()
+    also takes "1_0", "+64" and other scripts' digits: 64_0x48 was a 640x48 video)."""
+    match = re.fullmatch(r"\s*([0-9]{1,6})[xX]([0-9]{1,6})\s*", text)
+    return None if match is None else (int(match[1]), int(match[2]))
+
+
 def parse_size_text(text: str) -> tuple[int, int] | None:
     """'640x480' -> (640, 480); None when it is not an even WIDTHxHEIGHT within 2..8192."""
-    match = re.fullmatch(r"\s*([0-9]+)[xX]([0-9]+)\s*", text)  # ASCII digits: int() takes "1_0" and "+64"
-    if match is None:
+    size = size_numbers(text)
+    if size is None:
         return None
-    w, h = int(match[1]), int(match[2])
+    w, h = size
     if not (0 < w <= MAX_SIDE and 0 < h <= MAX_SIDE) or w % 2 or h % 2:
         return None
     return w, h

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import re
 import sys
 import tempfile
 from pathlib import Path
@@ -32,12 +31,12 @@ def fail(command: str, message: str, status: int = 2) -> int:
 
 def parse_size(text: str) -> tuple[int, int]:
     """'640x480' -> (640, 480); argparse type: bad text exits 2 with the reason."""
-    # ASCII digits only: int() also takes "1_0", "+64" and other scripts' digits, so a typo
-    # such as 64_0x48 gave a 640x48 video
-    match = re.fullmatch(r"\s*([0-9]+)[xX]([0-9]+)\s*", text)
-    if match is None:
+    from fae.batch.jobs import size_numbers
+
+    size = size_numbers(text)
+    if size is None:
         raise argparse.ArgumentTypeError(f"{text!r}: expected WIDTHxHEIGHT in pixels, e.g. 640x480")
-    w, h = int(match[1]), int(match[2])
+    w, h = size
     if w <= 0 or h <= 0 or w > 8192 or h > 8192:
         raise argparse.ArgumentTypeError(f"{text!r}: width and height must be between 1 and 8192 pixels")
     return w, h
