@@ -10,6 +10,7 @@ import os
 import numpy as np
 
 from fae.io.fap import read_fap
+from fae.io.frames import WARN_HIGH, WARN_LOW
 from fae.mpeg4.faps import FAP_COUNT, FAPS
 from fae.mpeg4.faptables import FAP_LIMITS
 
@@ -21,7 +22,8 @@ def summarize_fap(path: str | os.PathLike) -> dict:
     first_frame_number, last_frame_number, duration_s, faps_used (FAP numbers),
     value_ranges (FAP number as str -> [low, high] in the FAP's units), visemes_used,
     expressions_used, warnings (what was accepted with a warning, one line each; a
-    low-level FAP sent beyond the range the player clamps to, FAP_LIMITS, is one)}."""
+    low-level FAP sent beyond the range the player clamps to, FAP_LIMITS, is one, as the
+    player warns of it: a unidirectional FAP sent slightly negative is not)}."""
     stream = read_fap(path)
     ever = np.zeros(FAP_COUNT, dtype=bool)
     low = np.full(FAP_COUNT, np.inf)
@@ -46,7 +48,7 @@ def summarize_fap(path: str | os.PathLike) -> dict:
     beyond = [f"FAP {n} {FAPS[n - 1].name}: values {low[n - 1]:g} .. {high[n - 1]:g} go beyond the range played, "
               f"{FAP_LIMITS[n - 1, 0]:g} .. {FAP_LIMITS[n - 1, 1]:g} {FAPS[n - 1].fapu or ''}".rstrip()
               + ": clamped to it"
-              for n in used if n >= 3 and (low[n - 1] < FAP_LIMITS[n - 1, 0] or high[n - 1] > FAP_LIMITS[n - 1, 1])]
+              for n in used if low[n - 1] < WARN_LOW[n - 1] or high[n - 1] > WARN_HIGH[n - 1]]
     frame_count = stream.frame_count or 0
     span = (last_number - first_number + 1) if first_number is not None else 0
     return {

@@ -83,9 +83,9 @@ _RANGE_HIGH = np.array([np.inf if i < 2 else FAPS[i].value_range[1] for i in ran
 # is played from 0 up, but real streams send it slightly negative (-4 in the Xface samples):
 # that cut is the FAP's definition, not news, so only a value as far below 0 as its top
 # is above is warned about.
-_WARN_HIGH = np.where(np.arange(FAP_COUNT) < 2, np.inf, FAP_LIMITS[:, 1])
-_WARN_LOW = np.where(np.arange(FAP_COUNT) < 2, -np.inf,
-                     np.where(FAP_LIMITS[:, 0] >= 0, -FAP_LIMITS[:, 1], FAP_LIMITS[:, 0]))
+WARN_HIGH = np.where(np.arange(FAP_COUNT) < 2, np.inf, FAP_LIMITS[:, 1])
+WARN_LOW = np.where(np.arange(FAP_COUNT) < 2, -np.inf,
+                    np.where(FAP_LIMITS[:, 0] >= 0, -FAP_LIMITS[:, 1], FAP_LIMITS[:, 0]))
 
 
 class FrameState:
@@ -120,7 +120,7 @@ class FrameState:
             from_lip = ~sent & ~from_mirror & has_lip & sent[np.where(has_lip, _LIP_INDEX, 0)]
             values[from_lip] = incoming[_LIP_INDEX[from_lip]]
         if self.clamp:
-            outside = (values < _WARN_LOW) | (values > _WARN_HIGH)
+            outside = (values < WARN_LOW) | (values > WARN_HIGH)
             if outside.any():
                 for i in np.flatnonzero(outside & ~self._clamped):
                     info = FAPS[i]
@@ -191,7 +191,9 @@ class DenseFrames:
 
     def count(self) -> int:
         """The number of frames a pass yields, from the source's frame numbers alone (held
-        frames are not made: a gap of millions of frames is counted at once)."""
+        frames are not made: a gap of millions of frames is counted at once). It is a pass
+        over the source: a one-shot iterator of frames is used up; frame numbers are taken to
+        rise, as read_fap ensures."""
         last = -1
         for _, index, _ in self._indexed():
             last = index
