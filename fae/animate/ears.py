@@ -8,9 +8,10 @@ skin solver spends nothing on the ears (fae.sim simulates only skin near muscles
 
 The ear is the skin region of the feature point's triangle when that region's name says
 "ear" (the generic head and every head adapted from it); around it the weight falls with
-geodesic distance (the heat method's, potpourri3d: Dijkstra's along edges zig-zags, and a
-triangle whose corners' distances came by different zig-zags got a gradient twice the
-fade's, which turned 27 triangles under the jaw over at the limit) as the smoothstep
+geodesic distance from the ear's rim (`ear_rim`; the heat method's, potpourri3d:
+Dijkstra's along edges zig-zags, and a triangle whose corners' distances came by different
+zig-zags got a gradient twice the fade's, which turned 27 triangles under the jaw over at
+the limit) as the smoothstep
 1 - 3 r^2 + 2 r^3 over a fade that widens with the value: `FADE_ES` x ES0 while the ear
 has moved at most GRADIENT x that / SMOOTHSTEP_SLOPE, then as far as keeps the skin's
 displacement gradient within GRADIENT (an edge along the motion at most 1 + GRADIENT, one

@@ -133,7 +133,7 @@ def run(args) -> int:
         return 2
     if args.method == "surface":
         return _run_surface(args, template, V, F, landmarks, started)
-    return _run_paper(args, template, V, F, landmarks)
+    return _run_paper(args, template, V, F, landmarks, started)
 
 
 def _say(msg: str) -> None:
@@ -286,7 +286,7 @@ def _calibrated(args, model, report: dict, start_mapping: dict | None = None):
     return model
 
 
-def _run_paper(args, template, V, F, landmarks) -> int:
+def _run_paper(args, template, V, F, landmarks, started: float) -> int:
     from tqdm import tqdm
 
     from fae.adapt.transfer import adapt_facemodel
@@ -322,6 +322,7 @@ def _run_paper(args, template, V, F, landmarks) -> int:
     model = _calibrated_if_whole(args, args.scan, model, report, template.fap_mapping)
     if model is None:
         return 2
+    report["total_seconds"] = time.perf_counter() - started
     _write_outputs(args, model, report, None)
     if args.plot:
         write_plot(report, args.plot)
@@ -330,7 +331,7 @@ def _run_paper(args, template, V, F, landmarks) -> int:
         _say(f"ignored feature point {name}: {why}")
     print(f"{args.output}: scan->model RMS {f['scan_to_model_rms'] * 1000:.3f} mm, model->scan RMS "
           f"{f['model_to_scan_rms'] * 1000:.3f} mm, marker error {f['marker_error'] * 1000:.3f} mm, "
-          f"{f['seconds']:.1f} s")
+          f"fit {f['seconds']:.1f} s, {report['total_seconds']:.1f} s in all")
     return 0
 
 

@@ -79,6 +79,9 @@ def run(args: argparse.Namespace) -> int:
             count = frames.count()  # from the frame numbers alone: a gap held for days is counted at once
         except FapFormatError as exc:
             return fail("export", f"{exc} (nothing written)")
+        if count == 0:
+            return fail("export", f"{args.stream}: no frames to animate; expected at least one frame after the "
+                        "header (nothing written)")
         problem = _keyframes_problem(args.stream, count, fps, 0)  # the poses alone
         if problem:
             return fail("export", problem)
@@ -103,9 +106,6 @@ def run(args: argparse.Namespace) -> int:
                 animation = keyframes(player, targets, frames, fps)
             except FapFormatError as exc:
                 return fail("export", f"{exc} (nothing written)")
-            if len(animation.times) == 0:
-                return fail("export", f"{args.stream}: no frames to animate; expected at least one frame after "
-                            "the header (nothing written)")
     try:
         write_scene(args.output, player.face, targets=targets, skin_colors=drawn_skin_colors(player.face),
                     keyframes=animation, name=head.stem)
