@@ -204,8 +204,33 @@ def test_fae_bake_explains_bad_input_in_one_line(tmp_path, physics, capsys, argv
     assert not (tmp_path / "o.glb").exists()
 
 
+def test_a_head_baked_for_some_faps_knows_which_it_leaves_still(physics, fdt):
+    """FAPs 3, 5, 12, 19 baked: the fdt engine has no table for the other skin FAPs (the ears'
+    it derives); a FAP baked without a table (it moved nothing) counts as baked, through the
+    head's .glb too; the physics engine leaves none still."""
+    from fae.mpeg4.faptables import SKIN_TRANSLATION_FAPS
+
+    missing = fdt.head.faps_without_tables
+    assert set(missing) == set(SKIN_TRANSLATION_FAPS) - {3, 5, 12, 19, 65, 66, 67, 68}
+    assert physics.head.faps_without_tables == []
+    still = baked_model(physics.face, [t for t in fdt.tables if t.source == "physics"], faps=(3, 5, 12, 19, 4))
+    assert 4 not in Player(playable_head(still, engine="fdt")).head.faps_without_tables
+
+
+def test_faps_in_stream_counts_visemes_and_expressions_as_the_faps_they_move():
+    """visemes.fap sends FAP 1 alone: the lips and jaw it moves are in use, no eyelid."""
+    from fae.animate.highlevel import faps_in_stream
+    from fae.io.fap import read_fap
+    from test_play import REPO
+
+    used = faps_in_stream(read_fap(REPO / "fap_streams" / "visemes.fap"))
+    assert {3, 4, 5, 12, 13} <= used and not used & {1, 2, 19, 20}
+
+
 @pytest.mark.slow
-def test_fae_play_with_the_fdt_engine_writes_a_video(tmp_path, baked):
+def test_fae_play_with_the_fdt_engine_writes_a_video(tmp_path, baked, capsys):
+    """... and names the stream's FAPs the head was not baked for (the skin stays still for
+    them): it played them without a word."""
     from test_play import short_stream
 
     head = tmp_path / "baked.glb"
@@ -214,6 +239,8 @@ def test_fae_play_with_the_fdt_engine_writes_a_video(tmp_path, baked):
     assert run_command("play", [str(short_stream(tmp_path, frames=10)), "--head", str(head), "--engine", "fdt",
                                 "-o", str(out), "--size", "160x120"]) == 0
     assert out.stat().st_size > 0
+    notice = [line for line in capsys.readouterr().err.splitlines() if "no FaceDefTable" in line]
+    assert len(notice) == 1 and "FAPs 4,6,7,10," in notice[0] and ",12," not in notice[0]
 
 
 @pytest.mark.slow

@@ -218,7 +218,7 @@ def test_fae_export_explains_bad_input_in_one_line(tmp_path, baked_file, capsys,
 
 
 @pytest.mark.slow
-def test_the_shipped_head_exports_expressions_for_the_validator(tmp_path):
+def test_the_shipped_head_exports_expressions_for_the_validator(tmp_path, capsys):
     """The shipped head, a few FAPs baked, with fap_streams/expressions.fap: 0 validator errors."""
     from fae.data import shipped_head_path
     from fae.io.facemodel_gltf import read_facemodel
@@ -232,6 +232,9 @@ def test_the_shipped_head_exports_expressions_for_the_validator(tmp_path):
     report = validate(out)
     assert report["issues"]["numErrors"] == 0, report["issues"]["messages"][:5]
     assert report["info"]["animationCount"] == 1
+    # the brows and lids the expressions move were not baked: said, not left to be found in the scene
+    notice = [line for line in capsys.readouterr().err.splitlines() if "no FaceDefTable" in line]
+    assert len(notice) == 1 and ",19,20," in notice[0] and ",31," not in notice[0]
 
 
 def test_a_played_meshs_frames_become_the_fewest_shapes_that_rebuild_them():

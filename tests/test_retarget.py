@@ -387,6 +387,15 @@ def test_a_scene_is_refused_where_it_cannot_be_what_was_asked(synthetic, tmp_pat
         assert main(["play", stream, *argv]) == 2
         assert said in capsys.readouterr().err
     assert list(tmp_path.iterdir()) == []
+    # a header that says 2 frames, two frames 11 days apart held in full: the frames are counted
+    # before any is played (the header's count let it play until 2 GiB of shapes were held)
+    gap = tmp_path / "gap.fap"
+    mask, values = " ".join(["0", "0", "1"] + ["0"] * 65), "100"
+    gap.write_text(f"2.1 gap 25 2\n{mask}\n0 {values}\n{mask}\n{25 * 10 ** 6} {values}\n")
+    out = tmp_path / "gap.glb"
+    assert main(["play", str(gap), "--head", str(mesh), "--landmarks", str(lm), "-o", str(out),
+                 "--max-hold", "1e6"]) == 2
+    assert "GiB of shapes" in capsys.readouterr().err and not out.exists()
 
 
 @pytest.mark.parametrize("case", ["no_landmarks", "few_landmarks", "bad_mesh", "missing_landmarks", "another_unit",

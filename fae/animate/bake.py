@@ -77,13 +77,25 @@ def bake_tables(player, faps=None, intervals_per_side: int = INTERVALS_PER_SIDE,
     return tables
 
 
-def baked_model(face, tables: list[FaceDefTable]):
+def baked_model(face, tables: list[FaceDefTable], faps=None):
     """A copy of FaceModel `face` whose FaceDefTable slot holds its authored tables and `tables`
-    (earlier baked tables are replaced)."""
+    (earlier baked tables are replaced). `faps`: the FAPs that were baked (default: those of
+    `tables`), recorded in the head's meta "face_def_tables_baked": a FAP baked without a
+    table (no vertex moved past THRESHOLD) is then told from one never baked."""
+    baked = {int(t.fap) for t in tables} | ({int(k) for k in faps} if faps is not None else set())
     out = copy.copy(face)
     out.face_def_tables = [t for t in face.face_def_tables if t.source == "authored"] + list(tables)
-    out.meta = {**(face.meta or {}), "face_def_tables_baked": sorted({int(t.fap) for t in tables})}
+    out.meta = {**(face.meta or {}), "face_def_tables_baked": sorted(baked)}
     return out
+
+
+def baked_faps(face) -> set[int]:
+    """FAP numbers `face`'s physics tables were baked for: those its meta records (a FAP that
+    moved nothing has no table) and those with a table."""
+    recorded = (face.meta or {}).get("face_def_tables_baked", ())
+    recorded = recorded if isinstance(recorded, (list, tuple)) else ()
+    return ({int(k) for k in recorded if isinstance(k, (int, float)) and not isinstance(k, bool)}
+            | {int(t.fap) for t in face.face_def_tables if t.source == "physics"})
 
 
 def has_baked_tables(face) -> bool:

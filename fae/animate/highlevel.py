@@ -135,3 +135,23 @@ def highlevel_values(viseme=None, expression=None) -> np.ndarray:
                 raise ValueError(f"{kind}: code {code} is outside 0..{len(table) - 1}")
             out += table[code] * float(np.clip(weight, 0.0, 1.0))
     return out
+
+
+def faps_in_stream(frames) -> set[int]:
+    """Numbers of the low-level FAPs (3-68) that `frames` (fae.io.fap.FapFrame iterable) set
+    to a value other than 0, themselves or through a FAP 1 viseme or FAP 2 expression record."""
+    used = np.zeros(FAP_COUNT, dtype=bool)
+    records = set()
+    for frame in frames:
+        used |= np.asarray(frame.mask, dtype=bool) & (np.asarray(frame.values, dtype=np.float64) != 0.0)
+        for record in (frame.viseme, frame.expression):
+            if record is not None:
+                records.add((record is frame.viseme, record))
+    for is_viseme, record in records:
+        try:
+            values = highlevel_values(viseme=record) if is_viseme else highlevel_values(expression=record)
+        except ValueError:  # a code out of range: the player names it
+            continue
+        used |= values != 0.0
+    used[:2] = False
+    return {int(i) + 1 for i in np.flatnonzero(used)}

@@ -32,13 +32,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from fae.animate.bake import bake_tables, baked_model, has_baked_tables
+from fae.animate.bake import bake_tables, baked_faps, baked_model, has_baked_tables
 from fae.animate.calibrate import calibrate, pull_fields
 from fae.animate.ears import ear_tables
 from fae.animate.controls import (LID_RESPONSE_SECONDS, ActivationLead, FapControls, MappingMismatch, lid_gaze_follow,
                                   lids_following_gaze, merge_lip_pairs)
 from fae.animate.facedef import FaceDefOffsets
-from fae.mpeg4.faptables import FAP_COUNT, clamp_values, fapu_of
+from fae.mpeg4.faptables import FAP_COUNT, SKIN_TRANSLATION_FAPS, clamp_values, fapu_of
 from fae.animate.highlevel import highlevel_values
 from fae.animate.rigid import RigidRig
 from fae.sim.build import skin_model
@@ -90,7 +90,9 @@ class PlayableHead:
     """What every face of one head shares, built once: the calibrated model (`face`), its
     FAPU, the skin's static simulation model (`sim`, None for "fdt"), the FAP controls, the
     FaceDefTables this engine adds (`tables`: authored and ear tables for "physics", the
-    baked ones and those of FAPs not baked for "fdt") and their static arrays. Any number
+    baked ones and those of FAPs not baked for "fdt") and their static arrays, and the
+    skin-moving FAPs this engine leaves the skin still for (`faps_without_tables`: for "fdt",
+    those neither baked nor with a table of their own; none for "physics"). Any number
     of Players step from one PlayableHead (a server's clients), each with its own state.
 
     The constructor never calibrates or bakes: it refuses a model without a fitting FAP
@@ -115,6 +117,9 @@ class PlayableHead:
             baked = [t for t in model.face_def_tables if t.source == "physics"]
             covered = {(t.fap, t.part) for t in baked}
             self.tables = baked + [t for t in authored if (t.fap, t.part) not in covered]
+            # a head baked for some FAPs only (`fae bake --faps`) leaves the skin still for the rest
+            self.faps_without_tables = sorted(set(SKIN_TRANSLATION_FAPS) - baked_faps(model)
+                                              - {int(t.fap) for t in self.tables})
             self.sim = None
             self.controls = FapControls(model)
             self.rest_skin = np.asarray(model.skin_vertices, dtype=np.float64)
@@ -123,6 +128,7 @@ class PlayableHead:
             self.controls = FapControls(model, self.sim)
             self.tables = authored
             self.rest_skin = None
+            self.faps_without_tables = []
         self.facedef = FaceDefOffsets(self.tables, model.skin_vertex_count)  # each Player spawns its own buffers
 
 
@@ -147,7 +153,7 @@ def playable_head(model, device: str = "cpu", engine: str = "physics") -> Playab
     if needs_calibration(model):
         model = calibrate(model, device="cpu")
     if engine == "fdt" and not has_baked_tables(model):
-        model = baked_model(model, bake_tables(Player(PlayableHead(model, device=device))))
+        model = baked_model(model, bake_tables(Player(PlayableHead(model, device=device))), SKIN_TRANSLATION_FAPS)
     return PlayableHead(model, device=device, engine=engine)
 
 

@@ -77,7 +77,7 @@ def run(args: argparse.Namespace) -> int:
     if sys.stderr.isatty():
         print(file=sys.stderr)
     try:
-        write_facemodel(baked_model(player.face, tables), args.output)
+        write_facemodel(baked_model(player.face, tables, faps), args.output)
     except OSError as exc:
         return fail("bake", os_error_text(exc))
     entries = sum(len(t.vertices) for t in tables)

@@ -137,6 +137,30 @@ def load_head(path: str | os.PathLike | None):
     return read_facemodel(head), head
 
 
+def unbaked_notice(command: str, head_name: str, without_tables: list[int], stream) -> str | None:
+    """The notice for FAPs `stream` (a FapStream) sets that a head baked for some FAPs only
+    plays without moving the skin (`without_tables`: PlayableHead.faps_without_tables), or
+    None. A stream that cannot be read gets None here: playing it reports why."""
+    if not without_tables:
+        return None
+    from fae.animate.highlevel import faps_in_stream
+    from fae.io.fap import FapFormatError
+
+    try:
+        missing = sorted(faps_in_stream(stream) & set(without_tables))
+    except FapFormatError:
+        return None
+    if not missing:
+        return None
+    numbers = ",".join(str(k) for k in missing)
+    many = len(missing) > 1
+    return (f"fae {command}: {head_name}: FAP{'s' if many else ''} {numbers} of the stream {'have' if many else 'has'} "
+            f"no FaceDefTable on this head (baked for some FAPs only): the tables leave the skin still for "
+            f"{'them' if many else 'it'}; bake {'them' if many else 'it'} too (`fae bake {head_name} -o BAKED.glb "
+            f"--faps ...` with every FAP wanted, or without --faps for all)"
+            + (" or play with --engine physics" if command == "play" else ""))
+
+
 def add_view_arguments(parser: argparse.ArgumentParser, default_size: str) -> None:
     """The camera and image options of the commands that render (play, render)."""
     from fae.render.framing import VIEWS

@@ -18,7 +18,7 @@ import sys
 from pathlib import Path
 
 from fae.commands.common import (MAX_SCENE_FRAMES_BYTES, drawn_skin_colors, fail, load_head, os_error_text,
-                                 output_problem, timing_problem)
+                                 output_problem, timing_problem, unbaked_notice)
 from fae.io.frames import MAX_HOLD_SECONDS
 
 
@@ -96,6 +96,9 @@ def run(args: argparse.Namespace) -> int:
             player = Player(playable_head(model, engine="fdt"))
         except (RuntimeError, ValueError) as exc:  # data the engine cannot use (fae template check says which)
             return fail("export", f"{head}: cannot animate it: {exc}")
+        notice = unbaked_notice("export", str(head), player.head.faps_without_tables, stream) if stream else None
+        if notice:
+            print(notice, file=sys.stderr)
         targets = morph_targets(player.tables)
         animation = None
         if frames is not None:

@@ -24,7 +24,7 @@ from pathlib import Path
 
 from fae.commands.common import (MAX_SCENE_FRAMES_BYTES, add_device_argument, add_view_arguments, drawn_skin_colors,
                                  fail, load_head, memory_message, os_error_text, output_problem, overwritten_input,
-                                 render_size_problem, timing_problem, video_size_problem, warp_device)
+                                 render_size_problem, timing_problem, unbaked_notice, video_size_problem, warp_device)
 from fae.io.frames import MAX_HOLD_SECONDS
 
 
@@ -156,8 +156,16 @@ def run(args: argparse.Namespace) -> int:
     except (RuntimeError, ValueError) as exc:  # data the engine cannot use (fae template check says which)
         which = "the template" if retargeted is not None else args.head or "the shipped head"
         return fail("play", f"{which}: cannot animate it: {exc}")
+    notice = unbaked_notice("play", "the template" if retargeted is not None else args.head or "the shipped head",
+                            (player.player if retargeted is not None else player).head.faps_without_tables, stream)
+    if notice:
+        print(notice, file=sys.stderr)
     expected = round(stream.header.declared_frame_count * fps / stream.header.fps)  # as the header says
     if scene:
+        try:  # from the frame numbers alone: a gap held for days is counted at once
+            expected = dense_frames(stream, fps=args.fps, max_hold=args.max_hold).count()
+        except FapFormatError as exc:
+            return fail("play", f"{exc} (nothing written)")
         need = expected * player.face.skin_vertices.size * 4
         if need > MAX_SCENE_FRAMES_BYTES:
             return fail("play", f"{args.stream}: {expected} frames at {fps:g} fps of a {len(player.face.skin_vertices)}"
