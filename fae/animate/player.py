@@ -41,6 +41,7 @@ from fae.animate.facedef import FaceDefOffsets
 from fae.mpeg4.faptables import FAP_COUNT, SKIN_TRANSLATION_FAPS, clamp_values, fapu_of
 from fae.animate.highlevel import highlevel_values
 from fae.animate.rigid import RigidRig
+from fae.io.facemodel import BONES
 from fae.sim.build import skin_model
 from fae.sim.skin import SkinOutput
 from fae.sim.solver import SkinSolver
@@ -215,7 +216,7 @@ class Player:
             self.control.set(muscle_activation=np.zeros(self.sim.muscle_count),
                              bone_rotation=np.tile(np.eye(3), (2, 1, 1)), bone_translation=np.zeros((2, 3)))
             self._q = self.sim.particle_q.numpy().copy()
-        self.bone_transforms = {b: np.eye(4) for b in ("head", "jaw", "eye_l", "eye_r", "tongue")}
+        self.bone_transforms = {b: np.eye(4) for b in BONES}
         self.pupil_scale = {"eye_l": 1.0, "eye_r": 1.0}
         self.values = np.zeros(FAP_COUNT)
         self.frame_index = 0

@@ -70,7 +70,7 @@ import scipy.sparse as sp
 from fae.adapt.binding import (bind_to_surface, coverage_weights, frame_transforms, gather_matrix,
                                pinned_to_points, seam_groups, welded_components)
 from fae.cores import workers
-from fae.io.facemodel import FaceModel, Part, SurfacePoint
+from fae.io.facemodel import BONES, FaceModel, Part, SurfacePoint
 from fae.mesh import vertex_normals
 
 MIN_FEATURE_POINTS = 8  # usable feature points of the template's skin a target must have
@@ -925,7 +925,7 @@ class RetargetPlayer:
         p.reset()
         self._neutral = np.asarray(p.step(np.zeros(FAP_COUNT), dt=1.0 / self.fps), dtype=np.float64)[self.retarget.used]
         p.reset()
-        self.bone_transforms = {b: np.eye(4) for b in ("head", "jaw", "eye_l", "eye_r", "tongue")}
+        self.bone_transforms = {b: np.eye(4) for b in BONES}
         self.pupil_scale = dict(p.pupil_scale)
         self.values = p.values
 

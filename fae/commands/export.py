@@ -19,6 +19,7 @@ from pathlib import Path
 
 from fae.commands.common import (MAX_SCENE_FRAMES_BYTES, drawn_skin_colors, fail, load_head, os_error_text,
                                  output_problem, timing_problem, unbaked_notice)
+from fae.io.facemodel import BONES
 from fae.io.frames import MAX_HOLD_SECONDS
 
 
@@ -35,13 +36,12 @@ def register(subparsers) -> None:
     parser.set_defaults(func=run)
 
 
-POSED_NODES = 5  # the head, the jaw, the eyes and the tongue: a 4x4 pose each per frame (fae.animate.player)
 
 
 def _keyframes_problem(stream: str, count: int, fps: float, targets: int) -> str | None:
     """Why `count` frames of `targets` morph weights and the posed nodes are too many to hold
     while the scene is made (float64 each), or None."""
-    need = count * 8 * (targets + 16 * POSED_NODES)
+    need = count * 8 * (targets + 16 * len(BONES))  # a 4x4 pose per bone and frame
     if need <= MAX_SCENE_FRAMES_BYTES:
         return None
     return (f"{stream}: {count} frames at {fps:g} fps would hold {need / 2 ** 30:.1f} GiB of keyframes while the "

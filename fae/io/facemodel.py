@@ -15,7 +15,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-# Rigid parts every head carries, and the bone each one moves with at run time.
+# The rigid frames that move at run time (a pose each per frame), and the rigid parts every
+# head carries with the bone each one moves with.
+BONES = ("head", "jaw", "eye_l", "eye_r", "tongue")
 PART_BONES = {
     "cranium": "head",
     "upper_teeth": "head",

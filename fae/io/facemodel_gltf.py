@@ -26,7 +26,7 @@ import numpy as np
 import pygltflib
 
 from fae.io.atomic import atomic_path
-from fae.io.facemodel import FACE_DEF_TABLE_SOURCES, PART_BONES, FaceDefTable, FaceModel, Muscle, Part, SurfacePoint
+from fae.io.facemodel import BONES, FACE_DEF_TABLE_SOURCES, PART_BONES, FaceDefTable, FaceModel, Muscle, Part, SurfacePoint
 from fae.mesh import seamed_surface, vertex_normals, wrapped_seam
 from fae.mpeg4 import FEATURE_POINTS, fapu0_from_positions, fapu_from_fapu0
 
@@ -35,7 +35,6 @@ FORMAT_VERSION = 1
 GENERATOR = f"fae FaceModel writer ({EXTENSION} {FORMAT_VERSION})"
 
 MUSCLE_KINDS = ("linear", "sphincter")
-BONES = ("head", "jaw", "eye_l", "eye_r", "tongue")
 EYES = ("eye_l", "eye_r")
 
 # Perceptual roughness of each surface's PBR material (metallic is 0 everywhere).
