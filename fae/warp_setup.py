@@ -18,7 +18,6 @@ thread.
 
 import os
 import sys
-import tempfile
 import threading
 from concurrent.futures import ThreadPoolExecutor
 
@@ -27,6 +26,7 @@ import warp as wp
 
 from fae.cores import workers
 from fae.native_stderr import native_stderr_filtered
+from fae.private_folder import private_temporary_folder
 
 SPLIT_THREADS = 4  # at most, for one launch's samples side by side
 SPLIT_MIN = 2048  # samples below which a launch is not split (a thread costs more than it saves)
@@ -38,30 +38,13 @@ wp.config.log_level = 30
 # Its native core says on stderr, on every machine without an NVIDIA driver, that the GPU
 # will not be available: fae runs on the CPU by default and refuses `--device cuda` without
 # one in its own words, so that line is left out (anything else it says is kept)
-def _private_temporary_cache() -> str:
-    """A kernel cache folder in the system's temporary directory that only this user can
-    write (compiled kernels are loaded from it: a folder someone else made first, or a link,
-    is not used), the same one each run where it can be, so kernels compile once."""
-    uid = getattr(os, "getuid", lambda: None)()
-    path = os.path.join(tempfile.gettempdir(), f"fae-warp-cache-{uid if uid is not None else 'user'}")
-    try:
-        os.makedirs(path, mode=0o700, exist_ok=True)
-        st = os.lstat(path)
-        if (os.path.islink(path) or not os.path.isdir(path) or (uid is not None and st.st_uid != uid)
-                or st.st_mode & 0o077):
-            raise PermissionError(path)
-        return path
-    except OSError:
-        return tempfile.mkdtemp(prefix="fae-warp-cache-")
-
-
 with native_stderr_filtered(keep=lambda line: "NVIDIA CUDA driver" not in line):
     try:
         wp.init()
     except OSError as exc:
         # Warp keeps compiled kernels under the user's cache folder; where that cannot be
         # made (a read-only home) every command that runs a kernel stopped with a traceback
-        fallback = _private_temporary_cache()
+        fallback = private_temporary_folder("fae-warp-cache")
         print(f"fae: Warp's kernel cache cannot be made ({exc.strerror or exc}: {exc.filename or '?'}); using "
               f"{fallback} instead (WARP_CACHE_PATH chooses it)", file=sys.stderr)
         wp.config.kernel_cache_dir = fallback

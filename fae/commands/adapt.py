@@ -64,6 +64,14 @@ def register(subparsers) -> None:
 
 def write_plot(report: dict, path: str) -> None:
     """Errors per level (paper 000 tables 1-2 as a chart), written atomically to `path`."""
+    import os
+
+    from fae.private_folder import private_temporary_folder, writable_folder
+
+    config = os.path.join(os.environ.get("XDG_CONFIG_HOME") or os.path.expanduser("~/.config"), "matplotlib")
+    if "MPLCONFIGDIR" not in os.environ and not writable_folder(config):
+        # a home that cannot be written: matplotlib said so in two lines and rebuilt its font cache each run
+        os.environ["MPLCONFIGDIR"] = private_temporary_folder("fae-matplotlib")
     import matplotlib
 
     matplotlib.use("Agg")
