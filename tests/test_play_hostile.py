@@ -104,6 +104,31 @@ def test_temporary_files_of_running_writers_and_of_other_outputs_are_not_swept(t
     assert sweep_stale(tmp_path / "b.glb") == [other]
 
 
+def test_an_output_that_is_a_pipe_is_refused_and_a_link_is_written_through(tmp_path, capsys):
+    """Case: `fae render -o PIPE.png` (and, as root, `fae adapt ... -o /dev/null`) renamed a
+    plain file over the pipe or device. A named pipe is refused in one line, before any work
+    and by the writer itself; an output that is a link is written through it: the file it
+    points to is replaced, the link stays."""
+    from fae.cli import main
+
+    pipe = tmp_path / "frame.png"
+    os.mkfifo(pipe)
+    assert main(["render", "-o", str(pipe), "--size", "64x48"]) == 2
+    assert "is a named pipe, not a file" in capsys.readouterr().err
+    with pytest.raises(OutputError, match="named pipe"):
+        with atomic_path(pipe) as tmp:
+            tmp.write_bytes(b"x")
+    assert pipe.is_fifo()
+    real = tmp_path / "real.json"
+    real.write_text("old")
+    link = tmp_path / "link.json"
+    link.symlink_to(real)
+    with atomic_path(link) as tmp:
+        tmp.write_text("new")
+    assert link.is_symlink() and real.read_text() == "new"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["frame.png", "link.json", "real.json"]
+
+
 def test_an_output_folder_that_takes_no_files_is_one_line_naming_it(capsys):
     """Case: `-o /proc/x.mp4` gave a FileNotFoundError traceback (root may write anywhere
     os.access can tell; /proc still takes no files)."""

@@ -19,6 +19,8 @@ import sys
 import tempfile
 from pathlib import Path
 
+from fae.io.atomic import special_file
+
 
 MAX_SCENE_FRAMES_BYTES = 2 * 2 ** 30  # what a glTF scene's frames (shapes, keyframes) may hold while it is made
 
@@ -60,6 +62,9 @@ def output_problem(path: str, suffix: str | None = None) -> str | None:
         return f"{path}: expected a {suffix} file name"
     if target.is_dir():
         return f"{path}: is a folder, expected a {suffix or 'file'} name"
+    kind = special_file(target)
+    if kind is not None:  # the output's rename would replace it with a plain file
+        return f"{path}: is {kind}, not a file; expected a {suffix or 'file'} name to write"
     folder = target.parent if str(target.parent) else Path(".")
     if not folder.is_dir():
         return f"{path}: output folder {folder} does not exist"

@@ -14,6 +14,7 @@ import errno
 import os
 import re
 import shutil
+import stat
 import tempfile
 from pathlib import Path
 from typing import Iterator
@@ -79,6 +80,25 @@ def staging_folder(folder: str | os.PathLike, name: str) -> Path:
     return Path(tempfile.mkdtemp(prefix=f".{name}.{os.getpid()}.", dir=folder))
 
 
+def special_file(path: str | os.PathLike) -> str | None:
+    """What `path` is when it exists and is neither a regular file nor a folder (followed
+    through links): "a device", "a named pipe", "a socket"; else None. The rename that puts an
+    output in place would replace it with a plain file (as root, /dev/null itself)."""
+    try:
+        mode = os.stat(path).st_mode
+    except (OSError, ValueError):
+        return None
+    if stat.S_ISREG(mode) or stat.S_ISDIR(mode):
+        return None
+    if stat.S_ISCHR(mode) or stat.S_ISBLK(mode):
+        return "a device"
+    if stat.S_ISFIFO(mode):
+        return "a named pipe"
+    if stat.S_ISSOCK(mode):
+        return "a socket"
+    return "not a regular file"
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike, suffix: str | None = None, sweep: bool = True) -> Iterator[Path]:
     """Yield a temporary path in the target's folder; rename it onto `path` on success.
@@ -87,10 +107,16 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None, sweep: bool 
     `suffix` defaults to the target's own suffix (some writers pick the format from it).
     sweep  first remove the target's stale temporary files (see `sweep_stale`); writers of
            many files into one folder (a frame per PNG) pass False: each sweep lists the folder.
+    A link is written through: the file it points to is replaced, the link stays.
     Raises FileNotFoundError when the folder does not exist, OutputError (an OSError
-    naming the target) when it cannot take a file.
+    naming the target) when it cannot take a file or is a device, pipe or socket.
     """
     target = Path(path)
+    kind = special_file(target)
+    if kind is not None:
+        raise OutputError(f"{target}: is {kind}, not a file; expected a file name to write")
+    if target.is_symlink():
+        target = Path(os.path.realpath(target))
     folder = target.parent if str(target.parent) else Path(".")
     if not folder.is_dir():
         raise FileNotFoundError(f"{target}: output folder {folder} does not exist")
