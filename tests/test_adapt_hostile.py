@@ -160,3 +160,38 @@ def test_queries_keep_their_precision_far_from_the_origin():
     direction = np.array([0.6, 0.0, 0.8])
     _, distance, face, _ = q.closest_points((0.101 * direction + offset)[None])
     assert face[0] >= 0 and abs(distance[0] - 0.001) < 2e-4
+
+
+@pytest.mark.parametrize("extra, expected", [
+    (["--plot", "{tmp}/p.png"], "--plot belongs to the paper methods"),
+    (["--levels", "5", "--feature-search", "ga"], "--levels, --feature-search belong to the paper methods"),
+    (["--method", "multilevel", "--levels", "50"], "--levels 50: expected 0-4"),
+    (["--method", "multilevel", "--levels", "-3"], "--levels -3: expected 0-4"),
+    (["--report", "{tmp}/r.png"], "--report {tmp}/r.png: expected a .json file name"),
+    (["--compare", "{tmp}/c.jpg"], "--compare {tmp}/c.jpg: expected a .png file name"),
+    (["--template", "{tmp}"], "is a folder, expected a FaceModel .glb"),
+])
+def test_options_that_would_be_ignored_or_misnamed_are_refused_before_any_work(scan_files, capsys, tmp_path, extra,
+                                                                               expected):
+    """Cases: `--plot P.png` with the default fit wrote no plot without a word (--levels and
+    --feature-search likewise did nothing); `--levels 50` ran past 11 GB; a report written
+    as r.png, a picture as c.jpg; a folder given as the template was "not found"."""
+    scan, _, _ = scan_files
+    out = tmp_path / "h.glb"
+    code, err = adapt(capsys, scan, "-o", out, *[a.format(tmp=tmp_path) for a in extra])
+    assert code == 2 and expected.format(tmp=tmp_path) in one_line(err)
+    assert list(tmp_path.iterdir()) == []
+    code, err = adapt(capsys, scan, "-o", tmp_path / "h.txt")
+    assert code == 2 and "expected a .glb file name" in one_line(err)
+
+
+def test_feature_points_all_on_one_spot_are_refused_as_such(scan_files, capsys, tmp_path):
+    """Case: every point given at the nose tip was refused as lying "a median of
+    477232400493768349843456.0 mm" off the scan: the points coincide, and it says so."""
+    scan, _, synthetic = scan_files
+    points = tmp_path / "same.json"
+    tip = list(map(float, synthetic.landmarks["9.3"]))
+    points.write_text(json.dumps({n: tip for n in synthetic.landmarks}))
+    code, err = adapt(capsys, scan, "--landmarks", points, "-o", tmp_path / "h.glb")
+    assert code == 2 and "lie within 0 units of each other" in one_line(err) and "own place" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["same.json"]

@@ -50,6 +50,7 @@ OFF_SCAN = 0.01
 MAX_PAIRS_TURN = 15.0
 OFF_SCAN_MEDIAN = 0.003
 OFF_SCAN_SHARE = 0.25
+COINCIDENT_SHARE = 0.01  # of the scan's diagonal: feature points spread less lie on one spot
 
 
 # Feature points given are checked, part by part (the mouth's, an eye's: fae.mpeg4.fdps.face_part),
@@ -195,6 +196,11 @@ def adapt_scan(template: FaceModel, V: np.ndarray, F: np.ndarray, face_pairs: Ca
                                    "without them)")
             A = np.array([fdp[n] for n in names])
             B = np.array([landmarks[n] for n in names])
+            extent, diagonal = float(np.ptp(B, axis=0).max()), float(np.linalg.norm(np.ptp(V, axis=0)))
+            if extent <= COINCIDENT_SHARE * diagonal:  # no pose to take from them (the fit's numbers were absurd)
+                raise AdaptRefused(f"{landmarks_name}: the {len(names)} feature points lie within {extent:.3g} units "
+                                   f"of each other, {scan_name} {diagonal:.4g} across; expected each at its own "
+                                   "place on the face")
             wrong = set(outlier_landmarks(B, A, names))
             for n in sorted(wrong):
                 say(f"ignored feature point {n}: disagrees with the others (wrong placement?)")

@@ -29,6 +29,7 @@ from fae.data import shipped_head_path
 
 ADAPT_METHODS = ("surface",) + PAPER_METHODS
 DEFAULT_TEMPLATE = str(shipped_head_path())
+MAX_LEVELS = 4  # each level doubles the pairs: the menpo3d mask's sixth of 50 held 195k of them and 11 GB
 
 
 def register(subparsers) -> None:
@@ -42,13 +43,14 @@ def register(subparsers) -> None:
                    "the head is shaped from the face's points and coloured from the photo (paper 002)")
     p.add_argument("--landmarks", metavar="FILE", help="feature points: JSON {\"9.3\": [x, y, z] or vertex "
                    "index}, menpo .ljson or CSV (68 iBUG points or name,x,y,z rows)")
-    p.add_argument("--feature-search", choices=("fit", "ga"), default="fit",
+    p.add_argument("--feature-search", choices=("fit", "ga"), default=None,
                    help="paper methods without --landmarks: refine the feature points found by ICP with the "
                    "template fit (default) or by paper 003's genetic algorithm")
     p.add_argument("--template", metavar="FILE", default=DEFAULT_TEMPLATE, help="template FaceModel .glb")
     p.add_argument("--method", choices=ADAPT_METHODS, default="surface",
                    help="fitting method (default: surface; the others are the papers' feature-point fits)")
-    p.add_argument("--levels", type=int, default=1, help="refinement levels after the first (multilevel)")
+    p.add_argument("--levels", type=int, default=None, help=f"refinement levels after the first (multilevel; "
+                   f"0-{MAX_LEVELS}, default 1)")
     p.add_argument("-o", "--output", required=True, metavar="HEAD.glb", help="personalized FaceModel to write")
     p.add_argument("--report", metavar="R.json", help="write the report (errors, coverage, folds, the head "
                    "part used, confidence, per stage or level) as JSON")
@@ -99,7 +101,7 @@ def run(args) -> int:
     # imports they need (about a second) count too, not the fit and calibration alone
     started = time.perf_counter()
     from fae.commands.adapt_checks import landmark_problem, scan_outward, scan_problem
-    from fae.commands.common import output_problem, overwritten_input
+    from fae.commands.common import overwritten_input
     from fae.io.facemodel_gltf import read_facemodel
     from fae.io.scan import LandmarkError, indexed_vertices, read_landmarks, read_scan
 
@@ -111,12 +113,22 @@ def run(args) -> int:
     if args.method != "surface" and args.compare:
         print("fae adapt: --compare needs --method surface", file=sys.stderr)
         return 2
+    paper_only = [flag for flag, value in (("--plot", args.plot), ("--levels", args.levels),
+                                           ("--feature-search", args.feature_search)) if value is not None]
+    if args.method == "surface" and paper_only:  # they were ignored without a word (no plot written)
+        print(f"fae adapt: {', '.join(paper_only)} belong{'s' if len(paper_only) == 1 else ''} to the paper methods "
+              f"(--method {' | '.join(PAPER_METHODS)}); the default surface fit reports per stage in --report",
+              file=sys.stderr)
+        return 2
+    if args.levels is not None and not 0 <= args.levels <= MAX_LEVELS:
+        print(f"fae adapt: --levels {args.levels}: expected 0-{MAX_LEVELS} levels after the first", file=sys.stderr)
+        return 2
+    args.levels = 1 if args.levels is None else args.levels
+    args.feature_search = args.feature_search or "fit"
     outputs = {"-o": args.output, "--report": args.report, "--plot": args.plot, "--compare": args.compare}
     try:
         problem = overwritten_input(outputs, {"scan": args.scan, "--landmarks file": args.landmarks,
-                                              "--template": args.template})
-        for flag, path in outputs.items():
-            problem = problem or (path and output_problem(path) and f"{flag} {output_problem(path)}")
+                                              "--template": args.template}) or _outputs_problem(outputs)
         if problem:
             raise ValueError(problem)
         if args.method == "surface":  # imported while the scan is read and its head found
@@ -133,7 +145,9 @@ def run(args) -> int:
             raise ValueError(problem)
         F, args.turned_outward = scan_outward(V, F, args.scan, _say)
         if not os.path.isfile(args.template):
-            print(f"fae adapt: template {args.template} not found (build it with `fae template`)", file=sys.stderr)
+            why = "is a folder, expected a FaceModel .glb" if os.path.isdir(args.template) else \
+                "not found (build it with `fae template`)"
+            print(f"fae adapt: template {args.template} {why}", file=sys.stderr)
             return 2
         template = read_facemodel(args.template)
     except (OSError, ValueError, LandmarkError) as exc:
@@ -142,6 +156,22 @@ def run(args) -> int:
     if args.method == "surface":
         return _run_surface(args, template, V, F, landmarks, started)
     return _run_paper(args, template, V, F, landmarks, started)
+
+
+OUTPUT_SUFFIXES = {"-o": ".glb", "--report": ".json", "--plot": ".png", "--compare": ".png"}
+
+
+def _outputs_problem(outputs: dict[str, str | None]) -> str | None:
+    """Why one of the outputs asked for (flag -> path) cannot be written, or None: each in
+    its folder, with its own suffix (a head written as x.txt, a report as r.png were
+    written without a word)."""
+    from fae.commands.common import output_problem
+
+    for flag, path in outputs.items():
+        problem = path and output_problem(path, OUTPUT_SUFFIXES[flag])
+        if problem:
+            return f"{flag} {problem}"
+    return None
 
 
 def _say(msg: str) -> None:
@@ -462,16 +492,15 @@ def _photo_head_from(template, image, points, on_template, photo_name: str):
 def _run_photo(args, started: float) -> int:
     """`fae adapt --photo FACE.jpg -o HEAD.glb`: see fae.adapt.photo."""
     from fae.adapt.photo import PhotoRefused
-    from fae.commands.common import output_problem, overwritten_input
+    from fae.commands.common import overwritten_input
     from fae.io.facemodel_gltf import read_facemodel
 
-    if args.landmarks or args.method != "surface":
-        _say("--landmarks and --method belong to scans; a photo's points are found by the landmark model")
+    if args.landmarks or args.method != "surface" or args.plot or args.levels is not None or args.feature_search:
+        _say("--landmarks, --method, --plot, --levels and --feature-search belong to scans; a photo's points "
+             "are found by the landmark model")
         return 2
     outputs = {"-o": args.output, "--report": args.report, "--compare": args.compare}
-    problem = overwritten_input(outputs, {"photo": args.photo, "--template": args.template})
-    for flag, path in outputs.items():
-        problem = problem or (path and output_problem(path) and f"{flag} {output_problem(path)}")
+    problem = overwritten_input(outputs, {"photo": args.photo, "--template": args.template}) or _outputs_problem(outputs)
     if problem:
         _say(problem)
         return 2
