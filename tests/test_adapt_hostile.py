@@ -58,10 +58,13 @@ def test_an_output_that_is_an_input_is_refused_and_the_input_kept(scan_files, ca
      "cannot read a mesh: expected a mesh file (OBJ, PLY, STL, OFF, GLB/glTF)"),
     ("noise.ply", bytes(np.random.default_rng(4).integers(0, 256, 5000, dtype=np.uint8)),
      "expected a mesh file (OBJ, PLY, STL, OFF, GLB/glTF)"),
+    ("huge.obj", "v 1e200 0 0\nv 0 1e200 0\nv 0 0 1e200\nv 1e200 1e200 1e200\nf 1 2 3\nf 1 2 4\nf 2 3 4\n",
+     "coordinates up to 1e+200; expected a head scan in some unit of length"),
 ])
 def test_meshes_that_are_no_head_scan_are_one_line_naming_the_file(tmp_path, capsys, name, content, expected):
     """Case: a one-triangle mesh and degenerate triangles failed in numpy's matmul, a
-    random-bytes mesh with "No module named 'charset_normalizer'"."""
+    random-bytes mesh with "No module named 'charset_normalizer'"; coordinates of 1e200 gave
+    eight lines of numpy's overflow warnings, then "0 triangles have an area"."""
     path = tmp_path / name
     path.write_bytes(content.encode() if isinstance(content, str) else content)
     code, err = adapt(capsys, path, "-o", tmp_path / "h.glb")

@@ -31,11 +31,18 @@ EYES_APART = 1.25  # the larger eyeball's scale over the smaller one's
 # this) is wound inside out, as exporters and mirroring leave scans: the busts 0.87-0.93,
 # face masks 0.98-1.0, the front half of a bust 0.76; the same turned 0.002-0.25
 SCAN_INSIDE_OUT_SHARE = 0.4
+# a head in micrometres 1,000 km from the origin; far beyond any unit (1e200) numpy warned in
+# eight lines of overflows and the scan was said to have "0 triangles with an area"
+MAX_COORDINATE = 1e12
 
 
 def scan_problem(V: np.ndarray, F: np.ndarray, path: str) -> str | None:
     """Why the mesh (V, F) of `path` cannot be a head scan, or None."""
-    diagonal = float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
+    with np.errstate(over="ignore", invalid="ignore"):
+        diagonal = float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
+    if not np.isfinite(diagonal) or np.abs(V).max() > MAX_COORDINATE:  # numpy's overflow warnings, then "0 triangles"
+        return (f"{path}: coordinates up to {np.abs(V).max():.3g}; expected a head scan in some unit of length "
+                f"(at most {MAX_COORDINATE:.0e} from the origin)")
     if not diagonal > 0:
         return f"{path}: every vertex is at one point; expected a head scan's surface"
     area = 0.5 * np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]), axis=1)
