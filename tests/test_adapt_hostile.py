@@ -205,3 +205,16 @@ def test_feature_points_all_on_one_spot_are_refused_as_such(scan_files, capsys, 
     code, err = adapt(capsys, scan, "--landmarks", points, "-o", tmp_path / "h.glb")
     assert code == 2 and "lie within 0 units of each other" in one_line(err) and "own place" in err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["same.json"]
+
+
+def test_a_scan_doubled_back_to_back_is_refused_naming_its_winding(scan_files, capsys, tmp_path):
+    """Case: a scan holding every face twice, once each way round (an exporter's 'double
+    sided'), was fitted with the points given: the head came out with its eyes and mouth
+    misshapen and a lump on the neck, exit 0."""
+    _, points, synthetic = scan_files
+    doubled = tmp_path / "doubled.ply"
+    trimesh.Trimesh(synthetic.vertices, np.vstack([synthetic.faces, synthetic.faces[:, ::-1]]),
+                    process=False).export(doubled)
+    code, err = adapt(capsys, doubled, "--landmarks", points, "-o", tmp_path / "h.glb")
+    assert code == 2 and "50 % of its area faces into it" in one_line(err) and "doubled back to back" in err
+    assert not (tmp_path / "h.glb").exists()
