@@ -218,3 +218,38 @@ def test_a_scan_doubled_back_to_back_is_refused_naming_its_winding(scan_files, c
     code, err = adapt(capsys, doubled, "--landmarks", points, "-o", tmp_path / "h.glb")
     assert code == 2 and "50 % of its area faces into it" in one_line(err) and "doubled back to back" in err
     assert not (tmp_path / "h.glb").exists()
+
+
+def test_a_scan_in_no_unit_of_length_is_told_so(scan_files, capsys, tmp_path):
+    """Case: a scan 7 units to a metre was taken in decimetres and gave a head 0.70x life
+    size, said only in --report. The synthetic face in millimetres scaled by 0.8 is in no
+    unit fae knows: the head gets the template's size, and the user is told; in millimetres
+    nothing is said."""
+    _, _, synthetic = scan_files
+    for scale, said in ((0.8, True), (1.0, False)):
+        scan, points = tmp_path / f"s{scale}.obj", tmp_path / f"s{scale}.json"
+        trimesh.Trimesh(scale * synthetic.vertices, synthetic.faces, process=False).export(scan)
+        points.write_text(json.dumps({n: list(map(float, scale * p)) for n, p in synthetic.landmarks.items()}))
+        code = main(["adapt", str(scan), "--landmarks", str(points), "-o", str(tmp_path / f"h{scale}.glb"),
+                     "--force", "--no-calibrate"])
+        out = capsys.readouterr().out
+        assert code == 0
+        assert ("the scan's unit is none fae knows" in out and "the head has the template's size" in out) == said
+
+
+def test_a_broken_template_is_named_before_the_fit(scan_files, capsys, tmp_path):
+    """Case: `--template` a head with one skin vertex pulled 0.5 m out fitted for 17 s, then
+    blamed the scan: "marble_bust.obj: the head is not whole (skin: 84 pairs of faces
+    intersect)"."""
+    from fae.data import shipped_head_path
+    from fae.io.facemodel_gltf import read_facemodel, write_facemodel
+
+    scan, points, _ = scan_files
+    head = read_facemodel(shipped_head_path())
+    head.skin_vertices = head.skin_vertices.copy()
+    head.skin_vertices[100, 1] += 0.5
+    broken = tmp_path / "spike.glb"
+    write_facemodel(head, broken)
+    code, err = adapt(capsys, scan, "--landmarks", points, "--template", broken, "-o", tmp_path / "h.glb")
+    assert code == 2 and f"template {broken}: not a whole head" in one_line(err)
+    assert not (tmp_path / "h.glb").exists()

@@ -149,13 +149,25 @@ def run(args) -> int:
                 "not found (build it with `fae template`)"
             print(f"fae adapt: template {args.template} {why}", file=sys.stderr)
             return 2
-        template = read_facemodel(args.template)
+        template = _whole_template(args.template, read_facemodel(args.template))
     except (OSError, ValueError, LandmarkError) as exc:
         print(f"fae adapt: {exc}", file=sys.stderr)
         return 2
     if args.method == "surface":
         return _run_surface(args, template, V, F, landmarks, started)
     return _run_paper(args, template, V, F, landmarks, started)
+
+
+def _whole_template(path: str, template):
+    """`template` (read from `path`); raises ValueError naming it when a template other than
+    the shipped one is not a whole head (found only after the fit, it was blamed on the scan)."""
+    if os.path.realpath(path) != os.path.realpath(DEFAULT_TEMPLATE):
+        from fae.anatomy.checks import facemodel_problems
+
+        problems = facemodel_problems(template)
+        if problems:
+            raise ValueError(f"template {path}: not a whole head ({problems[0]}; `fae template check` lists all)")
+    return template
 
 
 OUTPUT_SUFFIXES = {"-o": ".glb", "--report": ".json", "--plot": ".png", "--compare": ".png"}
@@ -243,7 +255,29 @@ def _finish(args, model, report, V, F, keep, started, start_mapping=None) -> int
     if report.get("scan_covers_part_of_head"):
         print(f"{args.output}: the scan covers only part of the head: where it has no surface, the head "
               "keeps the template's shape")
+    notice = _size_notice(report)
+    if notice:
+        print(f"{args.output}: {notice}")
     return 0
+
+
+SIZE_NOTICE = (0.85, 1.18)  # the head's size over the template's beyond which the unit taken is said
+
+
+def _size_notice(report: dict) -> str | None:
+    """What a user should know of the unit the scan was taken in, or None: a unit that makes
+    the head much smaller or larger than the template (a scan in no unit, 7 of them to a
+    metre, was read as decimetres: a head 0.70x life size, said nowhere but in --report),
+    or none fae knows (the head then has the template's size)."""
+    unit = (report.get("head_part") or {}).get("scan_unit", report.get("scan_unit"))
+    ratio = report.get("fapu_ratio")
+    if unit == "unknown":
+        return ("the scan's unit is none fae knows (mm, cm, dm, m, inches): the head has the template's "
+                "size; scale the scan to a unit of length for the person's own")
+    if isinstance(ratio, (int, float)) and not SIZE_NOTICE[0] <= ratio <= SIZE_NOTICE[1]:
+        return (f"the scan's unit taken as {unit}: the head is {ratio:.2f}x the template's size (its FAPU); if "
+                "that is not the person's size, scale the scan to millimetres or metres")
+    return None
 
 
 def _refused(args, source: str, verdict: list[str], report: dict, hint: str = "") -> bool:
@@ -508,7 +542,7 @@ def _run_photo(args, started: float) -> int:
         image = read_photo(args.photo)
         if not os.path.isfile(args.template):
             raise ValueError(f"template {args.template} not found (build it with `fae template`)")
-        template = read_facemodel(args.template)
+        template = _whole_template(args.template, read_facemodel(args.template))
     except (OSError, ValueError) as exc:
         _say(str(exc))
         return 2
