@@ -140,6 +140,9 @@ def test_a_rerun_keeps_only_outputs_whose_inputs_and_file_are_unchanged(corpus):
     assert kept_entry(changed, entry, out) is None
     video.write_bytes(b"a video, edited")  # the file is not the one written
     assert kept_entry(job, entry, out) is None
+    # a manifest edited by hand: inputs that are no table were a traceback (AttributeError)
+    for inputs in (3, {"stream": "x"}, {"stream": {"sha256": 1}, "head": []}):
+        assert kept_entry(job, entry | {"inputs": inputs}, out) is None
 
 
 def fae_batch(*args, cwd):

@@ -53,9 +53,11 @@ def new_entry(job: Job) -> dict:
 
 
 def _entry_settings(entry: dict) -> dict:
-    inputs = entry.get("inputs") or {}
-    return {"stream_sha256": (inputs.get("stream") or {}).get("sha256"),
-            "head_sha256": (inputs.get("head") or {}).get("sha256"),
+    # an earlier manifest edited by hand may hold anything where a table was: then it matches nothing
+    inputs = entry.get("inputs") if isinstance(entry.get("inputs"), dict) else {}
+    stream = inputs.get("stream") if isinstance(inputs.get("stream"), dict) else {}
+    head = inputs.get("head") if isinstance(inputs.get("head"), dict) else {}
+    return {"stream_sha256": stream.get("sha256"), "head_sha256": head.get("sha256"),
             "view": entry.get("view"), "size": entry.get("size"), "fps": entry.get("fps")}
 
 
