@@ -47,7 +47,8 @@ class ServeProcess:
     def __init__(self, *args: str) -> None:
         env = dict(os.environ, PYTHONUNBUFFERED="1")
         self.proc = subprocess.Popen([sys.executable, "-m", "fae", "serve", "--port", "0", *args], cwd=REPO,
-                                     stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+                                     stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+                                     start_new_session=True)  # a group of its own, as a terminal's job
         self.lines: list[str] = []
         self._port = threading.Event()
         self.port = 0
@@ -75,9 +76,13 @@ class ServeProcess:
             time.sleep(0.05)
         return True
 
-    def stop(self, sig: int, timeout: float = 120.0) -> tuple[int, str]:
-        """Send `sig`; (exit status, everything it wrote on stderr)."""
-        self.proc.send_signal(sig)
+    def stop(self, sig: int, timeout: float = 120.0, group: bool = False) -> tuple[int, str]:
+        """Send `sig` (to its whole process group, as a terminal's Ctrl-C does, with `group`);
+        (exit status, everything it wrote on stderr)."""
+        if group:
+            os.killpg(self.proc.pid, sig)
+        else:
+            self.proc.send_signal(sig)
         try:
             code = self.proc.wait(timeout)
         except subprocess.TimeoutExpired:
@@ -219,7 +224,8 @@ def test_record_holds_every_frame_sent_and_appears_on_sigint(head, tmp_path):
         report = run(send_fap(text, port=proc.port, rate="realtime", timeout=60))
         assert report.complete, report.summary()
         assert not out.exists()  # written when the server stops
-        code, err = proc.stop(signal.SIGINT)
+        # Ctrl-C in a terminal reaches the whole group: ffmpeg stopped with it, the video was lost
+        code, err = proc.stop(signal.SIGINT, group=True)
     finally:
         if proc.proc.poll() is None:
             proc.proc.kill()

@@ -73,7 +73,10 @@ class VideoWriter:
             "-r", rate, "-movflags", "+faststart", str(self._tmp),
         ]
         try:
-            self._proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=self._log)
+            # its own session: a terminal's Ctrl-C reaches fae alone, which ends the video or drops it (ffmpeg
+            # stopped by it too failed with status 255, and `fae serve --record` lost its recording)
+            self._proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=self._log,
+                                          start_new_session=True)
         except BaseException as exc:
             self._log.close()
             self._stack.__exit__(type(exc), exc, exc.__traceback__)
