@@ -482,6 +482,39 @@ def test_xface_load_fap_reads_only_inside_fap_dir(tmp_path):
         assert results[bad].endswith('status="7"/>'), bad
 
 
+def test_an_xface_task_naming_a_native_clients_id_does_not_reach_it():
+    """Case: an Xface client sent REWIND_PLAYBACK with a native client's id as its ownerId,
+    and the native client found `<notify ...>` among its replies (`fae send` gave up, exit 2).
+    Notifications go to Xface clients only."""
+    text = fap_text().encode()
+
+    async def main():
+        server = await started(LinearFace, limits=ServerLimits(greeting_delay=0.05))
+        reader, writer = await asyncio.open_connection("127.0.0.1", server.port)
+        header, body = text.split(b"\n", 1)
+        writer.write(header + b"\n")
+        await writer.drain()
+        assert (await asyncio.wait_for(reader.readline(), TIMEOUT)).startswith(b"ok header")
+        r, w, owner = await xface_connect(server.port)
+        native_id = owner - 1
+        w.write(task("REWIND_PLAYBACK", native_id, 2))
+        assert await expect(r, 1) == [n("REWIND_PLAYBACK", native_id, 2, 1)]  # queued: its own ack
+        await asyncio.sleep(0.2)  # the task done: its later notifications had gone to the native client
+        writer.write(body)
+        await writer.drain()
+        writer.write_eof()
+        rest = (await read_all(reader)).decode()
+        w.close()
+        writer.close()
+        await server.close()
+        return rest
+
+    rest = run(main())
+    assert "<notify" not in rest and "\0" not in rest
+    oks, errors, _ = replies_by_kind(rest.splitlines())
+    assert oks and not errors
+
+
 def test_xface_notifications_are_routed_by_owner_id_and_clients_share_one_face():
     text = fap_text()
 

@@ -26,6 +26,8 @@ class Connection:
     busy          tells whether the client is waiting on the server (frames being played,
                   a playback it started); a busy client is never timed out
     last_active   time.monotonic() of the client's latest bytes (or of its connection)
+    native        the client speaks the native line protocol (its first byte was not `<`):
+                  Xface notifications routed by ownerId never go to it
     """
 
     client_id: int
@@ -37,6 +39,7 @@ class Connection:
     dropped: bool = False
     busy: Callable[[], bool] = field(default=lambda: False)
     last_active: float = field(default_factory=time.monotonic)
+    native: bool = False
 
     def __post_init__(self) -> None:
         info = self.writer.get_extra_info("peername")

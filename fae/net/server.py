@@ -175,6 +175,7 @@ class FapServer:
                 conn.busy = lambda: self.stage.busy_for(client_id)
                 await self.stage.session(conn, first)
             else:
+                conn.native = True
                 session = NativeSession(conn, self.faces, self.hub, window=self.limits.window,
                                         max_line=self.limits.max_line, max_errors=self.limits.max_errors)
                 conn.busy = lambda: session.unacknowledged > 0
