@@ -214,6 +214,28 @@ def test_a_page_that_answers_nothing_still_hears_ends_and_each_stream_gets_its_f
     assert seen == {"B", "C"}
 
 
+def test_what_a_page_that_never_reads_is_owed_stays_bounded():
+    """Case: a page that never read, while 3,000 streams ended, was owed every stream's last
+    pose (370 MB -> 1.4 GB). It is owed the newest few poses, each before its stream's end,
+    and at most MAX_OWED_ENDS ends, the newest."""
+    from fae.net.view import MAX_OWED_END_FRAMES, MAX_OWED_ENDS, _PageQueue
+
+    pose = Pose(np.zeros((1000, 3)), {})
+    page = _PageQueue()
+    for k in range(3000):
+        page.put(FrameEvent(f"native-{k}", 0, 0.0, 25.0, pose, 1))
+        page.put(StreamEnd(f"native-{k}"))
+    frames = [e for e in page.ends if isinstance(e, FrameEvent)]
+    ends = [e.stream for e in page.ends if isinstance(e, StreamEnd)]
+    assert len(page.ends) <= MAX_OWED_ENDS and len(frames) == page.end_frames == MAX_OWED_END_FRAMES
+    assert ends[-1] == "native-2999" and [f.stream for f in frames] == [f"native-{k}" for k in range(2992, 3000)]
+    order = [e.stream for e in page.ends]
+    assert all(order.index(f.stream) < len(order) - 1 - order[::-1].index(f.stream) for f in frames)  # pose, then end
+    while page.ends:
+        page.take_end()
+    assert page.end_frames == 0
+
+
 def test_a_client_that_floods_pings_and_never_reads_is_cut_off(model, three):
     """Pings sent as fast as a socket takes them, pongs never read: the server's memory grew
     35 MB a second (1.6 GB in 36 s) and the FAP port slowed 5x."""
