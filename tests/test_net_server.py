@@ -572,6 +572,16 @@ def test_task_splitter_finds_tasks_across_reads_and_terminators():
     tasks = [xface.parse_task(m) for m in got]
     assert [(t.name, t.task_id, t.params) for t in tasks] == [("A", 1, ()), ("B", 2, ()), ("C", 3, ("x\ny",))]
     assert splitter.buffered == 0
+    # a self-closing task with nothing after it was never answered, and the next task's bytes
+    # were read as junk after it (both lost); a quoted `>` or `/>` does not end a start tag
+    stream = (b'<task name="D" ownerId="1" taskId="4"/>' + task("E", 1, 5, end=b"")
+              + b'<task name="F" ownerId="1" taskId="6" note="a/>b">' + b"<param>1</param></task>")
+    got = []
+    for i in range(0, len(stream), 5):
+        got += splitter.feed(stream[i:i + 5])
+    tasks = [xface.parse_task(m) for m in got]
+    assert [(t.name, t.task_id, t.params) for t in tasks] == [("D", 4, ()), ("E", 5, ()), ("F", 6, ("1",))]
+    assert splitter.buffered == 0
 
 
 # -- the `fae send` command ------------------------------------------------------------

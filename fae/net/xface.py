@@ -95,12 +95,35 @@ def parse_task(message: bytes) -> XfaceTask:
     return XfaceTask(name=name, owner_id=ids[0], task_id=ids[1], params=params)
 
 
+def _self_closed_end(buf: bytearray) -> int | None:
+    """Where a message that is one self-closing `<task .../>` ends (just after its `/>`), or
+    None: the buffer does not start with such an element (after blanks), or its start tag
+    is not complete yet. Quoted attribute values may hold `>`. (Such a task without a NUL
+    after it was never answered, and the next task's bytes were read as junk after it.)"""
+    i = 0
+    while i < len(buf) and buf[i] in b" \t\r\n":
+        i += 1
+    if buf[i:i + 5] != b"<task" or len(buf) <= i + 5 or buf[i + 5] not in b" \t\r\n/":
+        return None
+    quote = None
+    for j in range(i + 5, min(len(buf), i + 4096)):  # a start tag's attributes are short
+        c = buf[j]
+        if quote is not None:
+            if c == quote:
+                quote = None
+        elif c in b"\"'":
+            quote = c
+        elif c == ord(">"):
+            return j + 1 if buf[j - 1] == ord("/") else None
+    return None
+
+
 class TaskSplitter:
     """Cut a byte stream into task messages.
 
-    A message ends at a NUL byte or right after `</task>`, whichever comes first, so
-    tasks ending in one NUL, two NULs or nothing at all are all found, and a read may
-    hold several tasks or part of one. Empty and whitespace-only pieces are skipped.
+    A message ends at a NUL byte or right after `</task>` (or the `/>` of a self-closing
+    `<task .../>`), whichever comes first, so tasks ending in one NUL, two NULs or nothing
+    at all are all found, and a read may hold several tasks or part of one. Empty and whitespace-only pieces are skipped.
     :meth:`skip` passes over raw bytes that follow a task (UPLOAD_WAV's audio).
 
     max_message  bytes one message may hold; a longer one raises TaskFormatError (the
@@ -156,7 +179,10 @@ class TaskSplitter:
             start = max(0, self._scan_from - len(_END_TAG))
             nul = self._buf.find(b"\0", start)
             end = self._buf.find(_END_TAG, start)
-            if end >= 0 and (nul < 0 or end < nul):
+            closed = _self_closed_end(self._buf)
+            if closed is not None and (nul < 0 or closed <= nul) and (end < 0 or closed <= end):
+                cut, skip = closed, 0
+            elif end >= 0 and (nul < 0 or end < nul):
                 cut, skip = end + len(_END_TAG), 0
             elif nul >= 0:
                 cut, skip = nul, 1
