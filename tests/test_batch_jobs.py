@@ -170,3 +170,34 @@ def test_command_rejects_bad_input_with_one_line_and_status_2(corpus, monkeypatc
         stderr = capsys.readouterr().err
         assert stderr.startswith("fae batch: ") and expected in stderr
         assert len(stderr.strip().splitlines()) == 1
+
+
+def test_a_scheduler_address_where_something_else_listens_is_refused_at_once(corpus):
+    """Case: `--scheduler` pointed at a web server (or `fae serve`) hung for ever: Dask's
+    connection waited for a handshake that never came. A scheduler greets a connection at
+    once; a listener that says nothing is refused within seconds, naming why."""
+    import socket
+    import threading
+
+    (corpus / "jobs.csv").write_text("stream,size\nstreams/hello.fap,64x48\n")
+    listener = socket.create_server(("127.0.0.1", 0))
+    held = []
+
+    def accept():
+        while True:
+            try:
+                held.append(listener.accept()[0])  # held open, silent
+            except OSError:
+                return
+
+    threading.Thread(target=accept, daemon=True).start()
+    try:
+        port = listener.getsockname()[1]
+        result = fae_batch("jobs.csv", "-o", "out", "--scheduler", f"tcp://127.0.0.1:{port}", cwd=corpus)
+    finally:
+        listener.close()
+        for conn in held:
+            conn.close()
+    assert result.returncode == 2
+    assert "cannot reach a Dask scheduler there (it said nothing within 5 s" in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1

@@ -40,6 +40,7 @@ from fae.io.atomic import atomic_path
 ONE_THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
                   "LP_NUM_THREADS": "1"}
 CONNECT_TIMEOUT_S = 20
+HANDSHAKE_TIMEOUT_S = 5.0  # a scheduler greets a new connection at once
 
 
 class ClusterError(RuntimeError):
@@ -95,11 +96,44 @@ def _reason(exc: BaseException) -> str:
     return f"{kind}: {text}" if text else kind
 
 
+def _not_a_scheduler(address: str) -> str | None:
+    """Why a tcp:// `address` is no Dask scheduler, or None (also for other schemes, left to
+    Dask): a scheduler sends its handshake as soon as it accepts, a length-prefixed frame.
+    Dask's own connection waited for ever on a listener that says nothing until asked (a web
+    server, `fae serve`'s native side)."""
+    import socket
+    import struct
+
+    rest = address[len("tcp://"):] if address.startswith("tcp://") else address if "://" not in address else None
+    if rest is None:
+        return None
+    host, _, port = rest.rpartition(":")
+    try:
+        with socket.create_connection((host.strip("[]") or "127.0.0.1", int(port)), timeout=CONNECT_TIMEOUT_S) as s:
+            s.settimeout(HANDSHAKE_TIMEOUT_S)
+            first = b""
+            while len(first) < 8:
+                chunk = s.recv(8 - len(first))
+                if not chunk:
+                    return "it closed the connection without a word"
+                first += chunk
+    except socket.timeout:
+        return f"it said nothing within {HANDSHAKE_TIMEOUT_S:g} s of the connection, as a scheduler does at once"
+    except (OSError, ValueError) as exc:
+        return " ".join(str(exc).split()) or type(exc).__name__
+    if not 0 < struct.unpack("<Q", first)[0] < 1 << 30:
+        return f"it answered {first!r}, not a Dask handshake"
+    return None
+
+
 def _start_client(scheduler: str | None, workers: int | None):
     """(client, cluster or None, address in words)."""
     from distributed import Client, LocalCluster
 
     if scheduler:
+        problem = _not_a_scheduler(scheduler)
+        if problem:
+            raise ClusterError(f"--scheduler {scheduler}: cannot reach a Dask scheduler there ({problem})")
         try:
             client = Client(scheduler, timeout=f"{CONNECT_TIMEOUT_S}s")
         except (OSError, TimeoutError, ValueError) as exc:
