@@ -964,3 +964,43 @@ def test_a_port_out_of_range_is_one_line(command, capsys):
     args = [command, "fap_streams/visemes.fap"] if command == "send" else [command]
     assert main([*args, "--port", "70000"]) == 2
     assert capsys.readouterr().err.strip() == f"fae {command}: --port 70000: expected 0..65535"
+
+
+def test_a_client_that_takes_none_of_its_replies_is_closed_after_a_while():
+    """Case: clients that sent frames and never read waited on for ever (the server's
+    replies blocked on a full socket; counted busy, never idle): 16 of them locked every
+    other client of their address out. One that takes nothing for STALLED_SECONDS is closed."""
+    from fae.net.connection import Connection
+
+    class Stuck:  # a socket whose buffers are full: drain never returns
+        def __init__(self):
+            self.aborted = False
+            self.transport = self
+
+        def get_extra_info(self, name):
+            return ("127.0.0.1", 5)
+
+        def get_write_buffer_size(self):
+            return 0
+
+        def is_closing(self):
+            return self.aborted
+
+        def abort(self):
+            self.aborted = True
+
+        def write(self, data):
+            pass
+
+        async def drain(self):
+            await asyncio.Event().wait()
+
+    async def main():
+        writer = Stuck()
+        conn = Connection(7, None, writer)
+        started = time.monotonic()
+        sent = await conn.send_and_drain(b"ok 1 1\n", stalled=0.2)
+        return sent, time.monotonic() - started, writer.aborted, conn.closing
+
+    sent, waited, aborted, closing = run(main())
+    assert not sent and aborted and closing and 0.15 < waited < 5

@@ -9,6 +9,10 @@ from dataclasses import dataclass, field
 from typing import Callable
 
 READ_CHUNK = 65536
+# seconds a client may leave its replies untaken (the socket's buffers full) before it is
+# closed: one that sent frames and never read waited on for ever, counted busy, and 16 of
+# them locked every other client of their address out
+STALLED_SECONDS = 60.0
 
 log = logging.getLogger("fae.net")
 
@@ -81,12 +85,19 @@ class Connection:
         self.writer.write(data)
         return True
 
-    async def send_and_drain(self, data: bytes) -> bool:
-        """Send and wait until the client has taken its share (backpressure)."""
+    async def send_and_drain(self, data: bytes, stalled: float | None = None) -> bool:
+        """Send and wait until the client has taken its share (backpressure); a client that
+        takes none of it for `stalled` seconds (default STALLED_SECONDS) is closed (False)."""
         if not self.send(data):
             return False
+        stalled = STALLED_SECONDS if stalled is None else stalled
         try:
-            await self.writer.drain()
+            await asyncio.wait_for(self.writer.drain(), stalled)
+        except asyncio.TimeoutError:
+            log.warning("client %d (%s): took none of its replies for %g s; closing", self.client_id, self.peer,
+                        stalled)
+            self.drop()
+            return False
         except ConnectionError:
             self.dropped = True
             return False
