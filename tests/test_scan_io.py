@@ -76,6 +76,14 @@ def test_scan_reading_merges_components_and_reports_bad_files(tmp_path):
     junk.write_bytes(b"not a mesh at all")
     with pytest.raises(ValueError, match="junk.stl"):
         read_scan(junk)
+    # a .gltf whose buffer file is not beside it: "cannot read a mesh (gltf_buffer_0.bin)"
+    gltf = tmp_path / "g" / "head.gltf"
+    gltf.parent.mkdir()
+    a.export(gltf)
+    for buffer in gltf.parent.glob("*.bin"):
+        buffer.unlink()
+    with pytest.raises(ValueError, match=r"head.gltf: cannot read a mesh: it refers to \S+\.bin, which is not beside"):
+        read_scan(gltf)
 
 
 def test_menpo_ljson_every_version_gives_the_same_points(tmp_path):

@@ -102,6 +102,11 @@ def read_scan(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
         loaded = trimesh.load(path, force="mesh", process=False)
     except ImportError:  # a loader wanting an optional module for bytes it cannot place
         raise ValueError(f"{path}: cannot read a mesh: {expected}") from None
+    except FileNotFoundError as exc:  # a file the mesh refers to (a .gltf's buffers)
+        missing = exc.filename or (exc.args[0] if exc.args else exc)
+        name = " ".join(str(missing).split())[:200]
+        raise ValueError(f"{path}: cannot read a mesh: it refers to {name}, which is not beside it "
+                         f"({os.path.dirname(os.path.abspath(path))})") from None
     except Exception as exc:  # trimesh raises many kinds
         reason = " ".join(str(exc).split())[:200] or type(exc).__name__
         raise ValueError(f"{path}: cannot read a mesh ({reason}): {expected}") from None
