@@ -104,11 +104,11 @@ def test_temporary_files_of_running_writers_and_of_other_outputs_are_not_swept(t
     assert sweep_stale(tmp_path / "b.glb") == [other]
 
 
-def test_an_output_that_is_a_pipe_is_refused_and_a_link_is_written_through(tmp_path, capsys):
+def test_an_output_that_is_a_pipe_is_refused_and_a_link_is_replaced_not_followed(tmp_path, capsys):
     """Case: `fae render -o PIPE.png` (and, as root, `fae adapt ... -o /dev/null`) renamed a
     plain file over the pipe or device. A named pipe is refused in one line, before any work
-    and by the writer itself; an output that is a link is written through it: the file it
-    points to is replaced, the link stays."""
+    and by the writer itself; an output that is a link is replaced by the file, the file it
+    pointed to left alone (a link planted in a shared folder cannot aim fae at a user's file)."""
     from fae.cli import main
 
     pipe = tmp_path / "frame.png"
@@ -125,7 +125,7 @@ def test_an_output_that_is_a_pipe_is_refused_and_a_link_is_written_through(tmp_p
     link.symlink_to(real)
     with atomic_path(link) as tmp:
         tmp.write_text("new")
-    assert link.is_symlink() and real.read_text() == "new"
+    assert not link.is_symlink() and link.read_text() == "new" and real.read_text() == "old"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["frame.png", "link.json", "real.json"]
 
 

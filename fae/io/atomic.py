@@ -107,7 +107,9 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None, sweep: bool 
     `suffix` defaults to the target's own suffix (some writers pick the format from it).
     sweep  first remove the target's stale temporary files (see `sweep_stale`); writers of
            many files into one folder (a frame per PNG) pass False: each sweep lists the folder.
-    A link is written through: the file it points to is replaced, the link stays.
+    An output that is a link is replaced by the file, the file it pointed to left alone
+    (following it would let whoever can plant a link in a shared folder aim fae's output
+    at a file of the user's).
     Raises FileNotFoundError when the folder does not exist, OutputError (an OSError
     naming the target) when it cannot take a file or is a device, pipe or socket.
     """
@@ -115,8 +117,6 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None, sweep: bool 
     kind = special_file(target)
     if kind is not None:
         raise OutputError(f"{target}: is {kind}, not a file; expected a file name to write")
-    if target.is_symlink():
-        target = Path(os.path.realpath(target))
     folder = target.parent if str(target.parent) else Path(".")
     if not folder.is_dir():
         raise FileNotFoundError(f"{target}: output folder {folder} does not exist")
