@@ -180,15 +180,16 @@ def test_queries_keep_their_precision_far_from_the_origin():
     (["--report", "{tmp}/r.png"], "--report {tmp}/r.png: expected a .json file name"),
     (["--compare", "{tmp}/c.jpg"], "--compare {tmp}/c.jpg: expected a .png file name"),
     (["--template", "{tmp}"], "is a folder, expected a FaceModel .glb"),
+    (["--method", "rbf", "--landmarks", "{points}", "--feature-search", "ga"], "--landmarks gives them"),
 ])
 def test_options_that_would_be_ignored_or_misnamed_are_refused_before_any_work(scan_files, capsys, tmp_path, extra,
                                                                                expected):
     """Cases: `--plot P.png` with the default fit wrote no plot without a word (--levels and
     --feature-search likewise did nothing); `--levels 50` ran past 11 GB; a report written
     as r.png, a picture as c.jpg; a folder given as the template was "not found"."""
-    scan, _, _ = scan_files
+    scan, points, _ = scan_files
     out = tmp_path / "h.glb"
-    code, err = adapt(capsys, scan, "-o", out, *[a.format(tmp=tmp_path) for a in extra])
+    code, err = adapt(capsys, scan, "-o", out, *[a.format(tmp=tmp_path, points=points) for a in extra])
     assert code == 2 and expected.format(tmp=tmp_path) in one_line(err)
     assert list(tmp_path.iterdir()) == []
     code, err = adapt(capsys, scan, "-o", tmp_path / "h.txt")
@@ -251,5 +252,8 @@ def test_a_broken_template_is_named_before_the_fit(scan_files, capsys, tmp_path)
     broken = tmp_path / "spike.glb"
     write_facemodel(head, broken)
     code, err = adapt(capsys, scan, "--landmarks", points, "--template", broken, "-o", tmp_path / "h.glb")
-    assert code == 2 and f"template {broken}: not a whole head" in one_line(err)
+    assert code == 2 and f"template {broken}: not a whole head" in one_line(err) and "--force fits it" in err
     assert not (tmp_path / "h.glb").exists()
+    # --force fits it all the same, saying why it should not
+    code, err = adapt(capsys, scan, "--landmarks", points, "--template", broken, "-o", tmp_path / "h.glb", "--force")
+    assert f"warning: template {broken}: not a whole head" in err

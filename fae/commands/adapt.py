@@ -70,9 +70,11 @@ def write_plot(report: dict, path: str) -> None:
 
     from fae.private_folder import private_temporary_folder, writable_folder
 
-    config = os.path.join(os.environ.get("XDG_CONFIG_HOME") or os.path.expanduser("~/.config"), "matplotlib")
-    if "MPLCONFIGDIR" not in os.environ and not writable_folder(config):
-        # a home that cannot be written: matplotlib said so in two lines and rebuilt its font cache each run
+    folders = [os.path.join(os.environ.get(variable) or os.path.expanduser(default), "matplotlib")
+               for variable, default in (("XDG_CONFIG_HOME", "~/.config"), ("XDG_CACHE_HOME", "~/.cache"))]
+    if "MPLCONFIGDIR" not in os.environ and not all(writable_folder(folder) for folder in folders):
+        # a home that cannot be written: matplotlib said so in two lines and rebuilt its font cache
+        # each run (MPLCONFIGDIR holds both its config and its cache)
         os.environ["MPLCONFIGDIR"] = private_temporary_folder("fae-matplotlib")
     import matplotlib
 
@@ -120,6 +122,10 @@ def run(args) -> int:
               f"(--method {' | '.join(PAPER_METHODS)}); the default surface fit reports per stage in --report",
               file=sys.stderr)
         return 2
+    if args.feature_search is not None and args.landmarks:
+        print("fae adapt: --feature-search finds feature points where none are given; --landmarks gives them",
+              file=sys.stderr)
+        return 2
     if args.levels is not None and not 0 <= args.levels <= MAX_LEVELS:
         print(f"fae adapt: --levels {args.levels}: expected 0-{MAX_LEVELS} levels after the first", file=sys.stderr)
         return 2
@@ -149,7 +155,7 @@ def run(args) -> int:
                 "not found (build it with `fae template`)"
             print(f"fae adapt: template {args.template} {why}", file=sys.stderr)
             return 2
-        template = _whole_template(args.template, read_facemodel(args.template))
+        template = _whole_template(args.template, read_facemodel(args.template), args.force)
     except (OSError, ValueError, LandmarkError) as exc:
         print(f"fae adapt: {exc}", file=sys.stderr)
         return 2
@@ -158,15 +164,27 @@ def run(args) -> int:
     return _run_paper(args, template, V, F, landmarks, started)
 
 
-def _whole_template(path: str, template):
-    """`template` (read from `path`); raises ValueError naming it when a template other than
-    the shipped one is not a whole head (found only after the fit, it was blamed on the scan)."""
-    if os.path.realpath(path) != os.path.realpath(DEFAULT_TEMPLATE):
-        from fae.anatomy.checks import facemodel_problems
+def _head_problems(model) -> list[str]:
+    """fae.anatomy.checks.facemodel_problems, a check that fails being one more problem."""
+    from fae.anatomy.checks import facemodel_problems
 
-        problems = facemodel_problems(template)
+    try:
+        return facemodel_problems(model)
+    except Exception as exc:  # noqa: BLE001 - a head that cannot be checked is not taken as whole
+        return [f"it could not be checked ({type(exc).__name__}: {exc})"]
+
+
+def _whole_template(path: str, template, force: bool = False):
+    """`template` (read from `path`); raises ValueError naming it when a template other than
+    the shipped one is not a whole head (found only after the fit, it was blamed on the scan);
+    with `force`, says so and goes on."""
+    if os.path.realpath(path) != os.path.realpath(DEFAULT_TEMPLATE):
+        problems = _head_problems(template)
         if problems:
-            raise ValueError(f"template {path}: not a whole head ({problems[0]}; `fae template check` lists all)")
+            why = f"template {path}: not a whole head ({problems[0]}; `fae template check` lists all)"
+            if not force:
+                raise ValueError(why + "; --force fits it anyway")
+            _say(f"warning: {why}")
     return template
 
 
@@ -323,16 +341,8 @@ def _calibrated_if_whole(args, source: str, model, report: dict, start_mapping: 
     fails to run counts as a problem."""
     from concurrent.futures import ThreadPoolExecutor
 
-    from fae.anatomy.checks import facemodel_problems
-
-    def checked(model) -> list[str]:
-        try:
-            return facemodel_problems(model)
-        except Exception as exc:  # noqa: BLE001 - a head that cannot be checked is not written as whole
-            return [f"it could not be checked ({type(exc).__name__}: {exc})"]
-
     with ThreadPoolExecutor(1) as pool:
-        check = pool.submit(checked, model)
+        check = pool.submit(_head_problems, model)
         calibrated = _calibrated(args, model, report, start_mapping)
         problems = [f"the head is not whole ({p}): `fae template check` would fail it" for p in check.result()]
     if problems:
@@ -542,7 +552,7 @@ def _run_photo(args, started: float) -> int:
         image = read_photo(args.photo)
         if not os.path.isfile(args.template):
             raise ValueError(f"template {args.template} not found (build it with `fae template`)")
-        template = _whole_template(args.template, read_facemodel(args.template))
+        template = _whole_template(args.template, read_facemodel(args.template), args.force)
     except (OSError, ValueError) as exc:
         _say(str(exc))
         return 2
