@@ -9,9 +9,9 @@ from dataclasses import dataclass, field
 from typing import Callable
 
 READ_CHUNK = 65536
-# seconds a client may leave its replies untaken (the socket's buffers full) before it is
-# closed: one that sent frames and never read waited on for ever, counted busy, and 16 of
-# them locked every other client of their address out
+# seconds a reply may wait on a client's full socket (the client taking too little of what it
+# was sent) before the client is closed: one that sent frames and never read was waited on
+# for ever, counted busy, and 16 of them locked every other client of their address out
 STALLED_SECONDS = 60.0
 
 log = logging.getLogger("fae.net")
@@ -30,8 +30,9 @@ class Connection:
     busy          tells whether the client is waiting on the server (frames being played,
                   a playback it started); a busy client is never timed out
     last_active   time.monotonic() of the client's latest bytes (or of its connection)
-    native        the client speaks the native line protocol (its first byte was not `<`):
-                  Xface notifications routed by ownerId never go to it
+    xface         the client may speak Xface's tasks (greeted after its silence, or its first
+                  byte was `<`): only such a client takes Xface notifications routed by
+                  ownerId (a native client's replies were written into by another's task)
     """
 
     client_id: int
@@ -43,7 +44,7 @@ class Connection:
     dropped: bool = False
     busy: Callable[[], bool] = field(default=lambda: False)
     last_active: float = field(default_factory=time.monotonic)
-    native: bool = False
+    xface: bool = False
 
     def __post_init__(self) -> None:
         info = self.writer.get_extra_info("peername")
@@ -86,16 +87,17 @@ class Connection:
         return True
 
     async def send_and_drain(self, data: bytes, stalled: float | None = None) -> bool:
-        """Send and wait until the client has taken its share (backpressure); a client that
-        takes none of it for `stalled` seconds (default STALLED_SECONDS) is closed (False)."""
+        """Send and wait until the client has taken its share (backpressure); a client whose
+        socket stays too full to take this reply for `stalled` seconds (default
+        STALLED_SECONDS) is closed (False)."""
         if not self.send(data):
             return False
         stalled = STALLED_SECONDS if stalled is None else stalled
         try:
             await asyncio.wait_for(self.writer.drain(), stalled)
         except asyncio.TimeoutError:
-            log.warning("client %d (%s): took none of its replies for %g s; closing", self.client_id, self.peer,
-                        stalled)
+            log.warning("client %d (%s): its replies have waited %g s on a full socket; closing", self.client_id,
+                        self.peer, stalled)
             self.drop()
             return False
         except ConnectionError:

@@ -172,10 +172,11 @@ class FapServer:
             if not first:
                 return
             if first.lstrip()[:1] == b"<":
+                conn.xface = True
                 conn.busy = lambda: self.stage.busy_for(client_id)
                 await self.stage.session(conn, first)
             else:
-                conn.native = True
+                conn.xface = False
                 session = NativeSession(conn, self.faces, self.hub, window=self.limits.window,
                                         max_line=self.limits.max_line, max_errors=self.limits.max_errors)
                 conn.busy = lambda: session.unacknowledged > 0
@@ -228,7 +229,7 @@ class FapServer:
             try:
                 chunk = await asyncio.wait_for(conn.reader.read(READ_CHUNK), self.limits.greeting_delay)
             except asyncio.TimeoutError:
-                greeted = True
+                greeted = conn.xface = True  # silent: an Xface client waits for its greeting
                 conn.send(xface.notify_bytes("CONNECTION_OK", conn.client_id, 0, xface.STATUS_UNKNOWN))
                 break
             if not chunk:

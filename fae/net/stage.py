@@ -167,7 +167,7 @@ class XfaceStage:
         if task.owner_id == 0:
             return
         conn = self.clients.get(task.owner_id)
-        if conn is not None and not conn.native:  # a task naming a native client's id wrote into its replies
+        if conn is not None and conn.xface:  # a task naming a native client's id wrote into its replies
             conn.send(xface.notify_bytes(task.name, task.owner_id, task.task_id, status))
 
     async def _dispatch(self) -> None:
