@@ -31,10 +31,10 @@ EYES_APART = 1.25  # the larger eyeball's scale over the smaller one's
 # this) is wound inside out, as exporters and mirroring leave scans: the busts 0.87-0.93,
 # face masks 0.98-1.0, the front half of a bust 0.76; the same turned 0.002-0.25
 SCAN_INSIDE_OUT_SHARE = 0.4
-# ... and one whose area faces in and out about equally has no winding to turn: a scan doubled
-# back to back (0.5) fitted half its faces against the others, a head with the hair flattened,
-# eyes and mouth misshapen and a lump on the neck
-SCAN_MIXED_SHARE = 0.35
+# ... and one above that but below this faces in and out about equally, with no winding to
+# turn: a scan doubled back to back (0.5) fitted half its faces against the others, a head
+# with the hair flattened, eyes and mouth misshapen and a lump on the neck
+SCAN_MIXED_SHARE = 0.65
 # a head in micrometres 1,000 km from the origin; far beyond any unit (1e200) numpy warned in
 # eight lines of overflows and the scan was said to have "0 triangles with an area"
 MAX_COORDINATE = 1e12
@@ -68,7 +68,7 @@ def scan_outward(V: np.ndarray, F: np.ndarray, path: str, say) -> tuple[np.ndarr
     from fae.anatomy.checks import outward_share
 
     share = outward_share(V, F)
-    if SCAN_MIXED_SHARE < share < 1.0 - SCAN_MIXED_SHARE:
+    if SCAN_INSIDE_OUT_SHARE <= share < SCAN_MIXED_SHARE:
         raise ValueError(f"{path}: {(1 - share) * 100:.0f} % of its area faces into it (faces wound against their "
                          "neighbours, or the surface doubled back to back); expected one outward winding (a mesh "
                          "tool's 're-orient faces coherently' mends it)")
