@@ -217,8 +217,8 @@ def test_a_page_that_answers_nothing_still_hears_ends_and_each_stream_gets_its_f
 def test_what_a_page_that_never_reads_is_owed_stays_bounded():
     """Case: a page that never read, while 3,000 streams ended, was owed every stream's last
     pose (370 MB -> 1.4 GB). It is owed the newest few poses, each before its stream's end,
-    and at most MAX_OWED_ENDS ends, the newest."""
-    from fae.net.view import MAX_OWED_END_FRAMES, MAX_OWED_ENDS, _PageQueue
+    and every end (a name each)."""
+    from fae.net.view import MAX_OWED_END_FRAMES, _PageQueue
 
     pose = Pose(np.zeros((1000, 3)), {})
     page = _PageQueue()
@@ -227,8 +227,9 @@ def test_what_a_page_that_never_reads_is_owed_stays_bounded():
         page.put(StreamEnd(f"native-{k}"))
     frames = [e for e in page.ends if isinstance(e, FrameEvent)]
     ends = [e.stream for e in page.ends if isinstance(e, StreamEnd)]
-    assert len(page.ends) <= MAX_OWED_ENDS and len(frames) == page.end_frames == MAX_OWED_END_FRAMES
-    assert ends[-1] == "native-2999" and [f.stream for f in frames] == [f"native-{k}" for k in range(2992, 3000)]
+    assert len(ends) == 3000 and len(frames) == page.end_frames == MAX_OWED_END_FRAMES
+    newest = [f"native-{k}" for k in range(3000 - MAX_OWED_END_FRAMES, 3000)]
+    assert ends[-1] == "native-2999" and [f.stream for f in frames] == newest
     order = [e.stream for e in page.ends]
     assert all(order.index(f.stream) < len(order) - 1 - order[::-1].index(f.stream) for f in frames)  # pose, then end
     while page.ends:

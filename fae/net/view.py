@@ -48,11 +48,11 @@ from fae.net.hub import FrameEvent, StreamEnd
 
 log = logging.getLogger("fae.net")  # the server's logger: its records are bounded (fae.net.logbound)
 IN_FLIGHT = 2  # frames a page may hold unanswered
-# streams' ends a page may owe: past these, the oldest ends' last frames, then the oldest ends,
-# are dropped (a page that never read kept every ended stream's last pose: 370 MB -> 1.4 GB
-# over 3,000 streams)
-MAX_OWED_END_FRAMES = 8
-MAX_OWED_ENDS = 1024
+# ended streams' last poses a page may be owed: past these the oldest are dropped, their ends
+# kept (a page that never read kept every ended stream's last pose: 370 MB -> 1.4 GB over
+# 3,000 streams); and ends (a stream's name each), past which the oldest are dropped
+MAX_OWED_END_FRAMES = 16
+MAX_OWED_ENDS = 100_000
 MAX_PAGE_BUFFER = 16 * 2**20  # bytes of replies a page leaves unread before it is cut off
 CLOSE_SECONDS = 1.0  # the longest a closing page is waited for
 PAGE_DIR = Path(__file__).resolve().parent / "view_page"
@@ -284,7 +284,7 @@ class _PageQueue:
     """What one page is still to be sent: the newest unsent frame of each stream (the
     stream waiting longest first), and the streams' ends, each after its stream's last frame
     (sent whatever the page owes: one frame more per stream at most; at most
-    MAX_OWED_END_FRAMES such frames and MAX_OWED_ENDS ends, the newest); `in_flight`: frames
+    MAX_OWED_END_FRAMES such frames, the newest, and MAX_OWED_ENDS ends); `in_flight`: frames
     sent, unanswered."""
 
     def __init__(self) -> None:
@@ -326,5 +326,5 @@ class _PageQueue:
                     continue
                 kept.append(item)
             self.ends = kept
-        while len(self.ends) > MAX_OWED_ENDS:
+        while len(self.ends) - self.end_frames > MAX_OWED_ENDS:
             self.take_end()
