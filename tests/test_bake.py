@@ -204,7 +204,7 @@ def test_fae_bake_explains_bad_input_in_one_line(tmp_path, physics, capsys, argv
     assert not (tmp_path / "o.glb").exists()
 
 
-def test_a_head_baked_for_some_faps_knows_which_it_leaves_still(physics, fdt):
+def test_a_head_baked_for_some_faps_knows_which_it_leaves_still(physics, fdt, tmp_path):
     """FAPs 3, 5, 12, 19 baked: the fdt engine has no table for the other skin FAPs (the ears'
     it derives); a FAP baked without a table (it moved nothing) counts as baked, through the
     head's .glb too; the physics engine leaves none still."""
@@ -215,6 +215,9 @@ def test_a_head_baked_for_some_faps_knows_which_it_leaves_still(physics, fdt):
     assert physics.head.faps_without_tables == []
     still = baked_model(physics.face, [t for t in fdt.tables if t.source == "physics"], faps=(3, 5, 12, 19, 4))
     assert 4 not in Player(playable_head(still, engine="fdt")).head.faps_without_tables
+    path = tmp_path / "still.glb"
+    write_facemodel(still, path)
+    assert 4 not in Player(playable_head(read_facemodel(path), engine="fdt")).head.faps_without_tables
 
 
 def test_faps_in_stream_counts_visemes_and_expressions_as_the_faps_they_move():

@@ -160,6 +160,7 @@ def test_command_rejects_bad_input_with_one_line_and_status_2(corpus, monkeypatc
     for args, expected in [
         (["streams/*.fap", "-o", "out", "--workers", "2", "--scheduler", "tcp://127.0.0.1:8786"], "--workers sizes"),
         (["streams/*.fap", "-o", "out", "--scheduler", "127.0.0.1:8786"], "expected an address such as tcp://"),
+        (["streams/*.fap", "-o", "out", "--scheduler", "tcp://127.0.0.1"], "(expected tcp://HOST:PORT)"),
         (["streams/*.fap", "-o", "out", "--retries", "-1"], "--retries -1: expected 0..100"),
         (["streams/*.fap", "-o", "out", "--view", "top"], "--view 'top': expected one of"),
         (["streams/*.fap", "-o", "other.glb"], "other.glb: is a file, expected the output folder"),

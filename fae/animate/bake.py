@@ -94,7 +94,7 @@ def baked_faps(face) -> set[int]:
     moved nothing has no table) and those with a table."""
     recorded = (face.meta or {}).get("face_def_tables_baked", ())
     recorded = recorded if isinstance(recorded, (list, tuple)) else ()
-    return ({int(k) for k in recorded if isinstance(k, (int, float)) and not isinstance(k, bool)}
+    return ({int(k) for k in recorded if isinstance(k, (int, float)) and not isinstance(k, bool) and k == int(k)}
             | {int(t.fap) for t in face.face_def_tables if t.source == "physics"})
 
 

@@ -108,6 +108,8 @@ def _not_a_scheduler(address: str) -> str | None:
     if rest is None:
         return None
     host, _, port = rest.rpartition(":")
+    if not host or not port.isdigit():
+        return "expected tcp://HOST:PORT"
     try:
         with socket.create_connection((host.strip("[]") or "127.0.0.1", int(port)), timeout=CONNECT_TIMEOUT_S) as s:
             s.settimeout(HANDSHAKE_TIMEOUT_S)

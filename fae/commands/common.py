@@ -142,10 +142,14 @@ def load_head(path: str | os.PathLike | None):
     return read_facemodel(head), head
 
 
-def unbaked_notice(command: str, head_name: str, without_tables: list[int], stream) -> str | None:
+def unbaked_notice(command: str, head_name: str, without_tables: list[int], stream,
+                   head_path: str | None = None) -> str | None:
     """The notice for FAPs `stream` (a FapStream) sets that a head baked for some FAPs only
     plays without moving the skin (`without_tables`: PlayableHead.faps_without_tables), or
-    None. A stream that cannot be read gets None here: playing it reports why."""
+    None; head_path: the head's file, for the `fae bake` it suggests (default: head_name,
+    or HEAD.glb where that is no file). A stream that cannot be read gets None here: playing
+    it reports why."""
+    head_path = head_path or (head_name if os.path.isfile(head_name) else "HEAD.glb")
     if not without_tables:
         return None
     from fae.animate.highlevel import faps_in_stream
@@ -161,7 +165,7 @@ def unbaked_notice(command: str, head_name: str, without_tables: list[int], stre
     many = len(missing) > 1
     return (f"fae {command}: {head_name}: FAP{'s' if many else ''} {numbers} of the stream {'have' if many else 'has'} "
             f"no FaceDefTable on this head (baked for some FAPs only): the tables leave the skin still for "
-            f"{'them' if many else 'it'}; bake {'them' if many else 'it'} too (`fae bake {head_name} -o BAKED.glb "
+            f"{'them' if many else 'it'}; bake {'them' if many else 'it'} too (`fae bake {head_path} -o BAKED.glb "
             f"--faps ...` with every FAP wanted, or without --faps for all)"
             + (" or play with --engine physics" if command == "play" else ""))
 

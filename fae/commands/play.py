@@ -157,7 +157,8 @@ def run(args: argparse.Namespace) -> int:
         which = "the template" if retargeted is not None else args.head or "the shipped head"
         return fail("play", f"{which}: cannot animate it: {exc}")
     notice = unbaked_notice("play", "the template" if retargeted is not None else args.head or "the shipped head",
-                            (player.player if retargeted is not None else player).head.faps_without_tables, stream)
+                            (player.player if retargeted is not None else player).head.faps_without_tables, stream,
+                            None if retargeted is not None else args.head)
     if notice:
         print(notice, file=sys.stderr)
     expected = round(stream.header.declared_frame_count * fps / stream.header.fps)  # as the header says
