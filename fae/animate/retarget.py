@@ -545,14 +545,13 @@ def _rows_averaged(G: sp.csr_matrix, Y: np.ndarray, F: np.ndarray, groups: np.nd
 OPENINGS = (("lip_upper", "lip_lower"), ("eyelid_upper_l", "eyelid_lower_l"), ("eyelid_upper_r", "eyelid_lower_r"))
 
 
-def opening_sides(region_names, skin_region: np.ndarray, TF: np.ndarray, face: np.ndarray,
-                  bary: np.ndarray) -> np.ndarray:
-    """(k,) int per target vertex bound to template triangle face (k,) of TF (m, 3) at bary
-    (k, 3): 2i + 1 on the first side of OPENINGS[i] (by the region of the triangle's corner
-    nearest the binding; skin_region (n,) the template's), 2i + 2 on its second, 0 elsewhere."""
+def opening_sides(region_names, region: np.ndarray) -> np.ndarray:
+    """(k,) int per target vertex, from the template region (k,) (an index into
+    region_names) of the corner nearest its binding: 2i + 1 on the first side of
+    OPENINGS[i], 2i + 2 on its second, 0 elsewhere."""
     names = list(region_names)
-    nearest = np.asarray(skin_region)[np.asarray(TF)[face, np.argmax(bary, axis=1)]]
-    out = np.zeros(len(face), dtype=np.int64)
+    nearest = np.asarray(region)
+    out = np.zeros(len(nearest), dtype=np.int64)
     for i, pair in enumerate(OPENINGS):
         for j, name in enumerate(pair):
             if name in names:
@@ -861,16 +860,15 @@ def retarget(template: FaceModel, target: TargetMesh, say: Callable[[str], None]
     bound[TF[face[coverage > 0.5]].ravel()] = True
     Tv, scale = frame_transforms(P, X, TF, used=bound)
     G = gather_matrix(face, bary, coverage, TF, len(P))
-    G = smoothed_across_jumps(G, np.einsum("kj,kjd->kd", bary, P[TF[face]]), Ys, skin_F, seams,
-                              opening_sides(template.region_names, template.skin_region, TF, face, bary), TF[face])
+    U = np.einsum("kj,kjd->kd", bary, P[TF[face]])  # the template's points they are bound to, at rest
+    nearest = TF[face, np.argmax(bary, axis=1)]
+    skin_region = np.asarray(template.skin_region, dtype=np.int32)[nearest]
+    G = smoothed_across_jumps(G, U, Ys, skin_F, seams, opening_sides(template.region_names, skin_region), TF[face])
     G = smoothed_where_fine(G, Ys, skin_F, *template_resolution(face, TF, X, coverage > 0.5), groups=seams)
     used = np.flatnonzero(np.asarray(abs(G).sum(axis=0)).ravel() > 0)
     G = G[:, used].tocsr()
-    nearest = TF[face, np.argmax(bary, axis=1)]
-    skin_region = np.asarray(template.skin_region, dtype=np.int32)[nearest]
 
     # the target as a FaceModel
-    U = np.einsum("kj,kjd->kd", bary, P[TF[face]])
     feature_points, fp_source = _target_feature_points(template, fitted, given, Ys, U, skin_F, skin_region, parts_at)
     if target.uv is None:
         uv, texture = np.zeros((len(skin_index), 2), np.float32), None
