@@ -225,16 +225,18 @@ def test_what_a_page_that_never_reads_is_owed_stays_bounded():
     for k in range(3000):
         page.put(FrameEvent(f"native-{k}", 0, 0.0, 25.0, pose, 1))
         page.put(StreamEnd(f"native-{k}"))
-    frames = [e for e in page.ends if isinstance(e, FrameEvent)]
-    ends = [e.stream for e in page.ends if isinstance(e, StreamEnd)]
-    assert len(ends) == 3000 and len(frames) == page.end_frames == MAX_OWED_END_FRAMES
+    owed = []
+    while (item := page.next_owed()) is not None:
+        owed.append(item)
+    frames = [e for e in owed if isinstance(e, FrameEvent)]
+    ends = [e.stream for e in owed if isinstance(e, StreamEnd)]
+    assert len(ends) == 3000 and len(frames) == MAX_OWED_END_FRAMES
     newest = [f"native-{k}" for k in range(3000 - MAX_OWED_END_FRAMES, 3000)]
     assert ends[-1] == "native-2999" and [f.stream for f in frames] == newest
-    order = [e.stream for e in page.ends]
-    assert all(order.index(f.stream) < len(order) - 1 - order[::-1].index(f.stream) for f in frames)  # pose, then end
-    while page.ends:
-        page.take_end()
-    assert page.end_frames == 0
+    for item, after in zip(owed, owed[1:]):
+        if isinstance(item, FrameEvent):  # each pose right before its end
+            assert isinstance(after, StreamEnd) and after.stream == item.stream
+    assert not page.ends and not page.end_poses
 
 
 def test_a_client_that_floods_pings_and_never_reads_is_cut_off(model, three):

@@ -246,8 +246,7 @@ class LiveView:
             while True:
                 await page.wake.wait()
                 page.wake.clear()
-                while page.ends:  # a stream's last frame, then its end: whatever the page owes
-                    item = page.take_end()
+                while (item := page.next_owed()) is not None:  # a stream's last frame, then its end
                     if isinstance(item, FrameEvent):
                         page.in_flight += 1
                         await ws.send(frame_message(item))
@@ -289,8 +288,9 @@ class _PageQueue:
 
     def __init__(self) -> None:
         self.pending: dict[str, FrameEvent] = {}
-        self.ends: collections.deque = collections.deque()
-        self.end_frames = 0  # frames among `ends`
+        self.ends: collections.deque = collections.deque()  # StreamEnd, oldest first
+        # the pose each owed end is shown with first, by the end's id(), oldest first
+        self.end_poses: dict[int, FrameEvent] = {}
         self.in_flight = 0
         self.wake = asyncio.Event()
 
@@ -299,32 +299,21 @@ class _PageQueue:
             self.pending[event.stream] = event  # a frame not yet sent gives way to its stream's newer one
         elif isinstance(event, StreamEnd):
             last = self.pending.pop(event.stream, None)
-            if last is not None:  # the pose the stream ends on is shown, at once, then its end
-                self.ends.append(last)
-                self.end_frames += 1
             self.ends.append(event)
-            self._bound()
+            if last is not None:  # the pose the stream ends on is shown, at once, then its end
+                self.end_poses[id(event)] = last
+            # a page that does not read owes more and more: its oldest ends' poses go first,
+            # then the oldest ends themselves
+            if len(self.end_poses) > MAX_OWED_END_FRAMES:
+                del self.end_poses[next(iter(self.end_poses))]
+            if len(self.ends) > MAX_OWED_ENDS:
+                self.end_poses.pop(id(self.ends.popleft()), None)
         self.wake.set()
 
-    def take_end(self):
-        """The next of `ends` to send (a frame or a StreamEnd)."""
-        item = self.ends.popleft()
-        if isinstance(item, FrameEvent):
-            self.end_frames -= 1
-        return item
-
-    def _bound(self) -> None:
-        # a page that does not read owes more and more: its oldest ends' poses go first, then
-        # the oldest ends themselves
-        if self.end_frames > MAX_OWED_END_FRAMES:
-            kept = collections.deque()
-            extra = self.end_frames - MAX_OWED_END_FRAMES
-            for item in self.ends:
-                if extra and isinstance(item, FrameEvent):
-                    extra -= 1
-                    self.end_frames -= 1
-                    continue
-                kept.append(item)
-            self.ends = kept
-        while len(self.ends) - self.end_frames > MAX_OWED_ENDS:
-            self.take_end()
+    def next_owed(self):
+        """The next of what the ended streams are owed, in order (a stream's last frame, then
+        its end), or None."""
+        if not self.ends:
+            return None
+        pose = self.end_poses.pop(id(self.ends[0]), None)
+        return pose if pose is not None else self.ends.popleft()
