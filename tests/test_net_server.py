@@ -563,23 +563,25 @@ def test_xface_oversized_task_closes_only_that_client():
 
 # -- codecs --------------------------------------------------------------------------
 
+def fed_in_pieces(splitter: xface.TaskSplitter, stream: bytes, size: int) -> list[xface.XfaceTask]:
+    """The tasks `splitter` finds in `stream` fed `size` bytes at a time."""
+    got = []
+    for i in range(0, len(stream), size):
+        got += splitter.feed(stream[i:i + size])
+    return [xface.parse_task(m) for m in got]
+
+
 def test_task_splitter_finds_tasks_across_reads_and_terminators():
     splitter = xface.TaskSplitter()
     stream = task("A", 1, 1, end=b"") + task("B", 1, 2, end=b"\0\0") + task("C", 1, 3, "x\ny", end=b"\0")
-    got = []
-    for i in range(0, len(stream), 7):
-        got += splitter.feed(stream[i:i + 7])
-    tasks = [xface.parse_task(m) for m in got]
+    tasks = fed_in_pieces(splitter, stream, 7)
     assert [(t.name, t.task_id, t.params) for t in tasks] == [("A", 1, ()), ("B", 2, ()), ("C", 3, ("x\ny",))]
     assert splitter.buffered == 0
     # a self-closing task with nothing after it was never answered, and the next task's bytes
     # were read as junk after it (both lost); a quoted `>` or `/>` does not end a start tag
     stream = (b'<task name="D" ownerId="1" taskId="4"/>' + task("E", 1, 5, end=b"")
               + b'<task name="F" ownerId="1" taskId="6" note="a/>b">' + b"<param>1</param></task>")
-    got = []
-    for i in range(0, len(stream), 5):
-        got += splitter.feed(stream[i:i + 5])
-    tasks = [xface.parse_task(m) for m in got]
+    tasks = fed_in_pieces(splitter, stream, 5)
     assert [(t.name, t.task_id, t.params) for t in tasks] == [("D", 4, ()), ("E", 5, ()), ("F", 6, ("1",))]
     assert splitter.buffered == 0
 

@@ -104,10 +104,9 @@ def _not_a_scheduler(address: str) -> str | None:
     import socket
     import struct
 
-    rest = address[len("tcp://"):] if address.startswith("tcp://") else address if "://" not in address else None
-    if rest is None:
+    if not address.startswith("tcp://"):
         return None
-    host, _, port = rest.rpartition(":")
+    host, _, port = address[len("tcp://"):].rpartition(":")
     if not host or not port.isdigit():
         return "expected tcp://HOST:PORT"
     try:

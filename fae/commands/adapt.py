@@ -104,7 +104,6 @@ def run(args) -> int:
     started = time.perf_counter()
     from fae.commands.adapt_checks import landmark_problem, scan_outward, scan_problem
     from fae.commands.common import overwritten_input
-    from fae.io.facemodel_gltf import read_facemodel
     from fae.io.scan import LandmarkError, indexed_vertices, read_landmarks, read_scan
 
     if (args.scan is None) == (args.photo is None):
@@ -150,12 +149,7 @@ def run(args) -> int:
         if problem:
             raise ValueError(problem)
         F, args.turned_outward = scan_outward(V, F, args.scan, _say)
-        if not os.path.isfile(args.template):
-            why = "is a folder, expected a FaceModel .glb" if os.path.isdir(args.template) else \
-                "not found (build it with `fae template`)"
-            print(f"fae adapt: template {args.template} {why}", file=sys.stderr)
-            return 2
-        template = _whole_template(args.template, read_facemodel(args.template), args.force)
+        template = _read_template(args.template, args.force)
     except (OSError, ValueError, LandmarkError) as exc:
         print(f"fae adapt: {exc}", file=sys.stderr)
         return 2
@@ -174,10 +168,17 @@ def _head_problems(model) -> list[str]:
         return [f"it could not be checked ({type(exc).__name__}: {exc})"]
 
 
-def _whole_template(path: str, template, force: bool = False):
-    """`template` (read from `path`); raises ValueError naming it when a template other than
-    the shipped one is not a whole head (found only after the fit, it was blamed on the scan);
-    with `force`, says so and goes on."""
+def _read_template(path: str, force: bool = False):
+    """The template FaceModel at `path`; raises ValueError naming it when it is missing or a
+    folder, or when a template other than the shipped one is not a whole head (found only
+    after the fit, it was blamed on the scan); with `force`, says so and goes on."""
+    from fae.io.facemodel_gltf import read_facemodel
+
+    if os.path.isdir(path):
+        raise ValueError(f"template {path} is a folder, expected a FaceModel .glb")
+    if not os.path.isfile(path):
+        raise ValueError(f"template {path} not found (build it with `fae template`)")
+    template = read_facemodel(path)
     if os.path.realpath(path) != os.path.realpath(DEFAULT_TEMPLATE):
         problems = _head_problems(template)
         if problems:
@@ -537,7 +538,6 @@ def _run_photo(args, started: float) -> int:
     """`fae adapt --photo FACE.jpg -o HEAD.glb`: see fae.adapt.photo."""
     from fae.adapt.photo import PhotoRefused
     from fae.commands.common import overwritten_input
-    from fae.io.facemodel_gltf import read_facemodel
 
     if args.landmarks or args.method != "surface" or args.plot or args.levels is not None or args.feature_search:
         _say("--landmarks, --method, --plot, --levels and --feature-search belong to scans; a photo's points "
@@ -550,9 +550,7 @@ def _run_photo(args, started: float) -> int:
         return 2
     try:
         image = read_photo(args.photo)
-        if not os.path.isfile(args.template):
-            raise ValueError(f"template {args.template} not found (build it with `fae template`)")
-        template = _whole_template(args.template, read_facemodel(args.template), args.force)
+        template = _read_template(args.template, args.force)
     except (OSError, ValueError) as exc:
         _say(str(exc))
         return 2

@@ -36,8 +36,6 @@ def register(subparsers) -> None:
     parser.set_defaults(func=run)
 
 
-
-
 def _keyframes_problem(stream: str, count: int, fps: float, targets: int) -> str | None:
     """Why `count` frames of `targets` morph weights and the posed nodes are too many to hold
     while the scene is made (float64 each), or None."""
