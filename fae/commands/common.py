@@ -149,7 +149,6 @@ def unbaked_notice(command: str, head_name: str, without_tables: list[int], stre
     None; head_path: the head's file, for the `fae bake` it suggests (default: head_name,
     or HEAD.glb where that is no file). A stream that cannot be read gets None here: playing
     it reports why."""
-    head_path = head_path or (head_name if os.path.isfile(head_name) else "HEAD.glb")
     if not without_tables:
         return None
     from fae.animate.highlevel import faps_in_stream
@@ -163,6 +162,7 @@ def unbaked_notice(command: str, head_name: str, without_tables: list[int], stre
         return None
     numbers = ",".join(str(k) for k in missing)
     many = len(missing) > 1
+    head_path = head_path or (head_name if os.path.isfile(head_name) else "HEAD.glb")
     return (f"fae {command}: {head_name}: FAP{'s' if many else ''} {numbers} of the stream {'have' if many else 'has'} "
             f"no FaceDefTable on this head (baked for some FAPs only): the tables leave the skin still for "
             f"{'them' if many else 'it'}; bake {'them' if many else 'it'} too (`fae bake {head_path} -o BAKED.glb "

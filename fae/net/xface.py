@@ -123,7 +123,8 @@ class TaskSplitter:
 
     A message ends at a NUL byte or right after `</task>` (or the `/>` of a self-closing
     `<task .../>`), whichever comes first, so tasks ending in one NUL, two NULs or nothing
-    at all are all found, and a read may hold several tasks or part of one. Empty and whitespace-only pieces are skipped.
+    at all are all found, and a read may hold several tasks or part of one. Empty and
+    whitespace-only pieces are skipped.
     :meth:`skip` passes over raw bytes that follow a task (UPLOAD_WAV's audio).
 
     max_message  bytes one message may hold; a longer one raises TaskFormatError (the
