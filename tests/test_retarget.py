@@ -613,7 +613,10 @@ def test_bust(template, shared_data, tmp_path, template_folds):
     lm = tmp_path / "bust_landmarks.json"
     lm.write_text(json.dumps(json.loads(report.read_text())["feature_points_on_scan"]))
     rt = retarget(template, read_target(scan, lm))
-    # the bust folds over 0.075 % of its face (0.11 % before edges across its shut mouth were
+    # its carved eyes close between the lids (they fold less so at the template's blink)
+    assert rt.report["carved_eyes"] == {"eye_l": "closed between the lids", "eye_r": "closed between the lids"}
+    # the bust folds over 0.046 % of its face (0.075 % before its carved eyes closed between
+    # the lids, 0.11 % before edges across its shut mouth were
     # mended, 0.11-0.35 % with earlier fits, 0.37 % before the binding's jumps were
     # smoothed over: its lids' creases), the template none at all: 4x the template's does
     # not bound it, an absolute floor of 0.4 % does. The share follows the feature points
@@ -761,3 +764,63 @@ def test_a_texture_the_material_names_but_that_cannot_be_read_is_reported(tmp_pa
     (tmp_path / "lm.csv").write_text("9.3,0,0,1\n")
     target = read_target(tmp_path / "m.obj", tmp_path / "lm.csv")
     assert target.texture is None and target.texture_missing.endswith("gone.png")
+
+
+def test_a_carved_eye_closes_as_a_curtain_between_the_lids(template):
+    """A target whose eyeball is part of its skin (a bust's carved eye) has skin across the
+    template's eye opening. Bound to the lids (or their lining) nearest it, the part below
+    the middle stayed with the lower lid while the upper lid came down over it, and the
+    closing lid folded over the eye (the marble bust's blinks: dark wedges in the slit).
+    Bound between the two margins, every row of it keeps its order as the lid closes."""
+    from scipy.spatial import cKDTree
+
+    from fae.animate.retarget import carved_eye_rows
+    from fae.animate.verify import settled_skin
+    from fae.sim.build import eyeball_sphere, lid_margin_vertices
+
+    X = np.asarray(template.skin_vertices, dtype=np.float64)
+    upper, lower = (lid_margin_vertices(template, r, "eye_l") for r in ("eyelid_upper_l", "eyelid_lower_l"))
+    centre, radius = eyeball_sphere(template, "eye_l")
+
+    def height(margin, x):
+        order = margin[np.argsort(X[margin, 0])]
+        return np.interp(x, X[order, 0], X[order, 1])
+
+    # the carved eye: a grid over the eyeball's front between the margins, 9 columns x 7 rows
+    x0, x1 = X[lower, 0].min(), X[lower, 0].max()
+    columns = np.linspace(x0 + 0.2 * (x1 - x0), x1 - 0.2 * (x1 - x0), 9)
+    share = np.linspace(0.1, 0.9, 7)
+    Y = np.array([[x, height(lower, x) + s * (height(upper, x) - height(lower, x)), 0.0]
+                  for x in columns for s in share])
+    Y[:, 2] = centre[2] + np.sqrt(np.maximum(radius ** 2 - ((Y[:, :2] - centre[:2]) ** 2).sum(axis=1), 0.0))
+    names = list(template.region_names)
+    lids = np.flatnonzero(np.isin(template.skin_region, [names.index("eyelid_upper_l"),
+                                                         names.index("eyelid_lower_l")]))
+    nearest = lids[cKDTree(X[lids]).query(Y)[1]]
+    ids, rows = carved_eye_rows(template, X, Y, nearest, ["eye_l"])
+    assert np.array_equal(np.sort(ids), np.arange(len(Y)))  # the whole carved eye
+    assert np.allclose(np.asarray(rows.sum(axis=1)).ravel(), 1.0)  # at rest it stays
+    assert carved_eye_rows(template, X, Y, nearest, ["eye_r"])[0].size == 0  # an eye with its eyeball: as it was
+
+    player = Player(playable_head(template))
+    order = np.argsort(ids)
+    for value in (512.0, 1024.0):  # close_t_l_eyelid half and fully closed
+        values = np.zeros(68)
+        values[18] = value
+        motion = settled_skin(player, values) - X
+        moved = Y + (rows @ motion)[order]
+        y = moved[:, 1].reshape(len(columns), len(share))
+        # each column in its order: nothing folds over. Fully closed, the template's upper
+        # margin ends up to 0.35 mm below the lower one's rest height (in front of it), and
+        # the strip drawn in between them, that thin, turns over with it: a hair's breadth
+        # in the slit, where the lids bound as they lie crossed by millimetres (below)
+        assert np.all(np.diff(y, axis=1) > (0.0 if value < 1024.0 else -1e-4)), value
+        # the top follows the upper margin, the bottom the lower one
+        drop = (moved - Y)[:, 1].reshape(len(columns), len(share))
+        upper_drop = motion[upper, 1][np.argsort(X[upper, 0])]
+        upper_drop = np.interp(columns, np.sort(X[upper, 0]), upper_drop)
+        assert np.all(upper_drop < -0.002), value  # the lid closes (by millimetres)
+        assert np.all(drop[:, -1] < 0.7 * upper_drop) and np.all(np.abs(drop[:, 0]) < 0.3 * np.abs(upper_drop)), value
+        bound_nearest = Y[:, 1] + motion[nearest, 1]
+        if value == 1024.0:  # bound to the nearest lid instead, rows cross by millimetres
+            assert np.diff(bound_nearest.reshape(len(columns), len(share)), axis=1).min() < -0.001

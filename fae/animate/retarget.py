@@ -25,7 +25,9 @@ averaged with its neighbours' over a few of its own short edges (smoothed_where_
 template's piecewise-linear motion, read through a binding that jitters from vertex to
 vertex, folded the mask's 1 mm triangles at the mouth corners of a smile and over lowered
 brows (its folded share 0.43 -> 0.24 %, every FAP as before); a target as coarse as the
-template keeps its bindings. Per template
+template keeps its bindings. An eye carved into the target's skin (no eyeball piece) is
+bound between the lids' margins and closes under the upper one as a curtain
+(carved_eye_rows), eye by eye where that folds less at the template's own blink. Per template
 vertex a 3x3 T = R_fit S R_template^T (fae.adapt.binding.frame_transforms: the paper's
 local frames and box scales, eq. 5-9) turns a motion vector of the template into one of
 the fitted skin, i.e. of the target; a smooth per-axis factor over the target's skin
@@ -103,6 +105,9 @@ SETTLE_THREADS = 4  # at most, settling side by side
 NECK_FADE = (0.02, 0.09)  # metres below the chin (2.1) where the head pose starts and ends fading out
 ABOVE_CHIN = (0.0, 0.02)  # metres below the chin over which the head pose of what the fit does not reach fades out
 PIECE_REACH = 0.03  # metres: a piece this close to the fitted skin sits on the head (a hat) and turns with it
+# a carved eye open at least this share of the template's (fitted between its lids, which
+# close as a curtain); one opened less (the menpo3d mask's, a tenth) is shut, its lids bound as they lie
+CARVED_EYE_OPEN = 0.5
 
 
 class RetargetError(ValueError):
@@ -621,6 +626,84 @@ def smoothed_across_jumps(G: sp.csr_matrix, U: np.ndarray, Y: np.ndarray, F: np.
     return _rows_averaged(G, Y, F, groups, JUMP_ROUNDS, step_of)
 
 
+def _margin_rows(margin: np.ndarray, X: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The point of a lid margin (template vertex ids `margin`, at X (n, 3)) above or below
+    each of x (j,) metres across the face: (j,) its height, (j, 2) template vertices and
+    (j, 2) their weights (the two margin vertices either side, linearly; the end's beyond)."""
+    order = margin[np.argsort(X[margin, 0], kind="stable")]
+    mx, my = X[order, 0], X[order, 1]
+    i = np.clip(np.searchsorted(mx, x), 1, len(order) - 1)
+    a = np.clip((x - mx[i - 1]) / np.maximum(mx[i] - mx[i - 1], 1e-12), 0.0, 1.0)
+    return (1.0 - a) * my[i - 1] + a * my[i], np.column_stack([order[i - 1], order[i]]), np.column_stack([1.0 - a, a])
+
+
+def _eye_open(margins: list[np.ndarray], X: np.ndarray) -> float:
+    """How far an eye opens: the most its upper and lower margins (template vertex ids, at
+    X (n, 3)) lie apart over the lower margin's span, over that span's width."""
+    x = X[margins[1], 0]
+    return float(np.max(_margin_rows(margins[0], X, x)[0] - X[margins[1], 1]) / max(np.ptp(x), 1e-12))
+
+
+def carved_eye_rows(template: FaceModel, X: np.ndarray, Y: np.ndarray, nearest: np.ndarray,
+                    eyes: list[str]) -> tuple[np.ndarray, sp.csr_matrix]:
+    """Target vertices over a carved eye, and the rows that bind them between its lids.
+
+    A target whose eyeball is part of its skin (a bust's carved eye, a mask's painted one)
+    binds the eyeball's surface to the lining of the template's lids, where it lies; as the
+    upper lid closed, the part bound to its lining came down while the part bound to the
+    lower lid's stayed, and the lid's front folded over it (the marble bust's blinks: 122
+    triangles, dark wedges in the slit). Each such vertex, bound nearest to the hidden skin
+    (`visible_skin`: the lining) of either lid of an eye in `eyes` (the eyes the target has
+    no eyeball part for), or lying between the two margins of the fitted head X (n, 3),
+    follows the two margins instead: the upper margin's motion above it times w and the
+    lower margin's below it times 1 - w, w its height between the two in X (clipped to
+    [0, 1]; across the lower margin's span). Closing, the upper margin comes down onto the
+    lower one and draws the eye's surface in below it, every row of it in its order, as a
+    curtain. An eye that X opens less than CARVED_EYE_OPEN of the template's (for its
+    width) is shut already, and left as it is bound. Y (k, 3) the target's skin in the face
+    frame (metres), nearest (k,) the template vertex each target vertex is bound nearest to.
+
+    Returns (j,) target vertex ids and (j, n) rows over the template's vertices (each
+    summing to one)."""
+    from fae.adapt.transfer import visible_skin
+    from fae.sim.build import LID_REGION_PAIRS, lid_margin_vertices
+
+    names = list(template.region_names)
+    region = np.asarray(template.skin_region)
+    P = np.asarray(template.skin_vertices, dtype=np.float64)
+    hidden = None
+    ids, cols, weights = [], [], []
+    for eye, lids in zip(("eye_l", "eye_r"), LID_REGION_PAIRS):
+        if eye not in eyes or not all(r in names for r in lids):
+            continue
+        margins = [lid_margin_vertices(template, r, eye) for r in lids]
+        if min(len(m) for m in margins) < 2:
+            continue
+        if _eye_open(margins, X) < CARVED_EYE_OPEN * _eye_open(margins, P):
+            continue  # shut or nearly (a mask's slit): its lids are skin of their own, bound as they lie
+        if hidden is None:
+            hidden = ~visible_skin(template)
+        on_lids = np.flatnonzero(np.isin(region[nearest], [names.index(r) for r in lids]))
+        (y_up, c_up, w_up), (y_low, c_low, w_low) = (_margin_rows(m, X, Y[on_lids, 0]) for m in margins)
+        x = Y[on_lids, 0]
+        across = (x > X[margins[1], 0].min()) & (x < X[margins[1], 0].max())  # the lower margin's span
+        between = across & (Y[on_lids, 1] > y_low) & (Y[on_lids, 1] < y_up)
+        keep = between | (across & hidden[nearest[on_lids]])
+        if not keep.any():
+            continue
+        over, y_up, c_up, w_up, y_low, c_low, w_low = (
+            a[keep] for a in (on_lids, y_up, c_up, w_up, y_low, c_low, w_low))
+        w = np.clip((Y[over, 1] - y_low) / np.maximum(y_up - y_low, 1e-9), 0.0, 1.0)
+        ids.append(over)
+        cols.append(np.hstack([c_up, c_low]))
+        weights.append(np.hstack([w_up * w[:, None], w_low * (1.0 - w)[:, None]]))
+    if not ids:
+        return np.zeros(0, dtype=np.int64), sp.csr_matrix((0, len(X)))
+    ids, cols, weights = np.concatenate(ids), np.vstack(cols), np.vstack(weights)
+    rows = np.repeat(np.arange(len(ids)), cols.shape[1])
+    return ids, sp.csr_matrix((weights.ravel(), (rows, cols.ravel())), shape=(len(ids), len(X)))
+
+
 def template_resolution(face: np.ndarray, F: np.ndarray, X: np.ndarray, covered: np.ndarray
                         ) -> tuple[np.ndarray, np.ndarray]:
     """How much finer than the template the target is, per target vertex bound to triangle
@@ -865,8 +948,10 @@ def retarget(template: FaceModel, target: TargetMesh, say: Callable[[str], None]
     skin_region = np.asarray(template.skin_region, dtype=np.int32)[nearest]
     G = smoothed_across_jumps(G, U, Ys, skin_F, seams, opening_sides(template.region_names, skin_region), TF[face])
     G = smoothed_where_fine(G, Ys, skin_F, *template_resolution(face, TF, X, coverage > 0.5), groups=seams)
-    used = np.flatnonzero(np.asarray(abs(G).sum(axis=0)).ravel() > 0)
-    G = G[:, used].tocsr()
+    # eyes carved into the skin (no eyeball part): their rows between the lids (carved_eye_rows)
+    curtains = {e: carved_eye_rows(template, X, Ys, nearest, [e]) for e in ("eye_l", "eye_r")
+                if all(src != e for src, _, _ in parts_at.values())}
+    curtains = {e: c for e, c in curtains.items() if len(c[0])}
 
     # the target as a FaceModel
     feature_points, fp_source = _target_feature_points(template, fitted, given, Ys, U, skin_F, skin_region, parts_at)
@@ -933,15 +1018,70 @@ def retarget(template: FaceModel, target: TargetMesh, say: Callable[[str], None]
     above = coverage_weights(chin - Ys[:, 1], *ABOVE_CHIN) * (nearest[piece] <= PIECE_REACH)
     if "2.1" not in fitted_fp:  # no chin to stand above: the coverage alone
         above[:] = 0.0
-    rt = Retarget(model=model, skin_index=skin_index, head_weight=np.maximum(coverage, above) * neck,
-                  part_index=part_index, used=used,
-                  frame_transform=np.ascontiguousarray(Tv[used]), gather=G, coverage=coverage,
-                  anchors=anchors, scale=ratio, report=report, vertex_count=n, normal_groups=seams,
-                  loose=(loose, Y[loose]))
-    rt.fapu_gain, report["fapu_gains"] = fapu_gain_field(
-        model, lambda motion: rt.displacements(np.broadcast_to(motion, (len(used), 3))), template_fapu, target_fapu,
-        fap_motion=_template_fap_motion(template, used))
+    fap_motion = _template_fap_motion(template, np.arange(len(P)))
+
+    def bound(eyes: tuple[str, ...]) -> Retarget:
+        # the Retarget with the rows of the carved eyes `eyes` between their lids
+        Ge = G
+        if eyes:
+            over = np.concatenate([curtains[e][0] for e in eyes])
+            rows = sp.vstack([curtains[e][1] for e in eyes]).tocsr()
+            keep = np.ones(len(Ys))
+            keep[over] = 0.0
+            placed = sp.csr_matrix((coverage[over], (over, np.arange(len(over)))), shape=(len(Ys), len(over)))
+            Ge = (sp.diags(keep) @ G + placed @ rows).tocsr()
+        used = np.flatnonzero(np.asarray(abs(Ge).sum(axis=0)).ravel() > 0)
+        rt = Retarget(model=model, skin_index=skin_index, head_weight=np.maximum(coverage, above) * neck,
+                      part_index=part_index, used=used,
+                      frame_transform=np.ascontiguousarray(Tv[used]), gather=Ge[:, used].tocsr(), coverage=coverage,
+                      anchors=anchors, scale=ratio, report=dict(report), vertex_count=n, normal_groups=seams,
+                      loose=(loose, Y[loose]))
+        rt.fapu_gain, rt.report["fapu_gains"] = fapu_gain_field(
+            model, lambda motion: rt.displacements(np.broadcast_to(motion, (len(used), 3))), template_fapu,
+            target_fapu, fap_motion={k: (m[used], own) for k, (m, own) in fap_motion.items()})
+        return rt
+
+    rt = bound(())
+    if curtains:
+        # a carved eye closes between its lids where that keeps more of it whole at the
+        # template's own blink (a coarse bust's few big triangles over the eye fold less
+        # bound as they lie: Demosthenes')
+        blink = _template_blink(template)
+        both = bound(tuple(curtains))
+        eyes = tuple(e for e in curtains
+                     if _eye_folds(both, blink, e) < _eye_folds(rt, blink, e))
+        rt = both if eyes == tuple(curtains) else bound(eyes) if eyes else rt
+        rt.report["carved_eyes"] = {e: ("closed between the lids" if e in eyes else "bound as it lies")
+                                    for e in curtains}
     return rt
+
+
+def _template_blink(template: FaceModel) -> np.ndarray:
+    """(n, 3) metres: the template skin's motion with both upper lids closed to their limit,
+    settled."""
+    from fae.mpeg4.faptables import FAP_LIMITS
+    from fae.animate.player import Player, playable_head
+    from fae.animate.verify import settled_skin
+
+    values = np.zeros(68)
+    values[[18, 19]] = FAP_LIMITS[[18, 19], 1]  # close_t_l_eyelid, close_t_r_eyelid
+    return settled_skin(Player(playable_head(template)), values, max_frames=SETTLE_FRAMES) - \
+        np.asarray(template.skin_vertices, dtype=np.float64)
+
+
+def _eye_folds(rt: Retarget, motion: np.ndarray, eye: str) -> int:
+    """Triangles of the lids of `eye` (the target's regions) that the template's motion
+    (n, 3) folds on the target bound as `rt`."""
+    from fae.adapt.nonrigid import folded_triangles
+    from fae.sim.build import LID_REGION_PAIRS
+
+    m = rt.model
+    names = list(m.region_names)
+    lids = LID_REGION_PAIRS[("eye_l", "eye_r").index(eye)]
+    F = np.asarray(m.skin_faces, dtype=np.int64)
+    on = np.isin(np.asarray(m.skin_region)[F], [names.index(r) for r in lids if r in names]).any(axis=1)
+    V = np.asarray(m.skin_vertices, dtype=np.float64)
+    return int((folded_triangles(V, V + rt.displacements(motion[rt.used]), F) & on).sum())
 
 
 class RetargetPlayer:
