@@ -227,3 +227,40 @@ def test_vertex_indices_of_an_obj_with_several_materials(tmp_path):
     lm.write_text(json.dumps({"9.3": 12}))
     with pytest.raises(LandmarkError, match="outside 0..9"):
         read_landmarks(lm, lambda: indexed_vertices(obj, V))
+
+
+def test_an_obj_with_relative_indices_tabs_and_crlf_reads_as_written(tmp_path):
+    """The OBJ format lets a face count back from the vertices read so far (f -3 -2 -1) and
+    fields be split by tabs; exporters do both, and Windows tools end lines with CRLF. The
+    mesh reader took the relative indices as the wrong vertices, silently, and a file with
+    tabs as one without triangles. Read now as the same file written plainly, texture too."""
+    from PIL import Image
+
+    from fae.animate.retarget import _read_surface
+
+    plain = tmp_path / "plain.obj"
+    V_file = _textured_obj(plain)
+    Image.new("RGB", (4, 4), (200, 120, 90)).save(tmp_path / "skin.png")
+    (tmp_path / "skin.mtl").write_text("newmtl skin\nmap_Kd skin.png\n")
+    lines = plain.read_text().splitlines()
+    faces = [line for line in lines if line.startswith("f ")]
+    kept = [line for line in lines if not line.startswith(("f ", "vt "))]
+    written = ["mtllib\tskin.mtl", "usemtl\tskin"] + [line.replace(" ", "\t") for line in kept]
+    for k, face in enumerate(faces):
+        written += [f"vt\t{0.01 * k:.4f} 0.1", f"vt {0.01 * k:.4f}\t0.2", f"vt {0.01 * k:.4f} 0.3"]
+        corners = [int(c.split("/")[0]) - len(V_file) - 1 for c in face.split()[1:]]  # from the last v line
+        written.append("f\t" + " ".join(f"{v}/{t}" for v, t in zip(corners, (-3, -2, -1))))
+    relative = tmp_path / "relative.obj"
+    relative.write_bytes(("\r\n".join(written) + "\r\n").encode())
+    plain.write_text("mtllib skin.mtl\nusemtl skin\n" + plain.read_text())
+
+    V0, F0 = read_scan(plain)
+    V1, F1 = read_scan(relative)
+    assert np.allclose(V1, V0) and np.array_equal(F1, F0)
+    assert np.allclose(indexed_vertices(relative, V1), V_file)  # the file's own `v` lines, tabs or not
+    uv0, texture0 = _read_surface(str(plain), len(V0))
+    uv1, texture1 = _read_surface(str(relative), len(V1))
+    assert uv1 is not None and np.allclose(uv1, uv0)
+    assert texture1 is not None and np.array_equal(texture1, texture0)
+    # and the file itself is read, not changed
+    assert relative.read_bytes().count(b"\t") > len(V_file)

@@ -166,7 +166,10 @@ def _read_surface(path: str, n: int) -> tuple[np.ndarray | None, np.ndarray | No
     try:
         import trimesh
 
-        visual = getattr(trimesh.load(path, force="mesh", process=False), "visual", None)
+        from fae.io.scan import mesh_source
+
+        source, how = mesh_source(path)
+        visual = getattr(trimesh.load(source, force="mesh", process=False, **how), "visual", None)
         uv = getattr(visual, "uv", None)
     except Exception:
         return None, None

@@ -90,6 +90,62 @@ class LandmarkError(ValueError):
     """A landmark file that cannot be read; the message names the file and field."""
 
 
+# an OBJ line trimesh misreads: a tab between fields, or a negative (relative) index on a face
+_OBJ_MISREAD = re.compile(rb"\t|^[ \t]*[flp][ \t][^\n]*[ \t/]-\d", re.MULTILINE)
+_OBJ_ELEMENTS = {"v": 0, "vt": 1, "vn": 2}  # the elements a face's index triplet counts
+
+
+def _absolute(index: str, count: int) -> str:
+    """An OBJ index as written, absolute: a negative one counts back from `count` elements."""
+    return str(count + int(index) + 1) if index.startswith("-") and index[1:].isdigit() else index
+
+
+def _obj_as_read(data: bytes) -> bytes:
+    """OBJ text with single spaces between fields and every face's and line's indices
+    absolute: a negative index counts back from the elements read so far (the format's
+    relative indices), -1 the last."""
+    counts = [0, 0, 0]
+    out = []
+    for raw in data.split(b"\n"):
+        line = raw.decode("utf-8", errors="surrogateescape")
+        fields = line.split()
+        if not fields:
+            out.append(raw.strip(b" \t\r"))
+            continue
+        key = fields[0]
+        if key in _OBJ_ELEMENTS:
+            counts[_OBJ_ELEMENTS[key]] += 1
+        elif key in ("f", "l", "p"):
+            fields = [key] + ["/".join(_absolute(x, counts[k]) if k < 3 else x for k, x in enumerate(corner.split("/")))
+                              for corner in fields[1:]]
+        elif key not in ("vp",):  # a name (a material, a group) keeps its own spacing
+            rest = line.strip()[len(key):].strip()
+            out.append(f"{key} {rest}".rstrip().encode("utf-8", errors="surrogateescape"))
+            continue
+        out.append(" ".join(fields).encode("utf-8", errors="surrogateescape"))
+    return b"\n".join(out)
+
+
+def mesh_source(path: str) -> tuple[object, dict]:
+    """What trimesh.load is to read for the mesh file `path`, and the keywords that go with
+    it: the path itself, or, for an OBJ with a tab between fields (read as a file without
+    triangles) or relative (negative) indices, which the format allows (read as the wrong
+    vertices, silently), a copy as trimesh reads it (_obj_as_read) in memory, with the
+    folder beside the file to find what it names (its materials and their textures)."""
+    import io
+
+    import trimesh
+
+    if os.path.splitext(path)[1].lower() != ".obj":
+        return path, {}
+    with open(path, "rb") as fh:
+        data = fh.read()
+    if not _OBJ_MISREAD.search(data):
+        return path, {}
+    return io.BytesIO(_obj_as_read(data)), {
+        "file_type": "obj", "resolver": trimesh.resolvers.FilePathResolver(os.path.abspath(path))}
+
+
 def read_scan(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     """V (n, 3) float64 in the file's unit and frame, F (m, 3) int64, all components merged."""
     import trimesh
@@ -99,7 +155,8 @@ def read_scan(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
         raise FileNotFoundError(f"{path}: scan file not found")
     expected = "expected a mesh file (OBJ, PLY, STL, OFF, GLB/glTF)"
     try:
-        loaded = trimesh.load(path, force="mesh", process=False)
+        source, how = mesh_source(path)
+        loaded = trimesh.load(source, force="mesh", process=False, **how)
     except ImportError:  # a loader wanting an optional module for bytes it cannot place
         raise ValueError(f"{path}: cannot read a mesh: {expected}") from None
     except FileNotFoundError as exc:  # a file the mesh refers to (a .gltf's buffers)
@@ -132,7 +189,7 @@ def indexed_vertices(path: str | os.PathLike, V: np.ndarray) -> np.ndarray:
         return V
     try:  # the `v` lines themselves: a reader joins a file's materials as pieces of its own order
         with open(path, encoding="utf-8", errors="replace") as fh:
-            rows = [line.split()[1:4] for line in fh if line.startswith("v ")]
+            rows = [fields[1:4] for fields in map(str.split, fh) if fields[:1] == ["v"]]
         return np.array(rows, dtype=np.float64).reshape(-1, 3)
     except (OSError, ValueError):  # read_scan read it; the same lines can only fail as oddly
         return V
