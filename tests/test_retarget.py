@@ -59,9 +59,11 @@ def _subdivided(V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.vstack([V, mid]), F2
 
 
-def make_target(template, folder, scale=1.08, angle=20.0, unit=1000.0):
-    """(mesh path, landmarks path, the (4, 4) face frame -> file map) of the test target."""
+def make_target(template, folder, scale=1.08, angle=20.0, unit=1000.0, carved=()):
+    """(mesh path, landmarks path, the (4, 4) face frame -> file map) of the test target;
+    carved: eyes joined to the skin by a triangle (one piece with it, as a bust's carved eye)."""
     import trimesh
+    from scipy.spatial import cKDTree
 
     V, F = template.skin_vertices, np.asarray(template.skin_faces, np.int64)
     keep = ~np.isin(template.skin_region, [template.region_names.index("scalp")]) | (V[:, 2] > 0.0)
@@ -73,8 +75,12 @@ def make_target(template, folder, scale=1.08, angle=20.0, unit=1000.0):
     pieces_V, pieces_F = [V2], [F2]
     for eye in ("eye_l", "eye_r"):
         pv, pf = template.mesh(eye)
-        pieces_F.append(np.asarray(pf, np.int64) + sum(len(v) for v in pieces_V))
+        base = sum(len(v) for v in pieces_V)
+        pieces_F.append(np.asarray(pf, np.int64) + base)
         pieces_V.append(np.asarray(pv))
+        if eye in carved:
+            a, b = np.asarray(pf[0], np.int64)[:2]
+            pieces_F.append(np.array([[base + a, base + b, cKDTree(V2).query(pv[a])[1]]]))
     a = np.radians(angle)
     R = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
     T = np.eye(4)
@@ -800,7 +806,7 @@ def test_a_carved_eye_closes_as_a_curtain_between_the_lids(template):
     ids, rows = carved_eye_rows(template, X, Y, nearest, ["eye_l"])
     assert np.array_equal(np.sort(ids), np.arange(len(Y)))  # the whole carved eye
     assert np.allclose(np.asarray(rows.sum(axis=1)).ravel(), 1.0)  # at rest it stays
-    assert carved_eye_rows(template, X, Y, nearest, ["eye_r"])[0].size == 0  # an eye with its eyeball: as it was
+    assert carved_eye_rows(template, X, Y, nearest, ["eye_r"])[0].size == 0  # the other eye's lids: none of these
 
     player = Player(playable_head(template))
     order = np.argsort(ids)
@@ -824,3 +830,33 @@ def test_a_carved_eye_closes_as_a_curtain_between_the_lids(template):
         bound_nearest = Y[:, 1] + motion[nearest, 1]
         if value == 1024.0:  # bound to the nearest lid instead, rows cross by millimetres
             assert np.diff(bound_nearest.reshape(len(columns), len(share)), axis=1).min() < -0.001
+
+
+def test_an_eye_carved_into_the_skin_closes_between_the_lids(template, tmp_path, monkeypatch):
+    """A target whose right eyeball is one piece with its skin (a bust's carved eye) and whose
+    left is a piece of its own: the left stays a rigid eye, the right closes between its
+    lids (chosen because it folds less so at the template's blink), and a blink of the right
+    eye folds few of its lids' triangles where, bound as they lie, it folded hundreds."""
+    import fae.animate.retarget as R
+    from fae.animate.verify import settled_skin
+
+    mesh, lm, _ = make_target(template, tmp_path, carved=("eye_r",))
+    rt = retarget(template, read_target(mesh, lm))
+    assert any(p.startswith("eye_l") for p in rt.model.parts) and not any(p.startswith("eye_r") for p in rt.model.parts)
+    assert rt.report["carved_eyes"] == {"eye_r": "closed between the lids"}
+    monkeypatch.setattr(R, "carved_eye_rows", lambda *args: (np.zeros(0, dtype=np.int64), None))
+    as_they_lie = retarget(template, read_target(mesh, lm))
+    assert "carved_eyes" not in as_they_lie.report
+    values = np.zeros(68)
+    values[19] = 1024.0  # close_t_r_eyelid: shut
+
+    def lid_folds(r):
+        m = r.model
+        F = np.asarray(m.skin_faces, np.int64)
+        lids = np.isin(m.skin_region, [m.region_names.index(n) for n in ("eyelid_upper_r", "eyelid_lower_r")])
+        skin = settled_skin(RetargetPlayer(r, Player(playable_head(template))), values)
+        assert np.abs(skin - m.skin_vertices).max() > 0.003  # the lid closes
+        return int((folded_triangles(m.skin_vertices, skin, F) & lids[F].any(axis=1)).sum())
+
+    closed, bound = lid_folds(rt), lid_folds(as_they_lie)
+    assert bound > 100 and closed < 0.3 * bound, (closed, bound)

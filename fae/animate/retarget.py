@@ -379,24 +379,31 @@ def fapu_gain_field(model: FaceModel, carried: Callable[[np.ndarray], np.ndarray
     return np.exp(field_), {n: np.exp(met[i]).round(4).tolist() for i, n in enumerate(names)}
 
 
-def _template_fap_motion(template: FaceModel, used: np.ndarray) -> dict[int, tuple[np.ndarray, float]]:
+def _playable_template(template: FaceModel):
+    """The template's PlayableHead, or None when it has no FAP mapping of its own (playing it
+    would first calibrate it, tens of seconds)."""
+    from fae.animate.player import needs_calibration, playable_head
+
+    if not template.fap_mapping or "gain_pos" not in template.fap_mapping or needs_calibration(template):
+        return None
+    return playable_head(template)
+
+
+def _template_fap_motion(template: FaceModel, used: np.ndarray, head) -> dict[int, tuple[np.ndarray, float]]:
     """FAP k -> ((u, 3) the template skin's motion per unit of k at the vertices `used`,
     metres, as settled with k alone at half its range (where verify-faps measures it; the
     linear response at rest left the lids' margins, which stop on the eyeball, 20-25 %
     short on a target that binds there); how far it moves the template's own feature point
-    of k along k's direction) for the lids', lips' and nose wings' FAPs (MOTION_GAIN_FAPS), empty for
-    a template without a mapping."""
+    of k along k's direction) for the lids', lips' and nose wings' FAPs (MOTION_GAIN_FAPS);
+    head: the template's PlayableHead (_playable_template), None (no mapping): empty."""
     from fae.mpeg4.faptables import FAP_DIRECTION, FAP_FEATURE_POINT, FAP_LIMITS
-    from fae.animate.player import Player, needs_calibration, playable_head
+    from fae.animate.player import Player
     from fae.animate.verify import settled_skin
 
-    if not template.fap_mapping or "gain_pos" not in template.fap_mapping or needs_calibration(template):
-        return {}
     faps = [k for k in MOTION_GAIN_FAPS if FAP_FEATURE_POINT[k - 1] in template.feature_points
             and template.feature_points[FAP_FEATURE_POINT[k - 1]].part == "skin" and FAP_LIMITS[k - 1, 1] > 0]
-    if not faps:
+    if head is None or not faps:
         return {}
-    head = playable_head(template)
     rest = np.asarray(template.skin_vertices, dtype=np.float64)
     local = threading.local()  # a Player per thread, all on the one head
 
@@ -1016,14 +1023,15 @@ def retarget(template: FaceModel, target: TargetMesh, say: Callable[[str], None]
     # put while the head turned under it. Only on pieces that touch the head (within
     # PIECE_REACH of the fitted skin): a second head or a prop beside it swung with this one
     piece = label[skin_index]
-    nearest = np.full(int(label.max()) + 1, np.inf)
-    np.minimum.at(nearest, piece, dist)
-    above = coverage_weights(chin - Ys[:, 1], *ABOVE_CHIN) * (nearest[piece] <= PIECE_REACH)
+    piece_reach = np.full(int(label.max()) + 1, np.inf)  # metres from each piece to the fitted skin
+    np.minimum.at(piece_reach, piece, dist)
+    above = coverage_weights(chin - Ys[:, 1], *ABOVE_CHIN) * (piece_reach[piece] <= PIECE_REACH)
     if "2.1" not in fitted_fp:  # no chin to stand above: the coverage alone
         above[:] = 0.0
-    fap_motion = _template_fap_motion(template, np.arange(len(P)))
+    head = _playable_template(template)
+    fap_motion = _template_fap_motion(template, np.arange(len(P)), head)
 
-    def bound(eyes: tuple[str, ...]) -> Retarget:
+    def retarget_with(eyes: tuple[str, ...]) -> Retarget:
         # the Retarget with the rows of the carved eyes `eyes` between their lids
         Ge = G
         if eyes:
@@ -1044,31 +1052,33 @@ def retarget(template: FaceModel, target: TargetMesh, say: Callable[[str], None]
             target_fapu, fap_motion={k: (m[used], own) for k, (m, own) in fap_motion.items()})
         return rt
 
-    rt = bound(())
+    rt = retarget_with(())
     if curtains:
         # a carved eye closes between its lids where that keeps more of it whole at the
         # template's own blink (a coarse bust's few big triangles over the eye fold less
-        # bound as they lie: Demosthenes')
-        blink = _template_blink(template)
-        both = bound(tuple(curtains))
-        eyes = tuple(e for e in curtains
-                     if _eye_folds(both, blink, e) < _eye_folds(rt, blink, e))
-        rt = both if eyes == tuple(curtains) else bound(eyes) if eyes else rt
+        # bound as they lie: Demosthenes'); a template without its mapping cannot blink here
+        # (calibrating it would take tens of seconds): its carved eyes stay as they are bound
+        eyes: tuple[str, ...] = ()
+        if head is not None:
+            blink = _template_blink(template, head)
+            both = retarget_with(tuple(curtains))
+            eyes = tuple(e for e in curtains if _eye_folds(both, blink, e) < _eye_folds(rt, blink, e))
+            rt = both if eyes == tuple(curtains) else retarget_with(eyes) if eyes else rt
         rt.report["carved_eyes"] = {e: ("closed between the lids" if e in eyes else "bound as it lies")
                                     for e in curtains}
     return rt
 
 
-def _template_blink(template: FaceModel) -> np.ndarray:
+def _template_blink(template: FaceModel, head) -> np.ndarray:
     """(n, 3) metres: the template skin's motion with both upper lids closed to their limit,
-    settled."""
+    settled (head: its PlayableHead)."""
     from fae.mpeg4.faptables import FAP_LIMITS
-    from fae.animate.player import Player, playable_head
+    from fae.animate.player import Player
     from fae.animate.verify import settled_skin
 
     values = np.zeros(68)
     values[[18, 19]] = FAP_LIMITS[[18, 19], 1]  # close_t_l_eyelid, close_t_r_eyelid
-    return settled_skin(Player(playable_head(template)), values, max_frames=SETTLE_FRAMES) - \
+    return settled_skin(Player(head), values, max_frames=SETTLE_FRAMES) - \
         np.asarray(template.skin_vertices, dtype=np.float64)
 
 
