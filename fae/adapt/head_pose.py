@@ -77,6 +77,13 @@ MAX_HEAD_RESIDUAL = 0.012  # m: trimmed mean template head -> scan distance beyo
 CLUSTER_GAP_SHARE = 0.1  # of the largest piece's diagonal: pieces farther apart are searched apart
 MAX_CLUSTERS = 4  # the largest clusters searched alone
 MIN_CLUSTER_VERTICES = 100
+# a placement from feature points and the search's are one head within these: not turned
+# over, not another head beside it (the marble bust's midline points: 25 degrees, 1.36x and
+# 0.07 m apart, its 72 points 8 degrees, 1.05x and 0.03 m: the points place the template's
+# markup, the search its whole head; the fit from the search's placement came out closer)
+POSE_AGREE_TURN = 45.0  # degrees
+POSE_AGREE_SCALE = 1.5  # either way
+POSE_AGREE_SHIFT = 0.1  # metres between their face frames' origins
 
 
 @dataclass
@@ -388,9 +395,7 @@ def _turned_over(head: TemplateHead, V: np.ndarray, scan_F: np.ndarray, found: H
     """The head `found` in V (n, 3), F (m, 3) turned upside down about the face's forward
     axis through its middle, then fitted by the face alone (similarity ICP): the other pose
     a face scan leaves open (see other_poses)."""
-    M = found.template_to_scan
-    s = float(np.cbrt(np.linalg.det(M[:3, :3])))
-    R, t = M[:3, :3] / s, M[:3, 3]
+    s, R, t = _similarity_of(found.template_to_scan)
     centre = head.face.mean(axis=0)
     R0 = R @ np.diag([-1.0, -1.0, 1.0])  # half a turn about the face frame's +z
     t0 = s * R @ centre + t - s * R0 @ centre
@@ -494,6 +499,22 @@ def _head_in_scan(head: TemplateHead, V: np.ndarray, scan_F: np.ndarray, s: floa
     M[:3, :3] = s * R
     M[:3, 3] = t
     return HeadInScan(T, unit, keep, coverage, residual, 1.0 / s, M)
+
+
+def poses_agree(a: HeadInScan, b: HeadInScan) -> bool:
+    """Whether two placements of the template's head in one scan place the same head: turned
+    apart by at most POSE_AGREE_TURN degrees, sized within POSE_AGREE_SCALE of each other,
+    their face frames' origins within POSE_AGREE_SHIFT metres (at a's size)."""
+    (sa, Ra, ta), (sb, Rb, tb) = (_similarity_of(h.template_to_scan) for h in (a, b))
+    turn = float(np.degrees(np.arccos(np.clip((np.trace(Ra @ Rb.T) - 1.0) / 2.0, -1.0, 1.0))))
+    return (turn <= POSE_AGREE_TURN and 1.0 / POSE_AGREE_SCALE <= sa / sb <= POSE_AGREE_SCALE
+            and float(np.linalg.norm(ta - tb)) / sa <= POSE_AGREE_SHIFT)
+
+
+def _similarity_of(M: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """(s, R (3, 3), t (3,)) of a similarity M (4, 4): x -> s R x + t."""
+    s = float(np.cbrt(np.linalg.det(M[:3, :3])))
+    return s, M[:3, :3] / s, M[:3, 3]
 
 
 def head_from_landmarks(template: FaceModel, scan_V: np.ndarray, scan_F: np.ndarray,

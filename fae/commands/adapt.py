@@ -214,7 +214,7 @@ def _run_surface(args, template, V, F, landmarks, started: float) -> int:
 
     try:
         model, report, keep = adapt_scan(template, V, F, _face_pairs(template), landmarks, scan_name=args.scan,
-                                         landmarks_name=args.landmarks, say=_say)
+                                         landmarks_name=args.landmarks, say=_say, search_with_landmarks=True)
     except AdaptRefused as exc:
         _say(str(exc))
         return 2
