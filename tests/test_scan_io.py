@@ -264,3 +264,18 @@ def test_an_obj_with_relative_indices_tabs_and_crlf_reads_as_written(tmp_path):
     assert texture1 is not None and np.array_equal(texture1, texture0)
     # and the file itself is read, not changed
     assert relative.read_bytes().count(b"\t") > len(V_file)
+    # relative indices alone (spaces only), a byte-order mark, an indented face, a comment
+    # after one: each was read as the wrong vertices or as no triangles
+    square = "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\n"
+    for name, text in (("minus", square + "f -4 -3 -2\nf -4 -2 -1\n"),
+                       ("bom", "\ufeff" + square + "f -4 -3 -2\nf -4 -2 -1\n"),
+                       ("indented", square + "  f 1 2 3\n  f 1 3 4\n"),
+                       ("comment", square + "f 1 2 3 # first\nf 1 3 4  # second\n")):
+        (tmp_path / f"{name}.obj").write_bytes(text.encode())
+        V, F = read_scan(tmp_path / f"{name}.obj")
+        assert np.allclose(V, [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]]) and np.array_equal(F, [[0, 1, 2], [0, 2, 3]])
+        assert np.allclose(indexed_vertices(tmp_path / f"{name}.obj", V), V)
+    # an index counting back past the first vertex names the line
+    (tmp_path / "past.obj").write_text(square + "f 1 2 3\nf -5 -4 -3\n")
+    with pytest.raises(ValueError, match=r"past.obj: cannot read a mesh \(line 6: index -5 counts back past the 4"):
+        read_scan(tmp_path / "past.obj")

@@ -182,8 +182,11 @@ def adapt_scan(template: FaceModel, V: np.ndarray, F: np.ndarray, face_pairs: Ca
     (default the scan; motion transfer fits only a mesh's skin pieces, and a point may
     lie on a separate ear); search_with_landmarks: with fewer than FEW_GIVEN_POINTS feature
     points given, the head is also searched for as without them, and that placement is kept
-    where it is trusted and places the same head as theirs (head_pose.poses_agree); the
-    points still pull the fit. A few points placed the marble bust 25 degrees turned (its
+    where theirs does not lie on the scan (not trusted: face coverage, residual) while the
+    search's does and places the same head (head_pose.poses_agree); the points still pull
+    the fit. Where their placement lies on the scan it stays: a search over a face alone
+    can be turned 30-40 degrees (the menpo3d mask with ten of its points: face 0.059 % from
+    theirs, 0.128 % from the search's). A few points placed the marble bust 25 degrees turned (its
     midline's) or 11 (five), and its head came out further from the scan than with none
     (scan->skin 0.27 / 0.26 % of its diagonal without the neck, face 0.060 / 0.070 %; with
     none 0.16 %, 0.044 %); from the search's placement 0.159 / 0.157 %, face 0.043 /
@@ -207,8 +210,9 @@ def adapt_scan(template: FaceModel, V: np.ndarray, F: np.ndarray, face_pairs: Ca
         fdp = markup_positions(template)
         by_points = head_from_landmarks(template, V, F, np.array([fdp[n] for n in points]),
                                         np.array([points[n] for n in points]))
-        if searched is not None and searched.trusted and searched.heads == 1 and poses_agree(searched, by_points):
-            pose_source = "searched (the feature points given agree)"
+        if searched is not None and searched.trusted and searched.heads == 1 and not by_points.trusted \
+                and poses_agree(searched, by_points):
+            pose_source = "searched (the feature points given agree, but do not place it on the scan)"
             return searched
         pose_source = "feature points given"
         return by_points
@@ -325,6 +329,7 @@ def adapt_scan(template: FaceModel, V: np.ndarray, F: np.ndarray, face_pairs: Ca
                     continue
                 if usable(found_other):
                     head, found = other, found_other
+                    pose_source = "searched, turned over (the face found)"
                     say(f"{scan_name}: no face showed in the head's first pose; found it in another")
                     break
         if not landmarks and usable(found):
@@ -341,6 +346,7 @@ def adapt_scan(template: FaceModel, V: np.ndarray, F: np.ndarray, face_pairs: Ca
                     found_placed = None
                 if usable(found_placed) and pairs_turn(found_placed) < turn:
                     head, found = placed, found_placed
+                    pose_source = "the face found"
                     say(f"{scan_name}: the face found was turned {turn:.0f} degrees from the head's pose; the head "
                         "is placed by the face")
         if found is None or len(found.face) < MIN_PAIRS:

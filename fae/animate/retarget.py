@@ -147,7 +147,8 @@ def _named_texture(path: str) -> str | None:
     folder = os.path.dirname(os.path.abspath(path))
     try:
         with open(path, "r", errors="replace") as f:
-            libraries = [line.split(None, 1)[1].strip() for line in f if line.startswith("mtllib ")]
+            libraries = [line.split(None, 1)[1].strip() for line in f if line.split(None, 1)[:1] == ["mtllib"]
+                         and len(line.split(None, 1)) > 1]
         for lib in libraries:
             with open(os.path.join(folder, lib), "r", errors="replace") as f:
                 for line in f:

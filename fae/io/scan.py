@@ -90,25 +90,38 @@ class LandmarkError(ValueError):
     """A landmark file that cannot be read; the message names the file and field."""
 
 
-# an OBJ line trimesh misreads: a tab between fields, or a negative (relative) index on a face
-_OBJ_MISREAD = re.compile(rb"\t|^[ \t]*[flp][ \t][^\n]*[ \t/]-\d", re.MULTILINE)
+# what trimesh misreads in an OBJ: a tab between fields, a negative (relative) index on a
+# face, a line indented, a comment after an element, a byte-order mark
+_OBJ_MISREAD = re.compile(rb"\t|^[ \t]*[flp][ \t][^\n]*[ \t/]-\d|^ +\S|^[ \t]*(?:v|vt|vn|f|l)[ \t][^\n#]*#|"
+                          rb"\A\xef\xbb\xbf", re.MULTILINE)
 _OBJ_ELEMENTS = {"v": 0, "vt": 1, "vn": 2}  # the elements a face's index triplet counts
 
 
-def _absolute(index: str, count: int) -> str:
-    """An OBJ index as written, absolute: a negative one counts back from `count` elements."""
-    return str(count + int(index) + 1) if index.startswith("-") and index[1:].isdigit() else index
+def _absolute(index: str, count: int, line: int) -> str:
+    """An OBJ index as written, absolute: a negative one counts back from `count` elements
+    (the ones read before its line, 1-based `line`). Raises ValueError for one that counts
+    back past the first element, and for 0 (the format counts from 1)."""
+    if index.startswith("-") and index[1:].isdigit():
+        if int(index) < -count:
+            raise ValueError(f"line {line}: index {index} counts back past the {count} elements before it")
+        return str(count + int(index) + 1)
+    if index == "0":
+        raise ValueError(f"line {line}: index 0 (OBJ counts from 1)")
+    return index
 
 
 def _obj_as_read(data: bytes) -> bytes:
-    """OBJ text with single spaces between fields and every face's and line's indices
-    absolute: a negative index counts back from the elements read so far (the format's
-    relative indices), -1 the last."""
+    """OBJ text with single spaces between fields, no byte-order mark, no comments after
+    elements, and every face's and line's indices absolute: a negative index counts back
+    from the elements read so far (the format's relative indices), -1 the last. Raises
+    ValueError naming the line of an index that names no element."""
     counts = [0, 0, 0]
     out = []
-    for raw in data.split(b"\n"):
+    if data.startswith(b"\xef\xbb\xbf"):
+        data = data[3:]
+    for number, raw in enumerate(data.split(b"\n"), start=1):
         line = raw.decode("utf-8", errors="surrogateescape")
-        fields = line.split()
+        fields = line.split("#", 1)[0].split() if line.lstrip()[:1] in ("v", "f", "l", "p") else line.split()
         if not fields:
             out.append(raw.strip(b" \t\r"))
             continue
@@ -116,7 +129,8 @@ def _obj_as_read(data: bytes) -> bytes:
         if key in _OBJ_ELEMENTS:
             counts[_OBJ_ELEMENTS[key]] += 1
         elif key in ("f", "l", "p"):
-            fields = [key] + ["/".join(_absolute(x, counts[k]) if k < 3 else x for k, x in enumerate(corner.split("/")))
+            fields = [key] + ["/".join(_absolute(x, counts[k], number) if k < 3 else x
+                                       for k, x in enumerate(corner.split("/")))
                               for corner in fields[1:]]
         elif key not in ("vp",):  # a name (a material, a group) keeps its own spacing
             rest = line.strip()[len(key):].strip()
@@ -128,9 +142,10 @@ def _obj_as_read(data: bytes) -> bytes:
 
 def mesh_source(path: str) -> tuple[object, dict]:
     """What trimesh.load is to read for the mesh file `path`, and the keywords that go with
-    it: the path itself, or, for an OBJ with a tab between fields (read as a file without
-    triangles) or relative (negative) indices, which the format allows (read as the wrong
-    vertices, silently), a copy as trimesh reads it (_obj_as_read) in memory, with the
+    it: the path itself, or, for an OBJ with a tab between fields or an indented face (read
+    as a file without triangles), relative (negative) indices, which the format allows, or
+    a byte-order mark (read as the wrong vertices, silently), or a comment after an element,
+    a copy as trimesh reads it (_obj_as_read) in memory, with the
     folder beside the file to find what it names (its materials and their textures)."""
     import io
 
@@ -188,7 +203,7 @@ def indexed_vertices(path: str | os.PathLike, V: np.ndarray) -> np.ndarray:
     if os.path.splitext(path)[1].lower() != ".obj":
         return V
     try:  # the `v` lines themselves: a reader joins a file's materials as pieces of its own order
-        with open(path, encoding="utf-8", errors="replace") as fh:
+        with open(path, encoding="utf-8-sig", errors="replace") as fh:
             rows = [fields[1:4] for fields in map(str.split, fh) if fields[:1] == ["v"]]
         return np.array(rows, dtype=np.float64).reshape(-1, 3)
     except (OSError, ValueError):  # read_scan read it; the same lines can only fail as oddly
