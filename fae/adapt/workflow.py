@@ -37,7 +37,7 @@ MIN_PAIRS = 20
 MIN_HEAD_TRIANGLES = 100
 MAX_PAIR_RESIDUAL_SHARE = 0.2
 MIN_GIVEN_POINTS = 4  # feature points given that place the head (a similarity needs 3, one more to check it)
-FEW_GIVEN_POINTS = 12  # fewer feature points given than this: the search places the head where it agrees
+FEW_GIVEN_POINTS = 12  # fewer feature points given than this, not placing the head on the scan: the search may
 # Feature points given lie on the scan they mark: the busts' own (fae adapt's, read back off
 # the fitted skin) within 4.4 mm, the menpo3d mask's iBUG-68 within 0.7 mm. A point farther
 # than OFF_SCAN (metres, at the template's size) is dropped with a notice; when their
@@ -184,16 +184,16 @@ def adapt_scan(template: FaceModel, V: np.ndarray, F: np.ndarray, face_pairs: Ca
     points given, the head is also searched for as without them, and that placement is kept
     where theirs does not lie on the scan (not trusted: face coverage, residual) while the
     search's does and places the same head (head_pose.poses_agree); the points still pull
-    the fit. Where their placement lies on the scan it stays: a search over a face alone
-    can be turned 30-40 degrees (the menpo3d mask with ten of its points: face 0.059 % from
-    theirs, 0.128 % from the search's). A few points placed the marble bust 25 degrees turned (its
-    midline's) or 11 (five), and its head came out further from the scan than with none
-    (scan->skin 0.27 / 0.26 % of its diagonal without the neck, face 0.060 / 0.070 %; with
-    none 0.16 %, 0.044 %); from the search's placement 0.159 / 0.157 %, face 0.043 /
-    0.042 %. Many points place a head as well as the search or better: the three busts'
-    72 the same to the digit; the menpo3d mask's 68 iBUG points, which a search over a face
-    alone places less well (its face 0.066 % from its points' placement, 0.115 % from the
-    search's)."""
+    the fit. The marble bust's seven midline points placed it 25 degrees turned and off the
+    scan (face coverage 31 %, 11.5 mm), and its head came out further from the scan than
+    with none (scan->skin 0.27 % of its diagonal without the neck, face 0.060 %; with none
+    0.16 %, 0.044 %); from the search's placement 0.159 %, 0.043 %. Where their placement
+    lies on the scan it stays: a search over a face alone can be turned 30-40 degrees (the
+    menpo3d mask with ten of its points: face 0.059 % from theirs, 0.128 % from the
+    search's). Not mended: five well-spread points place the marble on the scan yet 11
+    degrees off (0.26 %). Many points place a head as well as the search or better: the
+    busts' 72 the same to the digit; the menpo3d mask's 68 (face 0.066 % from theirs,
+    0.115 % from the search's)."""
     from fae.adapt.calibration import apply_transform, outlier_landmarks, similarity_transform
     from fae.adapt.from_scan import adapt_to_scan
     from fae.adapt.head_pose import (MAX_HEAD_RESIDUAL, MIN_FACE_COVERAGE, find_head, head_from_landmarks, kept_part,

@@ -147,8 +147,8 @@ def _named_texture(path: str) -> str | None:
     folder = os.path.dirname(os.path.abspath(path))
     try:
         with open(path, "r", errors="replace") as f:
-            libraries = [line.split(None, 1)[1].strip() for line in f if line.split(None, 1)[:1] == ["mtllib"]
-                         and len(line.split(None, 1)) > 1]
+            libraries = [key_rest[1].strip() for key_rest in (line.split(None, 1) for line in f)
+                         if len(key_rest) == 2 and key_rest[0] == "mtllib"]
         for lib in libraries:
             with open(os.path.join(folder, lib), "r", errors="replace") as f:
                 for line in f:

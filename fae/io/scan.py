@@ -145,8 +145,8 @@ def mesh_source(path: str) -> tuple[object, dict]:
     it: the path itself, or, for an OBJ with a tab between fields or an indented face (read
     as a file without triangles), relative (negative) indices, which the format allows, or
     a byte-order mark (read as the wrong vertices, silently), or a comment after an element,
-    a copy as trimesh reads it (_obj_as_read) in memory, with the
-    folder beside the file to find what it names (its materials and their textures)."""
+    a copy as trimesh reads it (_obj_as_read) in memory, with the folder beside the file to
+    find what it names (its materials and their textures)."""
     import io
 
     import trimesh
