@@ -50,8 +50,9 @@ output of the last:
    always whole, and so is the result.
 4. Skin farther than EXTEND_START from any skin the scan reaches (a neck below its cut,
    the back of the head on a face scan) takes the harmonic extension of the displacement
-   around it (harmonic_displacement over the same graph): smooth, where the stages left
-   the blends' patchwork.
+   around it from the start (harmonic_displacement over the same graph): smooth, where the
+   stages left the blends' patchwork, and as the start placed it (the graph's weights do
+   not carry the start's turn and scale, a linear field, unbent).
 5. Projection (paper 001's local step): each matched vertex moves onto its closest
    compatible scan point within PROJECT_REACH, or part of the way where the whole way
    would turn one of its triangles (halved while it does), kept whole as in 3.
@@ -631,7 +632,11 @@ def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray
     far = np.zeros(n, dtype=bool)  # skin near what the scan reaches keeps its fit
     if on_scan.any():
         far[~on_scan] = cKDTree(P[on_scan]).query(P[~on_scan])[0] > EXTEND_START
-    X_ext = P + harmonic_displacement(L_graph, X - P, ~far)
+    # (of the displacement from the start: the graph Laplacian's weights do not reproduce a
+    # linear field, and a face scan's turn and scale carried to the back of the head by them
+    # swung the neck forward; the blend that undid that left ridges on the crown)
+    X_start = apply_transform(A, P)
+    X_ext = X_start + harmonic_displacement(L_graph, X - X_start, ~far)
     X_ext, ext_blended, ext_untangled = whole(P, X_whole, X_ext, F, ring, edges, query, reference=fold_ref)
     extended = not folded_triangles(P, X_ext, F, reference=fold_ref).any()
     if extended:

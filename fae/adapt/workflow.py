@@ -10,7 +10,9 @@ marked on the wrong feature is dropped, with a notice: part_offsets, misplaced_p
 the head is found in the scan, from them or from the scan's shape alone
 (fae.adapt.head_pose); `face_pairs(part_V, part_F)` finds corresponding
 points on the head part (fae adapt passes a face-landmark model looking at the template and
-at the head part from the same camera, fae.render.landmarks: a layer above this one);
+at the head part from the same camera, fae.render.landmarks: a layer above this one); where
+no feature points are given and those points say the pose is turned (MAX_PAIRS_TURN) or
+sized wrong (MAX_PAIRS_SCALE), they place the head again;
 the skin is fitted and the anatomy carried over (fae.adapt.from_scan). The report gains
 what the search found and a confidence summary. keep (n,) bool: the scan vertices of the
 head part.
@@ -49,6 +51,10 @@ OFF_SCAN = 0.01
 # a face found this many degrees turned from the head's pose places the head again (the whole
 # busts: up to 11 degrees; the wreath's face cut out: 13, and 37 when posed by the face alone)
 MAX_PAIRS_TURN = 15.0
+# nor sized this many times larger or smaller (the busts' faces 0.87-0.97, the menpo3d mask's
+# 1.0-1.08; the meshmonk face, in millimetres, placed by the search at 1/1.56 of its size:
+# its unit was taken as none, and its head came out 1.6x life size)
+MAX_PAIRS_SCALE = 1.25
 OFF_SCAN_MEDIAN = 0.003
 OFF_SCAN_SHARE = 0.25
 COINCIDENT_SHARE = 0.01  # of the scan's diagonal: feature points spread less lie on one spot
@@ -284,10 +290,16 @@ def adapt_scan(template: FaceModel, V: np.ndarray, F: np.ndarray, face_pairs: Ca
             T = P[np.asarray(template.skin_faces, np.int64)[found.face]]
             return np.einsum("kj,kjd->kd", found.bary, T)
 
-        def pairs_turn(found) -> float:
-            """Degrees the pairs' similarity turns the template's face to the scan's (face frame)."""
-            _, R, _ = similarity_transform(skin_points(found), found.scan_points)
-            return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
+        def pairs_turn(found) -> tuple[float, float]:
+            """Degrees the pairs' similarity turns the template's face to the scan's (face frame),
+            and how many times it scales it."""
+            scale, R, _ = similarity_transform(skin_points(found), found.scan_points)
+            return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))), float(scale)
+
+        def pairs_off(found) -> tuple[float, float]:
+            """(turn in degrees, factor the size is off by) of the face found (pairs_turn)."""
+            turn, scale = pairs_turn(found)
+            return turn, float(np.exp(abs(np.log(scale))))
 
         def usable(found) -> bool:
             return found is not None and len(found.face) >= MIN_PAIRS and \
@@ -334,21 +346,27 @@ def adapt_scan(template: FaceModel, V: np.ndarray, F: np.ndarray, face_pairs: Ca
                     break
         if not landmarks and usable(found):
             # the face found may say the pose is turned (a face scan's pose from the face alone
-            # can be 30-40 degrees off about up, and the face is then fitted turned on its skull):
+            # can be 30-40 degrees off about up, and the face is then fitted turned on its skull)
+            # or sized wrong (a face scan's unit then goes unknown, and the head keeps that size):
             # the head is placed again by the face's own points, and looked at again
-            turn = pairs_turn(found)
-            if turn > MAX_PAIRS_TURN:
+            turn, size_off = pairs_off(found)
+            if turn > MAX_PAIRS_TURN or size_off > MAX_PAIRS_SCALE:
                 placed = head_from_landmarks(template, V, F, skin_points(found),
                                              apply_transform(np.linalg.inv(head.transform), found.scan_points))
                 try:
                     found_placed = looked_at(placed) if placed.trusted else None
                 except AdaptRefused:  # too little of the scan where the face places it: keep the pose
                     found_placed = None
-                if usable(found_placed) and pairs_turn(found_placed) < turn:
-                    head, found = placed, found_placed
-                    pose_source = "the face found"
-                    say(f"{scan_name}: the face found was turned {turn:.0f} degrees from the head's pose; the head "
-                        "is placed by the face")
+                if usable(found_placed):
+                    turn_placed, size_placed = pairs_off(found_placed)
+                    if (turn <= MAX_PAIRS_TURN or turn_placed < turn) and \
+                            (size_off <= MAX_PAIRS_SCALE or size_placed < size_off):
+                        head, found = placed, found_placed
+                        pose_source = "the face found"
+                        why = [f"turned {turn:.0f} degrees"] if turn > MAX_PAIRS_TURN else []
+                        why += [f"{size_off:.2f}x the size"] if size_off > MAX_PAIRS_SCALE else []
+                        say(f"{scan_name}: the face found was {' and '.join(why)} of the head's pose; the head "
+                            "is placed by the face")
         if found is None or len(found.face) < MIN_PAIRS:
             if not landmarks:
                 raise AdaptRefused(f"{scan_name}: no face found on the head part of the scan (eyes, nose and "
