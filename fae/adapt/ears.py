@@ -47,6 +47,12 @@ EAR_REACH = 0.07  # m: the footprint's shift onto a candidate (y, z) is at most 
 MIN_EAR_POINTS = 30
 MAX_TURN = 25.0  # degrees (a sculpted helix alone, slid round a whole ear, turns 33)
 MAX_RESIDUAL = 0.003  # m, trimmed RMS of the ICP (sculpted ears: 2.0-2.9)
+# on a scan of part of the head, its rim seen from the side stands out like an ear: an ear
+# found farther than this from the template's is taken for the rim (the menpo3d mask's ears
+# 2.1 cm; the rims of the meshmonk face and of the suite's front halves cut at the ears
+# 5.3-7.1 cm, which carried the template's ears there and swelled the jaw). A whole head's
+# ears may sit farther (a marble bust's 4.8 cm low)
+PARTIAL_SCAN_EAR_REACH = 0.04
 PAIRS_PER_EAR = 40
 PROJECT_REACH = 0.005  # m: a mapped ear point is put onto the scan when this close
 EAR_FADE = 0.06  # m: the skin this far around an ear follows it when it is carried
@@ -172,9 +178,11 @@ class Ear:
     points: np.ndarray
 
 
-def found_ears(template: FaceModel, scan: Surface) -> tuple[list[Ear], dict]:
+def found_ears(template: FaceModel, scan: Surface, partial: bool = False) -> tuple[list[Ear], dict]:
     """The template's ears found on a scan (in the face frame at the template's size, head
-    part only), and a report per ear (found or why not)."""
+    part only), and a report per ear (found or why not). partial: the scan covers only part
+    of the head (fae.adapt.nonrigid.covers_part_of_head): an ear found farther than
+    PARTIAL_SCAN_EAR_REACH from the template's is its rim."""
     P = np.asarray(template.skin_vertices, dtype=np.float64)
     F = np.asarray(template.skin_faces, dtype=np.int64)
     region = np.asarray(template.skin_region)
@@ -220,6 +228,10 @@ def found_ears(template: FaceModel, scan: Surface) -> tuple[list[Ear], dict]:
         if not (turn <= MAX_TURN and rms <= MAX_RESIDUAL):
             report[name] = {"found": False, "why": "the ear found does not match the template's", **entry}
             continue
+        if partial and entry["moved_m"] > PARTIAL_SCAN_EAR_REACH:
+            report[name] = {"found": False, "why": "on a scan of part of the head, what stands out this far from "
+                                                   "the template's ear is taken for the scan's rim", **entry}
+            continue
         pick = t_ear[np.linspace(0, len(t_ear) - 1, min(PAIRS_PER_EAR, len(t_ear))).astype(int)]
         on_scan, _, tri, _ = scan.query.closest_points(P[pick] @ R.T + t, PROJECT_REACH)
         ok = (tri >= 0) & (corner_face[pick] >= 0)
@@ -233,10 +245,11 @@ def found_ears(template: FaceModel, scan: Surface) -> tuple[list[Ear], dict]:
     return ears, report
 
 
-def ear_pairs(template: FaceModel, scan: Surface) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray] | None, dict]:
+def ear_pairs(template: FaceModel, scan: Surface, partial: bool = False
+              ) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray] | None, dict]:
     """Corresponding points on the template's ears and the scan's (see found_ears): (faces
     (k,), bary (k, 3), points (k, 3) metres) or None when no ear was found, and the report."""
-    ears, report = found_ears(template, scan)
+    ears, report = found_ears(template, scan, partial)
     if not ears:
         return None, report
     return (np.concatenate([e.faces for e in ears]), np.vstack([e.bary for e in ears]),

@@ -230,6 +230,16 @@ def near_rim(scan: Surface, reach: float = EDGE_REACH) -> np.ndarray:
     return _faces_near(scan, on_rim, reach)
 
 
+def covers_part_of_head(X: np.ndarray, scan: Surface, keep: float = 0.8) -> bool:
+    """Whether `scan` covers only part of the head whose skin points X (n, 3) metres are
+    placed on it (a face, a front half): more than PARTIAL_EDGE_SHARE of the closest `keep`
+    share of their closest scan points lie on faces by the scan's rim (near_rim)."""
+    by_rim = np.zeros(len(scan.V), dtype=bool)
+    by_rim[scan.F[near_rim(scan)].ravel()] = True
+    d, j = scan.tree.query(X)
+    return bool(np.mean(by_rim[j[d <= np.quantile(d, keep)]]) > PARTIAL_EDGE_SHARE)
+
+
 def scan_pairs(X: np.ndarray, NX: np.ndarray, scan: Surface, reach: float, candidates: np.ndarray,
                along_normal: bool = False, rays: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Vertices (k,) of X (n, 3) among `candidates` (n,) bool paired with their closest
@@ -343,17 +353,14 @@ def affine_to_scan(X: np.ndarray, scan: Surface, use: np.ndarray, iterations: in
         A = solve(points[0], points[1], np.sqrt(share))
     by_edge = np.zeros(len(scan.V), dtype=bool)
     by_edge[scan.F[near_edge(scan)].ravel()] = True
-    rim = near_rim(scan)
-    by_rim = np.zeros(len(scan.V), dtype=bool)
-    by_rim[scan.F[rim].ravel()] = True
     by_hole = np.zeros(len(scan.V), dtype=bool)  # by an edge, not by the rim: a hole's
-    by_hole[scan.F[near_edge(scan) & ~rim].ravel()] = True
+    by_hole[scan.F[near_edge(scan) & ~near_rim(scan)].ravel()] = True
     partial = False
     for step in range(iterations):
         Y = apply_transform(A, P)
         d, j = scan.tree.query(Y)
         if step == 0:
-            partial = bool(np.mean(by_rim[j[d <= np.quantile(d, keep)]]) > PARTIAL_EDGE_SHARE)
+            partial = covers_part_of_head(Y, scan, keep)
         inner = ~(by_edge if partial else by_hole)[j]
         if not inner.any():  # the whole template nearest the scan's rim: nothing else to go by
             inner[:] = True
