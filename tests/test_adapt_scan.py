@@ -910,8 +910,9 @@ def test_a_face_scan_in_millimetres_gives_a_whole_head_of_its_size(template, sha
     assert report["scan_unit"] == "mm" and 0.75 < report["fapu_ratio"] < 1.0, report["fapu_ratio"]
     assert report["folded_triangles"]["all"] == 0 and report["scan_covers_part_of_head"] is True
     # 0.089 % of the diagonal (0.20 mm) over 86 % of the face (0.187 % while the skin within
-    # 8 mm of its outline paired nothing: nonrigid.PARTIAL_EDGE_REACH)
-    assert report["errors"]["face_to_scan_rms_rel"] < 0.001 and report["errors"]["face_coverage"] > 0.8
+    # 8 mm of its outline paired nothing: nonrigid.PARTIAL_EDGE_REACH); the face-landmark
+    # model's points move it by a few hundredths from one of its versions to another
+    assert report["errors"]["face_to_scan_rms_rel"] < 0.0012 and report["errors"]["face_coverage"] > 0.8
     model = read_facemodel(out)
     assert facemodel_problems(model) == []
     P, X = np.asarray(template.skin_vertices), np.asarray(model.skin_vertices)
@@ -946,6 +947,24 @@ def test_an_ear_is_found_where_the_scan_has_it(template, shift):
     assert left.sum() >= 10
     error = np.linalg.norm(points[left] - on_template[left] - shift, axis=1)
     assert np.median(error) < 0.002 and np.quantile(error, 0.9) < 0.004, np.sort(error)
+
+
+@needs_mediapipe
+@pytest.mark.slow
+def test_a_small_head_in_a_known_unit_keeps_its_pose_and_unit(template, bust, tmp_path, capsys):
+    """The suite's bust scaled 0.72x in millimetres: a head 0.79x the template's, placed
+    right. Its face found, 0.79x the template's face, read as a pose 1.29x off in size
+    placed the head again (the marble bust scaled 0.78x in metres so lost its unit and came
+    out 1.3x the person's size). Where the unit is known, the face frame has the person's
+    size: the face's size is the person's, not the pose's error."""
+    path, out, rep = tmp_path / "small.obj", tmp_path / "head.glb", tmp_path / "r.json"
+    trimesh.Trimesh(np.asarray(bust.vertices) * 0.72, bust.faces, process=False).export(path)
+    assert main(["adapt", str(path), "-o", str(out), "--report", str(rep), "--no-calibrate"]) == 0
+    assert "placed by the face" not in capsys.readouterr().err
+    report = json.loads(rep.read_text())
+    assert report["scan_unit"] == "mm" and 0.75 < report["fapu_ratio"] < 0.84, report["fapu_ratio"]
+    assert report["confidence"]["head_placed_by"] == "searched"
+    assert report["errors"]["face_to_scan_rms_rel"] < 0.0005
 
 
 @pytest.mark.parametrize("cut, found", [(40, True), (50, False), (55, False)])

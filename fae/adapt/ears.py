@@ -1,7 +1,7 @@
 """The ears of a scan, found by their shape, so the fit can place the template's there.
 
-    found_ears(template, scan) -> ([Ear], report)
-    ear_pairs(template, scan) -> ((faces (k,), bary (k, 3), points (k, 3)) or None, report)
+    found_ears(template, scan, partial=False) -> ([Ear], report)
+    ear_pairs(template, scan, partial=False) -> ((faces (k,), bary (k, 3), points (k, 3)) or None, report)
     ears_carried(P, X, ears) -> X (n, 3): the skin with each found ear carried there
 
 No face-landmark model sees ears, and a scan's ears may sit centimetres from where the
@@ -179,8 +179,8 @@ class Ear:
 
 
 def found_ears(template: FaceModel, scan: Surface, partial: bool = False) -> tuple[list[Ear], dict]:
-    """The template's ears found on a scan (in the face frame at the template's size, head
-    part only), and a report per ear (found or why not). partial: the scan covers only part
+    """The template's ears found on a scan (in the face frame, metres, head part only), and a
+    report per ear (found or why not). partial: the scan covers only part
     of the head (fae.adapt.nonrigid.covers_part_of_head): an ear found farther than
     PARTIAL_SCAN_EAR_REACH from the template's is its rim."""
     P = np.asarray(template.skin_vertices, dtype=np.float64)

@@ -32,7 +32,7 @@ from fae.adapt.calibration import apply_transform
 from fae.adapt.ears import ears_carried, found_ears
 from fae.adapt.errors import FACE_REGIONS, scan_fit_errors, surface
 from fae.adapt.head_pose import HeadInScan, kept_part
-from fae.adapt.nonrigid import covers_part_of_head, fit_to_scan, folded_triangles
+from fae.adapt.nonrigid import fit_to_scan, folded_triangles, partial_scan_at_start
 from fae.adapt.transfer import personalize, visible_skin
 from fae.io.facemodel import FaceModel
 
@@ -158,8 +158,11 @@ def adapt_to_scan(template: FaceModel, scan_V: np.ndarray, scan_F: np.ndarray, h
         bary.append(np.asarray(fp.bary, np.float64)[None])
         points.append(apply_transform(T, np.asarray(q, np.float64)[None]))
         used_landmarks.append(name)
-    # no face-landmark model sees ears; on a scan of part of the head its rim may stand out like one
-    ears, ear_report = found_ears(template, scan, covers_part_of_head(np.asarray(P, np.float64)[seen], fit_scan))
+    # no face-landmark model sees ears; on a scan of part of the head its rim may stand out like
+    # one. Part of the head or not: as the fit's start decides it, from the face's points
+    partial = partial_scan_at_start(np.asarray(P, np.float64), F, fit_scan, seen,
+                                    (np.concatenate(faces), np.vstack(bary), np.vstack(points)) if faces else None)
+    ears, ear_report = found_ears(template, scan, partial)
     face_rows = sum(len(f) for f in faces)
     for ear in ears:
         faces.append(ear.faces)

@@ -95,10 +95,10 @@ BLEND_RINGS = 1  # rings around a fold blended back to the last fold-free surfac
 BLEND_ROUNDS = 12  # rounds at most (the zone widens every second)
 DETAIL_STIFFNESS = 5.0  # stages below this stiffness match only the `detail` skin
 EXTEND_START = 0.01  # m: skin this far from any skin on the scan takes the harmonic extension
-EDGE_REACH = 0.008  # m: scan faces this close to the scan's rim pair with nothing
+EDGE_REACH = 0.008  # m: scan faces this close to a whole head's rim (its cut below the neck) pair with nothing
 # m: on a scan of part of the head (a face scan's outline), only those this close: the skin
 # within 8 mm of a mask's edge kept the template's shape there, a step at the chin, jaw and
-# brow (the meshmonk face 0.187 -> 0.087 % of the diagonal, the menpo3d mask 0.066 -> 0.041 %).
+# brow (the meshmonk face 0.187 -> 0.089 % of the diagonal, the menpo3d mask 0.066 -> 0.046 %).
 # A whole head's rim is its cut below the neck, where a nearer reach pulled Demosthenes' neck
 # 9 mm and its cranium, carried with the skin, through the cheek
 PARTIAL_EDGE_REACH = 0.004
@@ -245,6 +245,31 @@ def covers_part_of_head(X: np.ndarray, scan: Surface, keep: float = 0.8) -> bool
     by_rim[scan.F[near_rim(scan)].ravel()] = True
     d, j = scan.tree.query(X)
     return bool(np.mean(by_rim[j[d <= np.quantile(d, keep)]]) > PARTIAL_EDGE_SHARE)
+
+
+def partial_scan_at_start(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray,
+                          landmarks: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> bool:
+    """Whether fit_to_scan's start will find that `scan` covers part of the head only (its
+    first step: the template P (n, 3), F (m, 3), seams welded, placed by the feature points
+    `landmarks` (faces (k,), bary (k, 3), scan points (k, 3)) where four or more are given,
+    its `movable` (n,) bool skin tested: covers_part_of_head), for a caller that needs to
+    know before the fit (the ears found on a face scan's rim)."""
+    P_in, F_in = np.asarray(P, dtype=np.float64), np.asarray(F, dtype=np.int64)
+    n, label = coincident_groups(P_in)
+    P = group_means(P_in, label, n)
+    use = np.bincount(label, weights=np.asarray(movable, dtype=float), minlength=n) > 0
+    A = np.eye(4)
+    if landmarks is not None and len(landmarks[0]) >= 4:
+        from fae.adapt.calibration import similarity_transform
+
+        on_template = np.einsum("kj,kjd->kd", landmarks[1], P[label[F_in[landmarks[0]]]])
+        if SIMILARITY_START:
+            s, R, t = similarity_transform(on_template, landmarks[2])
+            A[:3, :3], A[:3, 3] = s * R, t
+        else:
+            M, *_ = np.linalg.lstsq(np.c_[on_template, np.ones(len(on_template))], landmarks[2], rcond=None)
+            A[:3, :3], A[:3, 3] = M[:3].T, M[3]
+    return covers_part_of_head(apply_transform(A, P[use]), scan)
 
 
 def scan_pairs(X: np.ndarray, NX: np.ndarray, scan: Surface, reach: float, candidates: np.ndarray,

@@ -348,8 +348,13 @@ def adapt_scan(template: FaceModel, V: np.ndarray, F: np.ndarray, face_pairs: Ca
             # the face found may say the pose is turned (a face scan's pose from the face alone
             # can be 30-40 degrees off about up, and the face is then fitted turned on its skull)
             # or sized wrong (a face scan's unit then goes unknown, and the head keeps that size):
-            # the head is placed again by the face's own points, and looked at again
+            # the head is placed again by the face's own points, and looked at again. Where the
+            # unit is known the face frame has the person's size, and the face's size over the
+            # template's is the person's, not the pose's error (a bust 0.78x the template in
+            # metres was placed again and lost its unit: a head 1.3x the person's)
             turn, size_off = pairs_off(found)
+            if head.unit != "unknown":
+                size_off = 1.0
             if turn > MAX_PAIRS_TURN or size_off > MAX_PAIRS_SCALE:
                 placed = head_from_landmarks(template, V, F, skin_points(found),
                                              apply_transform(np.linalg.inv(head.transform), found.scan_points))
@@ -357,10 +362,13 @@ def adapt_scan(template: FaceModel, V: np.ndarray, F: np.ndarray, face_pairs: Ca
                     found_placed = looked_at(placed) if placed.trusted else None
                 except AdaptRefused:  # too little of the scan where the face places it: keep the pose
                     found_placed = None
-                if usable(found_placed):
+                if usable(found_placed) and (head.unit == "unknown" or placed.unit != "unknown"):
                     turn_placed, size_placed = pairs_off(found_placed)
-                    if (turn <= MAX_PAIRS_TURN or turn_placed < turn) and \
-                            (size_off <= MAX_PAIRS_SCALE or size_placed < size_off):
+                    if placed.unit != "unknown":
+                        size_placed = 1.0  # the face frame has the person's size: see above
+                    # better where it was off, and no worse than the limit where it was not
+                    if (turn_placed < turn if turn > MAX_PAIRS_TURN else turn_placed <= MAX_PAIRS_TURN) and \
+                            (size_placed < size_off if size_off > MAX_PAIRS_SCALE else size_placed <= MAX_PAIRS_SCALE):
                         head, found = placed, found_placed
                         pose_source = "the face found"
                         why = [f"turned {turn:.0f} degrees"] if turn > MAX_PAIRS_TURN else []
