@@ -371,10 +371,10 @@ def adapt_scan(template: FaceModel, V: np.ndarray, F: np.ndarray, face_pairs: Ca
                             (size_placed < size_off if size_off > MAX_PAIRS_SCALE else size_placed <= MAX_PAIRS_SCALE):
                         head, found = placed, found_placed
                         pose_source = "the face found"
-                        why = [f"turned {turn:.0f} degrees"] if turn > MAX_PAIRS_TURN else []
-                        why += [f"{size_off:.2f}x the size"] if size_off > MAX_PAIRS_SCALE else []
-                        say(f"{scan_name}: the face found was {' and '.join(why)} of the head's pose; the head "
-                            "is placed by the face")
+                        why = [f"turned {turn:.0f} degrees from the head's pose"] if turn > MAX_PAIRS_TURN else []
+                        if size_off > MAX_PAIRS_SCALE:
+                            why.append(f"{size_off:.2f}x the size the head's pose gives it")
+                        say(f"{scan_name}: the face found was {' and '.join(why)}; the head is placed by the face")
         if found is None or len(found.face) < MIN_PAIRS:
             if not landmarks:
                 raise AdaptRefused(f"{scan_name}: no face found on the head part of the scan (eyes, nose and "
