@@ -249,27 +249,20 @@ def covers_part_of_head(X: np.ndarray, scan: Surface, keep: float = 0.8) -> bool
 
 def partial_scan_at_start(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray,
                           landmarks: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> bool:
-    """Whether fit_to_scan's start will find that `scan` covers part of the head only (its
-    first step: the template P (n, 3), F (m, 3), seams welded, placed by the feature points
-    `landmarks` (faces (k,), bary (k, 3), scan points (k, 3)) where four or more are given,
-    its `movable` (n,) bool skin tested: covers_part_of_head), for a caller that needs to
-    know before the fit (the ears found on a face scan's rim)."""
+    """Whether fit_to_scan's start will find that `scan` covers part of the head only
+    (affine_to_scan's first step: the template P (n, 3), F (m, 3), seams welded, placed by
+    the feature points `landmarks` (faces (k,), bary (k, 3), scan points (k, 3)), its
+    `movable` (n,) bool skin tested), for a caller that needs to know before the fit (the
+    ears found on a face scan's rim)."""
     P_in, F_in = np.asarray(P, dtype=np.float64), np.asarray(F, dtype=np.int64)
     n, label = coincident_groups(P_in)
     P = group_means(P_in, label, n)
     use = np.bincount(label, weights=np.asarray(movable, dtype=float), minlength=n) > 0
-    A = np.eye(4)
-    if landmarks is not None and len(landmarks[0]) >= 4:
-        from fae.adapt.calibration import similarity_transform
-
+    points = None
+    if landmarks is not None and len(landmarks[0]):
         on_template = np.einsum("kj,kjd->kd", landmarks[1], P[label[F_in[landmarks[0]]]])
-        if SIMILARITY_START:
-            s, R, t = similarity_transform(on_template, landmarks[2])
-            A[:3, :3], A[:3, 3] = s * R, t
-        else:
-            M, *_ = np.linalg.lstsq(np.c_[on_template, np.ones(len(on_template))], landmarks[2], rcond=None)
-            A[:3, :3], A[:3, 3] = M[:3].T, M[3]
-    return covers_part_of_head(apply_transform(A, P[use]), scan)
+        points = (on_template, np.asarray(landmarks[2], dtype=np.float64), np.ones(len(on_template)))
+    return affine_to_scan(P, scan, use, iterations=1, points=points, similarity=SIMILARITY_START)[1]
 
 
 def scan_pairs(X: np.ndarray, NX: np.ndarray, scan: Surface, reach: float, candidates: np.ndarray,
