@@ -180,9 +180,9 @@ class Ear:
 
 def found_ears(template: FaceModel, scan: Surface, partial: bool = False) -> tuple[list[Ear], dict]:
     """The template's ears found on a scan (in the face frame, metres, head part only), and a
-    report per ear (found or why not). partial: the scan covers only part
-    of the head (fae.adapt.nonrigid.covers_part_of_head): an ear found farther than
-    PARTIAL_SCAN_EAR_REACH from the template's is its rim."""
+    report per ear (found or why not). partial: the scan covers only part of the head (as
+    the fit's start finds it: fae.adapt.nonrigid.partial_scan_at_start): an ear found
+    farther than PARTIAL_SCAN_EAR_REACH from the template's is its rim."""
     P = np.asarray(template.skin_vertices, dtype=np.float64)
     F = np.asarray(template.skin_faces, dtype=np.int64)
     region = np.asarray(template.skin_region)
