@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from fae.mpeg4.faptables import FAP_LIMITS
-from fae.animate.skin_check import SkinCheck, check_stream, expression_sweep, fap_sweep
+from fae.animate.skin_check import SweepFrames, SkinCheck, check_stream, expression_sweep, fap_sweep
 from fae.data import shipped_head_path
 from fae.io.facemodel_gltf import read_facemodel
 
@@ -233,6 +233,46 @@ def test_the_default_sweep_takes_every_fap_to_both_limits():
     # one FAP at a time
     assert np.all(np.count_nonzero(frames, axis=1) <= 1)
     assert len(expression_sweep()) > 6
+    # each frame labelled with the FAP it sweeps, its side and the share of its limit reached
+    labels = fap_sweep().labels
+    assert len(labels) == len(frames)
+    for v, (k, side, share) in zip(frames, labels):
+        assert v[k - 1] * side >= 0.0 and np.count_nonzero(np.delete(v, k - 1)) == 0
+        assert abs(v[k - 1]) <= share * abs(FAP_LIMITS[k - 1, 1 if side > 0 else 0]) + 1e-9
+    side = len(fap_sweep([5]).labels) // 2
+    assert [k for k, _, _ in fap_sweep([19, 5]).labels][::side] == [5, 5, 19, 19]
+
+
+def _sweep_of(skins_by_share):
+    """A labelled sweep of FAP 5's upper side played by _SkinPlayer: (share reached, skin)."""
+    return SweepFrames([make for _, make in skins_by_share], [(5, 1, share) for share, _ in skins_by_share])
+
+
+def test_the_sweep_says_how_far_each_fap_keeps_the_skin_whole(face, check):
+    """The sweep's one line for all FAPs (1,581 triangles folded) did not say which FAP gives
+    first, nor from how far along its range: a head's maker could not tell a brow that folds
+    at a quarter of its range from one that folds only at the limit."""
+    def rest(skin):
+        return skin
+
+    def grown(skin):
+        return skin * 2.5  # every edge 2.5x its rest length
+
+    whole = check_stream(_SkinPlayer(face), _sweep_of([(0.25, rest), (0.5, rest), (0.75, rest), (1.0, rest)]),
+                         "whole", check=check)["per_fap"]
+    assert [(e["fap"], e["side"], e["whole_to"], e["fails_at"], e["why"]) for e in whole] == \
+        [(5, "+", 1.0, None, [])]
+    torn = check_stream(_SkinPlayer(face), _sweep_of([(0.25, rest), (0.5, rest), (0.75, grown), (1.0, rest),
+                                                      (1.0, rest)]), "torn", check=check)["per_fap"][0]
+    assert torn["whole_to"] == 0.5 and torn["fails_at"] == 0.75 and torn["why"] == ["stretched"]
+    assert torn["name"] == "raise_b_midlip" and torn["limit"] == pytest.approx(FAP_LIMITS[4, 1])
+    assert torn["max_stretch"] == pytest.approx(2.5)
+    # what shows only as the skin comes back from the limit counts against the limit
+    late = check_stream(_SkinPlayer(face), _sweep_of([(0.25, rest), (0.5, rest), (0.75, rest), (1.0, rest),
+                                                      (1.0, grown)]), "late", check=check)["per_fap"][0]
+    assert late["whole_to"] == 0.75 and late["fails_at"] == 1.0
+    # a stream that is not a sweep has no report per FAP
+    assert "per_fap" not in check_stream(_SkinPlayer(face), [rest], "plain", check=check)
 
 
 def _verify_skin(*args: str) -> subprocess.CompletedProcess:
@@ -345,6 +385,28 @@ def test_verify_skin_reports_each_stream_as_json_and_its_status(tmp_path):
     assert report["ok"] == (stream["triangles_folded"] == 0 and stream["max_stretch"] <= 2.0
                             and stream["min_compression"] >= 0.3 and stream["frames_lips_crossed"] == 0
                             and stream["frames_lining_shown"] == 0 and stream["frames_back_shown"] == 0)
+
+
+@pytest.mark.slow
+def test_verify_skin_sweeps_the_faps_asked_and_says_how_far_each_stays_whole():
+    """`--faps` sweeps only the FAPs named (an eyeball's turn moves no skin: whole over its
+    whole range; a lower lip raised to the standard's limit, 1860 MNS, is not) and the text
+    groups them by how far they keep the skin whole."""
+    r = _verify_skin("--faps", "23,raise_b_midlip", "--json")
+    assert r.returncode == 1, r.stderr
+    (stream,) = json.loads(r.stdout)["streams"]
+    per = {(e["fap"], e["side"]): e for e in stream["per_fap"]}
+    assert set(per) == {(5, "+"), (5, "-"), (23, "+"), (23, "-")}
+    assert per[(23, "+")]["whole_to"] == 1.0 and per[(23, "-")]["whole_to"] == 1.0
+    assert per[(5, "+")]["whole_to"] < 1.0 and per[(5, "+")]["triangles_folded"] > 0
+    r = _verify_skin("--faps", "23")
+    assert r.returncode == 0, r.stderr
+    assert "the whole range: 23+ 23-" in r.stdout and "the skin stays whole" in r.stdout
+    for bad, said in ((["--faps", "2"], "expected a low-level FAP, 3 to 68"),
+                      (["--faps", "raise_the_roof"], "neither a FAP number nor a FAP's name"),
+                      (["--faps", "5", str(ROOT / "fap_streams" / "visemes.fap")], "give one or the other")):
+        r = _verify_skin(*bad)
+        assert r.returncode == 2 and said in r.stderr and "Traceback" not in r.stderr
 
 
 def _cuda_present() -> bool:

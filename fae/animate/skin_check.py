@@ -59,7 +59,7 @@ STRAIN_MIN_EDGE = 0.05
 # which has 182 of them among 22,742 triangles) has no direction of its own to turn from:
 # two of its corners a few microns apart swap sides at the slightest motion, unseen
 SLIVER_HEIGHT = 0.01
-SWEEP_RAMP, SWEEP_HOLD = 4, 8  # frames of the FAP sweep: rise, hold at the limit
+SWEEP_RAMP, SWEEP_HOLD, SWEEP_REST = 4, 8, 6  # frames of the FAP sweep: rise, hold at the limit, rest after
 EXPRESSION_RAMP, EXPRESSION_HOLD = 8, 12
 # a hidden edge is tested against the visible triangles within this many metres of it at
 # rest (beyond each one's own size): the lining lies a few millimetres behind the skin
@@ -339,6 +339,69 @@ def in_head_frame(skin: np.ndarray, head: np.ndarray) -> np.ndarray:
     return (skin - head[:3, 3]) @ head[:3, :3]
 
 
+def whole_frame(r: FrameCheck | None) -> list[str]:
+    """What keeps frame check `r` from being whole (None: skin not finite): "not finite",
+    "folded", "stretched", "compressed", "lips crossed", "lining shown", "back shown";
+    empty when whole (check_stream's limits)."""
+    if r is None:
+        return ["not finite"]
+    why = []
+    for bad, what in ((r.folded.any(), "folded"), (r.stretch > MAX_STRETCH, "stretched"),
+                      (r.compression < MIN_COMPRESSION, "compressed"), (r.lip_crossings > 0, "lips crossed"),
+                      (r.lining_crossings > 0, "lining shown"), (r.back_area > BACK_AREA_LIMIT, "back shown")):
+        if bad:
+            why.append(what)
+    return why
+
+
+class PerFap:
+    """A FAP sweep's checks gathered per FAP and side: how far towards the standard's limit
+    each one keeps the skin whole. `add((fap, sign, share), frame_check)` per frame,
+    `report(check)` at the end."""
+
+    def __init__(self, triangle_count: int):
+        self.triangle_count = triangle_count
+        self.entries: dict[tuple[int, int], dict] = {}
+
+    def add(self, label: tuple[int, int, float], r: FrameCheck | None) -> None:
+        fap, sign, share = int(label[0]), int(label[1]), float(label[2])
+        e = self.entries.setdefault((fap, sign), {"shares": set(), "fails_at": None, "why": {},
+                                                  "folded": np.zeros(self.triangle_count, dtype=bool),
+                                                  "stretch": 1.0, "compression": 1.0})
+        e["shares"].add(share)
+        why = whole_frame(r)
+        if why:
+            e["why"].setdefault(share, set()).update(why)
+            e["fails_at"] = share if e["fails_at"] is None else min(e["fails_at"], share)
+        if r is not None:
+            e["folded"] |= r.folded
+            e["stretch"] = max(e["stretch"], r.stretch)
+            e["compression"] = min(e["compression"], r.compression)
+
+    def report(self, check: "SkinCheck") -> list[dict]:
+        """Per FAP and side, in sweep order: {"fap", "name", "side" ("+" / "-"), "limit" (FAPU
+        units), "whole_to" (the largest share of the limit reached with every frame up to it
+        whole: 1.0 over the whole range, 0.0 when the first step already fails), "fails_at"
+        (the share at which it first fails, or None), "why" (what failed there), "triangles_folded",
+        "folded_by_region", "max_stretch", "min_compression"}."""
+        from fae.mpeg4.faptables import FAP_LIMITS, FAP_NAME
+
+        out = []
+        for (fap, sign), e in self.entries.items():
+            fails = e["fails_at"]
+            below = [x for x in e["shares"] if fails is not None and x < fails]
+            whole_to = 1.0 if fails is None else max(below, default=0.0)
+            regions = {}
+            for rid in np.unique(check.triangle_region[e["folded"]]):
+                regions[check.region_names[rid]] = int(np.sum(check.triangle_region[e["folded"]] == rid))
+            out.append({"fap": fap, "name": FAP_NAME[fap - 1], "side": "+" if sign > 0 else "-",
+                        "limit": float(FAP_LIMITS[fap - 1, 1 if sign > 0 else 0]), "whole_to": whole_to,
+                        "fails_at": fails, "why": sorted(e["why"].get(fails, ())), "triangles_folded": int(e["folded"].sum()),
+                        "folded_by_region": regions, "max_stretch": rounded_up(e["stretch"], 3),
+                        "min_compression": rounded_down(e["compression"], 3)})
+        return out
+
+
 def check_stream(player, frames: Iterable, name: str = "", fps: float | None = None,
                  check: SkinCheck | None = None) -> dict:
     """Play `frames` (a FapStream or DenseFrames) from rest and check every frame.
@@ -351,8 +414,12 @@ def check_stream(player, frames: Iterable, name: str = "", fps: float | None = N
     "frames_back_shown", "max_back_area_mm2", "worst_back_frame", "back_by_region" {region: mm^2
     of the back seen in that worst frame}, "ok"}; ok: every frame finite, nothing folded,
     strain within [MIN_COMPRESSION, MAX_STRETCH], the lips never cross, no lining comes out
-    through the skin and no frame shows the skin's back over more than BACK_AREA_LIMIT."""
+    through the skin and no frame shows the skin's back over more than BACK_AREA_LIMIT.
+    Frames labelled per FAP (a `fap_sweep`) add "per_fap": a list of PerFap.report's
+    records, one per FAP and side swept."""
     check = check or SkinCheck(player.face)
+    labels = getattr(frames, "labels", None)
+    per_fap = PerFap(len(check.faces)) if labels else None
     player.reset()
     ever = np.zeros(len(check.faces), dtype=bool)
     turned = np.zeros(len(check.faces), dtype=bool)
@@ -363,10 +430,15 @@ def check_stream(player, frames: Iterable, name: str = "", fps: float | None = N
     broken = 0  # frames whose skin is not finite: nothing of it can be measured, and it is not whole
     for frame in player.play(frames, fps=fps):
         count += 1
+        label = labels[frame.index] if per_fap is not None and frame.index < len(labels) else None
         if not (np.isfinite(frame.skin_vertices).all() and np.isfinite(frame.bone_transforms["head"]).all()):
             broken += 1
+            if label is not None:
+                per_fap.add(label, None)
             continue
         r = check.frame(in_head_frame(frame.skin_vertices, frame.bone_transforms["head"]))
+        if label is not None:
+            per_fap.add(label, r)
         k = int(r.folded.sum())
         if k:
             folded_frames += 1
@@ -395,7 +467,7 @@ def check_stream(player, frames: Iterable, name: str = "", fps: float | None = N
         back_regions[check.region_names[rid]] = round(area, 1)
     ok = (not ever.any()) and stretch <= MAX_STRETCH and compression >= MIN_COMPRESSION and lip_frames == 0 \
         and lining_frames == 0 and back_frames == 0 and broken == 0
-    return {"stream": name, "frames": count, "frames_not_finite": broken, "frames_folded": folded_frames, "triangles_folded": int(ever.sum()),
+    out = {"stream": name, "frames": count, "frames_not_finite": broken, "frames_folded": folded_frames, "triangles_folded": int(ever.sum()),
             "triangles_turned": int(turned.sum()),
             "folded_by_region": regions, "worst_frame": worst, "worst_frame_folded": worst_count,
             # rounded away from the limits: a stretch of 2.0003 reads 2.001, not a passing 2.0
@@ -404,6 +476,9 @@ def check_stream(player, frames: Iterable, name: str = "", fps: float | None = N
             "frames_lining_shown": lining_frames, "max_lining_crossings": max_lining,
             "frames_back_shown": back_frames, "max_back_area_mm2": round(back_area * 1e6, 1),
             "worst_back_frame": worst_back, "back_by_region": back_regions, "ok": bool(ok)}
+    if per_fap is not None:
+        out["per_fap"] = per_fap.report(check)
+    return out
 
 
 def rounded_up(x: float, places: int) -> float:
@@ -418,24 +493,38 @@ def rounded_down(x: float, places: int) -> float:
     return math.floor(x * scale + 1e-6) / scale
 
 
-def fap_sweep() -> list[np.ndarray]:
-    """(68,) frames, FAPU units: every low-level FAP 3..68 alone, 0 -> its upper limit (held)
-    -> 0 -> its lower limit (held) -> 0, the limits the Player clamps to (`FAP_LIMITS`, the
-    standard's ranges)."""
+class SweepFrames(list):
+    """Frames (68,) of a FAP sweep, with a label per frame: (FAP, +1 or -1, the share of its
+    limit the stream has reached): the rise's own share, then 1.0 while it is held, comes
+    back and rests (what the skin does then comes of having been at the limit)."""
+
+    def __init__(self, frames=(), labels=()):
+        super().__init__(frames)
+        self.labels = list(labels)
+
+
+def fap_sweep(faps: Iterable[int] | None = None) -> SweepFrames:
+    """(68,) frames, FAPU units: every low-level FAP 3..68 (or those of `faps`) alone, 0 -> its
+    upper limit (held) -> 0 (rest) -> its lower limit (held) -> 0 (rest), the limits the
+    Player clamps to (`FAP_LIMITS`, the standard's ranges); labelled per frame (SweepFrames)
+    for `check_stream`'s report per FAP. The rest after each side lets the skin settle
+    before the next FAP, so what one leaves behind is not laid at the next one's door."""
     from fae.mpeg4.faptables import FAP_LIMITS
     from fae.mpeg4.faps import FAP_COUNT
 
     ramp = np.linspace(0.0, 1.0, SWEEP_RAMP + 1)[1:]
-    shape = np.concatenate([ramp, np.ones(SWEEP_HOLD), ramp[::-1][1:], [0.0]])
-    out = []
-    for k in range(3, FAP_COUNT + 1):
+    shape = np.concatenate([ramp, np.ones(SWEEP_HOLD), ramp[::-1][1:], np.zeros(SWEEP_REST)])
+    reached = np.concatenate([ramp, np.ones(len(shape) - SWEEP_RAMP)])
+    out = SweepFrames()
+    for k in range(3, FAP_COUNT + 1) if faps is None else sorted(set(int(f) for f in faps)):
         for limit in FAP_LIMITS[k - 1, ::-1]:
             if limit == 0.0:
                 continue
-            for a in shape:
+            for a, share in zip(shape, reached):
                 v = np.zeros(FAP_COUNT)
                 v[k - 1] = a * limit
                 out.append(v)
+                out.labels.append((k, 1 if limit > 0 else -1, float(share)))
     return out
 
 

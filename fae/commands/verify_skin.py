@@ -1,4 +1,4 @@
-"""`fae verify-skin [HEAD.glb] [STREAM.fap ...] [--json]`: does the skin stay whole?
+"""`fae verify-skin [HEAD.glb] [STREAM.fap ...] [--faps LIST] [--json]`: does the skin stay whole?
 
 Plays each stream from rest on the head (the shipped generic head unless HEAD) and checks
 every frame, in the head's own frame: visible skin triangles folded (a normal turned more
@@ -11,8 +11,11 @@ ears, the nostrils) coming out through the visible skin ("lining": its dark back
 and how much of the face a viewer in front sees by the skin's back ("backs": frames over
 3 mm^2, and the most, in mm^2), whatever turned it. Without streams it plays every
 low-level FAP alone to the limits of its range and the standard's six expressions at full
-intensity. Exit status 0 when every stream keeps the skin whole, 1 when any does not, 2
-when the head or a stream cannot be read.
+intensity; the sweep is reported per FAP too: how far towards the standard's limit each
+one, on each side, keeps the skin whole (a quarter of the range at a time), and what gives
+first. --faps sweeps only the FAPs named (numbers or names), to look at a few closely.
+Exit status 0 when every stream keeps the skin whole, 1 when any does not, 2 when the
+head or a stream cannot be read.
 """
 
 from __future__ import annotations
@@ -30,6 +33,9 @@ def register(subparsers) -> None:
                         help="FaceModel .glb (default: the generic head)")
     parser.add_argument("streams", nargs="*", metavar="STREAM.fap",
                         help="FAP streams to play (default: the FAP sweep and the six expressions)")
+    parser.add_argument("--faps", default=None, metavar="LIST",
+                        help="sweep only these low-level FAPs (3-68), by number or name, comma-separated "
+                             "(e.g. 5,open_jaw,19); instead of the default streams")
     parser.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     add_device_argument(parser)
     parser.set_defaults(func=run)
@@ -44,6 +50,14 @@ def run(args) -> int:
     head, streams = args.head, list(args.streams)
     if head is not None and head.lower().endswith(".fap"):  # streams only: the shipped head
         head, streams = None, [head] + streams
+    sweep_faps = None
+    if args.faps is not None:
+        try:
+            sweep_faps = swept_faps(args.faps)
+        except ValueError as exc:
+            return fail("verify-skin", f"--faps {args.faps!r}: {exc}")
+        if streams:
+            return fail("verify-skin", "--faps sweeps FAPs instead of playing streams; give one or the other")
     misplaced = [s for s in streams if s.lower().endswith((".glb", ".gltf"))]
     if misplaced:
         return fail("verify-skin", f"{misplaced[0]}: a head among the streams; expected .fap streams after the head "
@@ -67,14 +81,17 @@ def run(args) -> int:
 
     with contextlib.redirect_stdout(sys.stderr):  # Warp's banner and kernel-load lines: stdout is the report's
         from fae.animate.player import Player, playable_head
-        from fae.animate.skin_check import SkinCheck, check_stream, default_streams, rounded_down, rounded_up
+        from fae.animate.skin_check import (SkinCheck, check_stream, default_streams, fap_sweep, rounded_down,
+                                            rounded_up)
 
         try:
             player = Player(playable_head(face, device=device))
         except (RuntimeError, ValueError) as exc:  # data the engine cannot use (fae template check says which)
             return fail("verify-skin", f"{path}: cannot animate it: {exc}")
         check = SkinCheck(player.face)
-        if not loaded:
+        if sweep_faps is not None:
+            loaded = [(f"fap-sweep of FAPs {','.join(str(k) for k in sweep_faps)}", fap_sweep(sweep_faps))]
+        elif not loaded:
             loaded = default_streams()
         reports = []
         for name, stream in loaded:
@@ -112,6 +129,9 @@ def run(args) -> int:
                   f"{r['frames_folded']:>8} "
                   f"{rounded_up(r['max_stretch'], 2):>7.2f} {rounded_down(r['min_compression'], 2):>6.2f} {r['frames_lips_crossed']:>5} "
                   f"{r['frames_lining_shown']:>6} {r['frames_back_shown']:>5} {r['max_back_area_mm2']:>6.0f}  {regions}")
+        for r in reports:
+            if "per_fap" in r:
+                print(per_fap_text(r))
         print("the skin stays whole" if whole else
               "the skin folds, tears, the lips cross, a lining or the skin's back shows, or it is not finite: see above")
     return 0 if whole else 1
@@ -121,3 +141,43 @@ def _column(name: str, width: int = 44) -> str:
     """A stream's name in the table's first column: a long path keeps its end (the file's
     name), not its start (takes of one session differ only there)."""
     return name if len(name) <= width else "..." + name[-(width - 3):]
+
+
+def swept_faps(text: str) -> list[int]:
+    """FAP numbers (3-68) from "5,open_jaw, 19": numbers or the standard's names."""
+    from fae.mpeg4.faps import fap_by_name
+
+    out = []
+    for item in (x.strip() for x in text.split(",")):
+        if not item:
+            continue
+        if item.isdigit():
+            k = int(item)
+        else:
+            try:
+                k = fap_by_name(item).number
+            except (KeyError, ValueError):
+                raise ValueError(f"{item!r} is neither a FAP number nor a FAP's name") from None
+        if not 3 <= k <= 68:
+            raise ValueError(f"FAP {k}: expected a low-level FAP, 3 to 68")
+        out.append(k)
+    if not out:
+        raise ValueError("expected at least one FAP")
+    return sorted(set(out))
+
+
+def per_fap_text(report: dict) -> str:
+    """The sweep's FAPs grouped by how far towards the standard's limit they keep the skin
+    whole (a few lines: each FAP as its number and side, e.g. 5+)."""
+    groups: dict[float, list[str]] = {}
+    for e in report["per_fap"]:
+        groups.setdefault(e["whole_to"], []).append(f"{e['fap']}{e['side']}")
+    lines = [f"{_column(str(report['stream']))}: how far each FAP keeps the skin whole (share of the standard's limit)"]
+    for share in sorted(groups, reverse=True):
+        what = "the whole range" if share == 1.0 else "not at the first quarter" if share == 0.0 else f"up to {share:g}"
+        lines.append(f"  {what}: {' '.join(groups[share])}")
+    worst = sorted((e for e in report["per_fap"] if e["triangles_folded"]), key=lambda e: -e["triangles_folded"])[:5]
+    if worst:
+        lines.append("  most folded: " + ", ".join(f"{e['fap']}{e['side']} {e['name']} {e['triangles_folded']}"
+                                                  for e in worst))
+    return "\n".join(lines)
