@@ -233,46 +233,25 @@ def test_the_default_sweep_takes_every_fap_to_both_limits():
     # one FAP at a time
     assert np.all(np.count_nonzero(frames, axis=1) <= 1)
     assert len(expression_sweep()) > 6
-    # each frame labelled with the FAP it sweeps, its side and the share of its limit reached
-    labels = fap_sweep().labels
-    assert len(labels) == len(frames)
-    for v, (k, side, share) in zip(frames, labels):
+    # each frame labelled with the FAP it sweeps, its side and the share of its limit reached:
+    # a quarter at a time, each held while the skin settles, then 1.0 from the limit on
+    sweep = fap_sweep()
+    assert len(sweep.labels) == len(frames)
+    for v, (k, side, share) in zip(frames, sweep.labels):
         assert v[k - 1] * side >= 0.0 and np.count_nonzero(np.delete(v, k - 1)) == 0
-        assert abs(v[k - 1]) <= share * abs(FAP_LIMITS[k - 1, 1 if side > 0 else 0]) + 1e-9
-    side = len(fap_sweep([5]).labels) // 2
-    assert [k for k, _, _ in fap_sweep([19, 5]).labels][::side] == [5, 5, 19, 19]
-
-
-def _sweep_of(skins_by_share):
-    """A labelled sweep of FAP 5's upper side played by _SkinPlayer: (share reached, skin)."""
-    return SweepFrames([make for _, make in skins_by_share], [(5, 1, share) for share, _ in skins_by_share])
-
-
-def test_the_sweep_says_how_far_each_fap_keeps_the_skin_whole(face, check):
-    """The sweep's one line for all FAPs (1,581 triangles folded) did not say which FAP gives
-    first, nor from how far along its range: a head's maker could not tell a brow that folds
-    at a quarter of its range from one that folds only at the limit."""
-    def rest(skin):
-        return skin
-
-    def grown(skin):
-        return skin * 2.5  # every edge 2.5x its rest length
-
-    whole = check_stream(_SkinPlayer(face), _sweep_of([(0.25, rest), (0.5, rest), (0.75, rest), (1.0, rest)]),
-                         "whole", check=check)["per_fap"]
-    assert [(e["fap"], e["side"], e["whole_to"], e["fails_at"], e["why"]) for e in whole] == \
-        [(5, "+", 1.0, None, [])]
-    torn = check_stream(_SkinPlayer(face), _sweep_of([(0.25, rest), (0.5, rest), (0.75, grown), (1.0, rest),
-                                                      (1.0, rest)]), "torn", check=check)["per_fap"][0]
-    assert torn["whole_to"] == 0.5 and torn["fails_at"] == 0.75 and torn["why"] == ["stretched"]
-    assert torn["name"] == "raise_b_midlip" and torn["limit"] == pytest.approx(FAP_LIMITS[4, 1])
-    assert torn["max_stretch"] == pytest.approx(2.5)
-    # what shows only as the skin comes back from the limit counts against the limit
-    late = check_stream(_SkinPlayer(face), _sweep_of([(0.25, rest), (0.5, rest), (0.75, rest), (1.0, rest),
-                                                      (1.0, grown)]), "late", check=check)["per_fap"][0]
-    assert late["whole_to"] == 0.75 and late["fails_at"] == 1.0
-    # a stream that is not a sweep has no report per FAP
-    assert "per_fap" not in check_stream(_SkinPlayer(face), [rest], "plain", check=check)
+    for start, end in sweep.sides():
+        k, side, _ = sweep.labels[start]
+        limit = FAP_LIMITS[k - 1, 1 if side > 0 else 0]
+        shares = [share for _, _, share in sweep.labels[start:end]]
+        climb = [s for s in shares if s < 1.0]
+        assert sorted(set(climb)) == [0.25, 0.5, 0.75] and climb == sorted(climb) and len(climb) == 3 * 6
+        assert shares == climb + [1.0] * (len(shares) - len(climb))
+        amplitude = frames[start:end, k - 1] / limit
+        assert np.allclose(amplitude[:len(climb)], climb)  # each step held at its share
+        assert amplitude[len(climb)] == pytest.approx(1.0) and amplitude[-1] == 0.0
+    assert len(sweep.sides()) == 127  # 66 FAPs, both sides but for the five one-sided ones
+    assert [sweep_part[0] for sweep_part in fap_sweep([19, 5]).labels][::len(fap_sweep([5]).labels) // 2] == \
+        [5, 5, 19, 19]
 
 
 def _verify_skin(*args: str) -> subprocess.CompletedProcess:
@@ -323,6 +302,74 @@ class _SkinPlayer:
         for i, make in enumerate(frames):
             yield PlayedFrame(index=i, time=i / 25, skin_vertices=make(self.rest.copy()),
                               bone_transforms={"head": np.eye(4)})
+
+
+def _sweep_of(skins_by_share):
+    """A labelled sweep of FAP 5's upper side played by _SkinPlayer: (share reached, skin)."""
+    return SweepFrames([make for _, make in skins_by_share], [(5, 1, share) for share, _ in skins_by_share])
+
+
+def test_the_sweep_says_how_far_each_fap_keeps_the_skin_whole(face, check):
+    """The sweep's one line for all FAPs (1,578 triangles folded) did not say which FAP gives
+    first, nor from how far along its range: a head's maker could not tell a brow that folds
+    at a quarter of its range from one that folds only at the limit."""
+    def rest(skin):
+        return skin
+
+    def grown(skin):
+        return skin * 2.5  # every edge 2.5x its rest length
+
+    whole = check_stream(_SkinPlayer(face), _sweep_of([(0.25, rest), (0.5, rest), (0.75, rest), (1.0, rest)]),
+                         "whole", check=check)["per_fap"]
+    assert [(e["fap"], e["side"], e["whole_to"], e["fails_at"], e["why"]) for e in whole] == \
+        [(5, "+", 1.0, None, [])]
+    torn = check_stream(_SkinPlayer(face), _sweep_of([(0.25, rest), (0.5, rest), (0.75, grown), (1.0, rest),
+                                                      (1.0, rest)]), "torn", check=check)["per_fap"][0]
+    assert torn["whole_to"] == 0.5 and torn["fails_at"] == 0.75 and torn["why"] == ["stretched"]
+    assert torn["name"] == "raise_b_midlip" and torn["limit"] == pytest.approx(FAP_LIMITS[4, 1])
+    assert torn["max_stretch"] == pytest.approx(2.5)
+    # what shows only as the skin comes back from the limit counts against the limit
+    late = check_stream(_SkinPlayer(face), _sweep_of([(0.25, rest), (0.5, rest), (0.75, rest), (1.0, rest),
+                                                      (1.0, grown)]), "late", check=check)["per_fap"][0]
+    assert late["whole_to"] == 0.75 and late["fails_at"] == 1.0
+    # a stream that is not a sweep has no report per FAP
+    assert "per_fap" not in check_stream(_SkinPlayer(face), [rest], "plain", check=check)
+
+
+class _BreakingPlayer(_SkinPlayer):
+    """As _SkinPlayer, but a skin gone NaN stays NaN until reset (a simulation's state)."""
+
+    def reset(self):
+        self.broken = False
+
+    def play(self, frames, fps=None):
+        for frame in super().play(frames, fps):
+            self.broken = self.broken or not np.isfinite(frame.skin_vertices).all()
+            if self.broken:
+                frame.skin_vertices[:] = np.nan
+            yield frame
+
+
+def test_each_side_of_the_sweep_starts_from_rest(face, check):
+    """A side that broke the simulation (skin no longer finite) was laid on every side
+    after it: they all read "not finite" from their first frame, and a side never measured
+    read a stretch of 1.0, as if perfect."""
+    def rest(skin):
+        return skin
+
+    def broken(skin):
+        return skin * np.nan
+
+    frames = SweepFrames([rest, broken, rest, rest, rest, rest],
+                         [(5, 1, 0.25), (5, 1, 1.0), (5, -1, 0.25), (5, -1, 1.0), (6, 1, 0.25), (6, 1, 1.0)])
+    report = check_stream(_BreakingPlayer(face), frames, "sweep", check=check)
+    per = {(e["fap"], e["side"]): e for e in report["per_fap"]}
+    assert per[(5, "+")]["whole_to"] == 0.25 and per[(5, "+")]["why"] == ["not finite"]
+    assert per[(5, "-")]["whole_to"] == 1.0 and per[(6, "+")]["whole_to"] == 1.0
+    assert report["frames_not_finite"] == 1
+    gone = check_stream(_BreakingPlayer(face), SweepFrames([broken, broken], [(5, 1, 0.25), (5, 1, 1.0)]),
+                        "gone", check=check)["per_fap"][0]
+    assert gone["max_stretch"] is None and gone["min_compression"] is None and gone["whole_to"] == 0.0
 
 
 def test_skin_that_is_not_finite_is_not_whole(face, check):

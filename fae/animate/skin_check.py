@@ -59,7 +59,11 @@ STRAIN_MIN_EDGE = 0.05
 # which has 182 of them among 22,742 triangles) has no direction of its own to turn from:
 # two of its corners a few microns apart swap sides at the slightest motion, unseen
 SLIVER_HEIGHT = 0.01
-SWEEP_RAMP, SWEEP_HOLD, SWEEP_REST = 4, 8, 6  # frames of the FAP sweep: rise, hold at the limit, rest after
+# the FAP sweep, per FAP and side: up in SWEEP_STEPS steps of the range, each below the limit
+# held SWEEP_STEP_HOLD frames (the skin settles there: a quarter reached in a rise of a frame a
+# step read as whole where, held, it folded), the limit held SWEEP_HOLD frames, down in steps
+# of a frame, then SWEEP_REST frames at rest (what shows as the skin comes back)
+SWEEP_STEPS, SWEEP_STEP_HOLD, SWEEP_HOLD, SWEEP_REST = 4, 6, 8, 6
 EXPRESSION_RAMP, EXPRESSION_HOLD = 8, 12
 # a hidden edge is tested against the visible triangles within this many metres of it at
 # rest (beyond each one's own size): the lining lies a few millimetres behind the skin
@@ -339,7 +343,7 @@ def in_head_frame(skin: np.ndarray, head: np.ndarray) -> np.ndarray:
     return (skin - head[:3, 3]) @ head[:3, :3]
 
 
-def whole_frame(r: FrameCheck | None) -> list[str]:
+def what_breaks(r: FrameCheck | None) -> list[str]:
     """What keeps frame check `r` from being whole (None: skin not finite): "not finite",
     "folded", "stretched", "compressed", "lips crossed", "lining shown", "back shown";
     empty when whole (check_stream's limits)."""
@@ -354,6 +358,21 @@ def whole_frame(r: FrameCheck | None) -> list[str]:
     return why
 
 
+@dataclass
+class SideRecord:
+    """One FAP's side of a sweep, as checked so far: the shares of its limit reached,
+    the least share at which a frame broke (None: none did) and what broke at each share,
+    the triangles ever folded (T,) bool, the extreme edge strain (None until a frame was
+    measured)."""
+
+    folded: np.ndarray
+    shares: set = field(default_factory=set)
+    fails_at: float | None = None
+    why: dict = field(default_factory=dict)
+    stretch: float | None = None
+    compression: float | None = None
+
+
 class PerFap:
     """A FAP sweep's checks gathered per FAP and side: how far towards the standard's limit
     each one keeps the skin whole. `add((fap, sign, share), frame_check)` per frame,
@@ -361,44 +380,43 @@ class PerFap:
 
     def __init__(self, triangle_count: int):
         self.triangle_count = triangle_count
-        self.entries: dict[tuple[int, int], dict] = {}
+        self.sides: dict[tuple[int, int], SideRecord] = {}
 
     def add(self, label: tuple[int, int, float], r: FrameCheck | None) -> None:
         fap, sign, share = int(label[0]), int(label[1]), float(label[2])
-        e = self.entries.setdefault((fap, sign), {"shares": set(), "fails_at": None, "why": {},
-                                                  "folded": np.zeros(self.triangle_count, dtype=bool),
-                                                  "stretch": 1.0, "compression": 1.0})
-        e["shares"].add(share)
-        why = whole_frame(r)
+        e = self.sides.setdefault((fap, sign), SideRecord(np.zeros(self.triangle_count, dtype=bool)))
+        e.shares.add(share)
+        why = what_breaks(r)
         if why:
-            e["why"].setdefault(share, set()).update(why)
-            e["fails_at"] = share if e["fails_at"] is None else min(e["fails_at"], share)
+            e.why.setdefault(share, set()).update(why)
+            e.fails_at = share if e.fails_at is None else min(e.fails_at, share)
         if r is not None:
-            e["folded"] |= r.folded
-            e["stretch"] = max(e["stretch"], r.stretch)
-            e["compression"] = min(e["compression"], r.compression)
+            e.folded |= r.folded
+            e.stretch = r.stretch if e.stretch is None else max(e.stretch, r.stretch)
+            e.compression = r.compression if e.compression is None else min(e.compression, r.compression)
 
     def report(self, check: "SkinCheck") -> list[dict]:
         """Per FAP and side, in sweep order: {"fap", "name", "side" ("+" / "-"), "limit" (FAPU
-        units), "whole_to" (the largest share of the limit reached with every frame up to it
+        units), "whole_to" (the largest share of the limit held with every frame up to it
         whole: 1.0 over the whole range, 0.0 when the first step already fails), "fails_at"
         (the share at which it first fails, or None), "why" (what failed there), "triangles_folded",
-        "folded_by_region", "max_stretch", "min_compression"}."""
+        "folded_by_region", "max_stretch", "min_compression" (None where no frame could be
+        measured)}."""
         from fae.mpeg4.faptables import FAP_LIMITS, FAP_NAME
 
         out = []
-        for (fap, sign), e in self.entries.items():
-            fails = e["fails_at"]
-            below = [x for x in e["shares"] if fails is not None and x < fails]
-            whole_to = 1.0 if fails is None else max(below, default=0.0)
+        for (fap, sign), e in self.sides.items():
+            below = [x for x in e.shares if e.fails_at is not None and x < e.fails_at]
+            whole_to = 1.0 if e.fails_at is None else max(below, default=0.0)
             regions = {}
-            for rid in np.unique(check.triangle_region[e["folded"]]):
-                regions[check.region_names[rid]] = int(np.sum(check.triangle_region[e["folded"]] == rid))
+            for rid in np.unique(check.triangle_region[e.folded]):
+                regions[check.region_names[rid]] = int(np.sum(check.triangle_region[e.folded] == rid))
             out.append({"fap": fap, "name": FAP_NAME[fap - 1], "side": "+" if sign > 0 else "-",
                         "limit": float(FAP_LIMITS[fap - 1, 1 if sign > 0 else 0]), "whole_to": whole_to,
-                        "fails_at": fails, "why": sorted(e["why"].get(fails, ())), "triangles_folded": int(e["folded"].sum()),
-                        "folded_by_region": regions, "max_stretch": rounded_up(e["stretch"], 3),
-                        "min_compression": rounded_down(e["compression"], 3)})
+                        "fails_at": e.fails_at, "why": sorted(e.why.get(e.fails_at, ())),
+                        "triangles_folded": int(e.folded.sum()), "folded_by_region": regions,
+                        "max_stretch": None if e.stretch is None else rounded_up(e.stretch, 3),
+                        "min_compression": None if e.compression is None else rounded_down(e.compression, 3)})
         return out
 
 
@@ -415,12 +433,17 @@ def check_stream(player, frames: Iterable, name: str = "", fps: float | None = N
     of the back seen in that worst frame}, "ok"}; ok: every frame finite, nothing folded,
     strain within [MIN_COMPRESSION, MAX_STRETCH], the lips never cross, no lining comes out
     through the skin and no frame shows the skin's back over more than BACK_AREA_LIMIT.
-    Frames labelled per FAP (a `fap_sweep`) add "per_fap": a list of PerFap.report's
-    records, one per FAP and side swept."""
+    A sweep (SweepFrames) plays each FAP's side from rest (what one leaves behind, down to
+    a skin no longer finite, is not laid on the next) and adds "per_fap": PerFap.report's
+    records, one per FAP and side; "worst_frame" and "worst_back_frame" count the sweep's
+    frames from its start."""
     check = check or SkinCheck(player.face)
     labels = getattr(frames, "labels", None)
     per_fap = PerFap(len(check.faces)) if labels else None
-    player.reset()
+    if per_fap is not None:
+        parts = [(start, frames[start:end], labels[start:end]) for start, end in frames.sides()]
+    else:
+        parts = [(0, frames, None)]
     ever = np.zeros(len(check.faces), dtype=bool)
     turned = np.zeros(len(check.faces), dtype=bool)
     count = folded_frames = lip_frames = max_crossings = lining_frames = max_lining = back_frames = 0
@@ -428,9 +451,15 @@ def check_stream(player, frames: Iterable, name: str = "", fps: float | None = N
     worst_back, back_area, back_rays = -1, 0.0, np.zeros(len(check.faces), dtype=np.int64)
     stretch, compression = 1.0, 1.0
     broken = 0  # frames whose skin is not finite: nothing of it can be measured, and it is not whole
-    for frame in player.play(frames, fps=fps):
+
+    def played():  # (frame index in the stream, its label or None, the played frame)
+        for offset, part, part_labels in parts:
+            player.reset()
+            for frame in player.play(part, fps=fps):
+                yield offset + frame.index, None if part_labels is None else part_labels[frame.index], frame
+
+    for index, label, frame in played():
         count += 1
-        label = labels[frame.index] if per_fap is not None and frame.index < len(labels) else None
         if not (np.isfinite(frame.skin_vertices).all() and np.isfinite(frame.bone_transforms["head"]).all()):
             broken += 1
             if label is not None:
@@ -445,7 +474,7 @@ def check_stream(player, frames: Iterable, name: str = "", fps: float | None = N
             ever |= r.folded
             turned |= r.turned
             if k > worst_count:
-                worst, worst_count = frame.index, k
+                worst, worst_count = index, k
         if r.lip_crossings:
             lip_frames += 1
             max_crossings = max(max_crossings, r.lip_crossings)
@@ -455,7 +484,7 @@ def check_stream(player, frames: Iterable, name: str = "", fps: float | None = N
         if r.back_area > BACK_AREA_LIMIT:
             back_frames += 1
         if r.back_area > back_area:
-            worst_back, back_area, back_rays = frame.index, r.back_area, r.back_rays
+            worst_back, back_area, back_rays = index, r.back_area, r.back_rays
         stretch, compression = max(stretch, r.stretch), min(compression, r.compression)
     player.reset()
     regions = {}
@@ -494,27 +523,44 @@ def rounded_down(x: float, places: int) -> float:
 
 
 class SweepFrames(list):
-    """Frames (68,) of a FAP sweep, with a label per frame: (FAP, +1 or -1, the share of its
-    limit the stream has reached): the rise's own share, then 1.0 while it is held, comes
-    back and rests (what the skin does then comes of having been at the limit)."""
+    """Frames (68,) of a FAP sweep, each labelled (FAP, +1 or -1, the share of the FAP's limit
+    reached): a step's own share while the stream climbs, then 1.0 while it holds the limit,
+    comes back and rests (what the skin does then comes of having been at the limit).
+    `check_stream` plays each FAP's side from rest on its own."""
 
     def __init__(self, frames=(), labels=()):
         super().__init__(frames)
         self.labels = list(labels)
 
+    def sides(self) -> list[tuple[int, int]]:
+        """(start, end) frame ranges of the sweep's sides, one FAP and sign each."""
+        out, start = [], 0
+        for i in range(1, len(self.labels) + 1):
+            if i == len(self.labels) or self.labels[i][:2] != self.labels[start][:2]:
+                out.append((start, i))
+                start = i
+        return out
+
+
+def sweep_shape() -> tuple[np.ndarray, np.ndarray]:
+    """(amplitude, share reached) per frame of one side of the sweep, both (n,) in [0, 1]
+    of the FAP's limit (see SWEEP_STEPS)."""
+    steps = np.arange(1, SWEEP_STEPS + 1) / SWEEP_STEPS
+    rise = np.repeat(steps[:-1], SWEEP_STEP_HOLD)
+    amplitude = np.concatenate([rise, np.ones(SWEEP_HOLD), steps[::-1][1:], np.zeros(SWEEP_REST)])
+    return amplitude, np.concatenate([rise, np.ones(len(amplitude) - len(rise))])
+
 
 def fap_sweep(faps: Iterable[int] | None = None) -> SweepFrames:
     """(68,) frames, FAPU units: every low-level FAP 3..68 (or those of `faps`) alone, 0 -> its
-    upper limit (held) -> 0 (rest) -> its lower limit (held) -> 0 (rest), the limits the
-    Player clamps to (`FAP_LIMITS`, the standard's ranges); labelled per frame (SweepFrames)
-    for `check_stream`'s report per FAP. The rest after each side lets the skin settle
-    before the next FAP, so what one leaves behind is not laid at the next one's door."""
+    upper limit (held) -> 0 (rest), then the same to its lower limit, the limits the Player
+    clamps to (`FAP_LIMITS`, the standard's ranges), climbing in steps held until the skin
+    settles (sweep_shape); labelled per frame (SweepFrames) for `check_stream`'s report per
+    FAP."""
     from fae.mpeg4.faptables import FAP_LIMITS
     from fae.mpeg4.faps import FAP_COUNT
 
-    ramp = np.linspace(0.0, 1.0, SWEEP_RAMP + 1)[1:]
-    shape = np.concatenate([ramp, np.ones(SWEEP_HOLD), ramp[::-1][1:], np.zeros(SWEEP_REST)])
-    reached = np.concatenate([ramp, np.ones(len(shape) - SWEEP_RAMP)])
+    shape, reached = sweep_shape()
     out = SweepFrames()
     for k in range(3, FAP_COUNT + 1) if faps is None else sorted(set(int(f) for f in faps)):
         for limit in FAP_LIMITS[k - 1, ::-1]:
