@@ -13,9 +13,9 @@ and how much of the face a viewer in front sees by the skin's back ("backs": fra
 low-level FAP alone to the limits of its range and the standard's six expressions at full
 intensity; the sweep is reported per FAP too: how far towards the standard's limit each
 one, on each side, keeps the skin whole (climbing a quarter of the range at a time, each
-step held until the skin settles), and what gives first. --faps sweeps only the FAPs named (numbers or names), to look at a few closely.
-Exit status 0 when every stream keeps the skin whole, 1 when any does not, 2 when the
-head or a stream cannot be read.
+step held until the skin settles), and what gives first. --faps sweeps only the FAPs
+named (numbers or names), to look at a few closely. Exit status 0 when every stream keeps
+the skin whole, 1 when any does not, 2 when the head or a stream cannot be read.
 """
 
 from __future__ import annotations
