@@ -372,6 +372,30 @@ def test_each_side_of_the_sweep_starts_from_rest(face, check):
     assert gone["max_stretch"] is None and gone["min_compression"] is None and gone["whole_to"] == 0.0
 
 
+# FAP: the least share of its standard limit, per side, the shipped head keeps the skin whole
+# up to when each quarter is held (measured: thrust_jaw and depress_chin over the whole range,
+# at most 1.84x stretch; the upper lid's opening to half, 1.64x; the lower lid's opening, the
+# cheek's lift and the nose's stretch to a quarter, 1.33-1.70x, with folds a quarter further)
+WHOLE_AT_LEAST = {(14, "+"): 1.0, (18, "+"): 1.0, (18, "-"): 1.0, (19, "-"): 0.5, (21, "-"): 0.25,
+                  (23, "+"): 1.0, (23, "-"): 1.0, (41, "+"): 0.25, (61, "+"): 0.25}
+
+
+@pytest.mark.slow
+def test_the_shipped_head_keeps_the_skin_whole_as_far_along_each_fap_as_it_did(face, check):
+    """A guard on the skin's range: a FAP of each part of the face (jaw, chin, lids, eyeball,
+    cheek, nose), swept a quarter of its range at a time, keeps the skin whole at least as
+    far as the shipped head did when this was written; a change to the solver, the pull
+    fields or the template that makes skin fold sooner fails here."""
+    from fae.animate.player import Player, playable_head
+
+    faps = sorted({k for k, _ in WHOLE_AT_LEAST})
+    report = check_stream(Player(playable_head(face)), fap_sweep(faps), "sweep", check=check)
+    reached = {(e["fap"], e["side"]): e for e in report["per_fap"]}
+    for key, share in WHOLE_AT_LEAST.items():
+        e = reached[key]
+        assert e["whole_to"] >= share, (key, e["whole_to"], e["fails_at"], e["why"], e["folded_by_region"])
+
+
 def test_skin_that_is_not_finite_is_not_whole(face, check):
     """A head whose tables overflow to inf (an authored FaceDefTable of 1e308 m a unit) was
     "whole": NaN edge ratios vanished in max/min and NaN normals never counted as turned."""
