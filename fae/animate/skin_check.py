@@ -343,6 +343,12 @@ def in_head_frame(skin: np.ndarray, head: np.ndarray) -> np.ndarray:
     return (skin - head[:3, 3]) @ head[:3, :3]
 
 
+def folded_regions(check: "SkinCheck", folded: np.ndarray) -> dict[str, int]:
+    """{region name: triangles} of the skin triangles flagged in `folded` (T,) bool."""
+    rid, count = np.unique(check.triangle_region[folded], return_counts=True)
+    return {check.region_names[r]: int(c) for r, c in zip(rid, count)}
+
+
 def what_breaks(r: FrameCheck | None) -> list[str]:
     """What keeps frame check `r` from being whole (None: skin not finite): "not finite",
     "folded", "stretched", "compressed", "lips crossed", "lining shown", "back shown";
@@ -408,13 +414,10 @@ class PerFap:
         for (fap, sign), e in self.sides.items():
             below = [x for x in e.shares if e.fails_at is not None and x < e.fails_at]
             whole_to = 1.0 if e.fails_at is None else max(below, default=0.0)
-            regions = {}
-            for rid in np.unique(check.triangle_region[e.folded]):
-                regions[check.region_names[rid]] = int(np.sum(check.triangle_region[e.folded] == rid))
             out.append({"fap": fap, "name": FAP_NAME[fap - 1], "side": "+" if sign > 0 else "-",
                         "limit": float(FAP_LIMITS[fap - 1, 1 if sign > 0 else 0]), "whole_to": whole_to,
                         "fails_at": e.fails_at, "why": sorted(e.why.get(e.fails_at, ())),
-                        "triangles_folded": int(e.folded.sum()), "folded_by_region": regions,
+                        "triangles_folded": int(e.folded.sum()), "folded_by_region": folded_regions(check, e.folded),
                         "max_stretch": None if e.stretch is None else rounded_up(e.stretch, 3),
                         "min_compression": None if e.compression is None else rounded_down(e.compression, 3)})
         return out
@@ -438,10 +441,9 @@ def check_stream(player, frames: Iterable, name: str = "", fps: float | None = N
     records, one per FAP and side; "worst_frame" and "worst_back_frame" count the sweep's
     frames from its start."""
     check = check or SkinCheck(player.face)
-    labels = getattr(frames, "labels", None)
-    per_fap = PerFap(len(check.faces)) if labels else None
+    per_fap = PerFap(len(check.faces)) if isinstance(frames, SweepFrames) else None
     if per_fap is not None:
-        parts = [(start, frames[start:end], labels[start:end]) for start, end in frames.sides()]
+        parts = [(start, frames[start:end], frames.labels[start:end]) for start, end in frames.sides()]
     else:
         parts = [(0, frames, None)]
     ever = np.zeros(len(check.faces), dtype=bool)
@@ -451,6 +453,7 @@ def check_stream(player, frames: Iterable, name: str = "", fps: float | None = N
     worst_back, back_area, back_rays = -1, 0.0, np.zeros(len(check.faces), dtype=np.int64)
     stretch, compression = 1.0, 1.0
     broken = 0  # frames whose skin is not finite: nothing of it can be measured, and it is not whole
+    whole = True  # every frame so far (what_breaks)
 
     def played():  # (frame index in the stream, its label or None, the played frame)
         for offset, part, part_labels in parts:
@@ -462,10 +465,12 @@ def check_stream(player, frames: Iterable, name: str = "", fps: float | None = N
         count += 1
         if not (np.isfinite(frame.skin_vertices).all() and np.isfinite(frame.bone_transforms["head"]).all()):
             broken += 1
+            whole = False
             if label is not None:
                 per_fap.add(label, None)
             continue
         r = check.frame(in_head_frame(frame.skin_vertices, frame.bone_transforms["head"]))
+        whole = whole and not what_breaks(r)
         if label is not None:
             per_fap.add(label, r)
         k = int(r.folded.sum())
@@ -487,15 +492,11 @@ def check_stream(player, frames: Iterable, name: str = "", fps: float | None = N
             worst_back, back_area, back_rays = index, r.back_area, r.back_rays
         stretch, compression = max(stretch, r.stretch), min(compression, r.compression)
     player.reset()
-    regions = {}
-    for rid in np.unique(check.triangle_region[ever]):
-        regions[check.region_names[rid]] = int(np.sum(check.triangle_region[ever] == rid))
+    regions = folded_regions(check, ever)
     back_regions = {}  # mm^2 of the back seen in the worst frame, by the region of the triangles
     for rid in np.unique(check.triangle_region[back_rays > 0]):
         area = float(back_rays[check.triangle_region == rid].sum()) * BACK_RAY_SPACING ** 2 * 1e6
         back_regions[check.region_names[rid]] = round(area, 1)
-    ok = (not ever.any()) and stretch <= MAX_STRETCH and compression >= MIN_COMPRESSION and lip_frames == 0 \
-        and lining_frames == 0 and back_frames == 0 and broken == 0
     out = {"stream": name, "frames": count, "frames_not_finite": broken, "frames_folded": folded_frames, "triangles_folded": int(ever.sum()),
             "triangles_turned": int(turned.sum()),
             "folded_by_region": regions, "worst_frame": worst, "worst_frame_folded": worst_count,
@@ -504,7 +505,7 @@ def check_stream(player, frames: Iterable, name: str = "", fps: float | None = N
             "frames_lips_crossed": lip_frames, "max_lip_crossings": max_crossings,
             "frames_lining_shown": lining_frames, "max_lining_crossings": max_lining,
             "frames_back_shown": back_frames, "max_back_area_mm2": round(back_area * 1e6, 1),
-            "worst_back_frame": worst_back, "back_by_region": back_regions, "ok": bool(ok)}
+            "worst_back_frame": worst_back, "back_by_region": back_regions, "ok": whole}
     if per_fap is not None:
         out["per_fap"] = per_fap.report(check)
     return out
