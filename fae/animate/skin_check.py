@@ -381,18 +381,19 @@ class SideRecord:
 
 class PerFap:
     """A FAP sweep's checks gathered per FAP and side: how far towards the standard's limit
-    each one keeps the skin whole. `add((fap, sign, share), frame_check)` per frame,
+    each one keeps the skin whole. `add((fap, sign, share), frame_check, what_breaks)` per frame,
     `report(check)` at the end."""
 
     def __init__(self, triangle_count: int):
         self.triangle_count = triangle_count
         self.sides: dict[tuple[int, int], SideRecord] = {}
 
-    def add(self, label: tuple[int, int, float], r: FrameCheck | None) -> None:
+    def add(self, label: tuple[int, int, float], r: FrameCheck | None, why: list[str]) -> None:
+        """One frame of the side `label`: its check `r` (None: skin not finite) and what
+        broke in it (what_breaks(r))."""
         fap, sign, share = int(label[0]), int(label[1]), float(label[2])
         e = self.sides.setdefault((fap, sign), SideRecord(np.zeros(self.triangle_count, dtype=bool)))
         e.shares.add(share)
-        why = what_breaks(r)
         if why:
             e.why.setdefault(share, set()).update(why)
             e.fails_at = share if e.fails_at is None else min(e.fails_at, share)
@@ -467,12 +468,13 @@ def check_stream(player, frames: Iterable, name: str = "", fps: float | None = N
             broken += 1
             whole = False
             if label is not None:
-                per_fap.add(label, None)
+                per_fap.add(label, None, what_breaks(None))
             continue
         r = check.frame(in_head_frame(frame.skin_vertices, frame.bone_transforms["head"]))
-        whole = whole and not what_breaks(r)
+        why = what_breaks(r)
+        whole = whole and not why
         if label is not None:
-            per_fap.add(label, r)
+            per_fap.add(label, r, why)
         k = int(r.folded.sum())
         if k:
             folded_frames += 1
