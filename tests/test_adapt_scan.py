@@ -31,6 +31,7 @@ from fae.animate.verify import passed_fraction, verify_faps
 from fae.data import shipped_head_path
 from fae.linalg import turn_between
 from fae.cli import main
+from fae.commands.adapt import lids_off_their_eyes
 from fae.io.facemodel_gltf import read_facemodel
 
 import importlib.util
@@ -174,6 +175,11 @@ def test_a_bust_becomes_a_whole_head_on_its_scan(adapted_bust, bust, template):
     size = np.ptp(model.skin_vertices[:, 0]) / np.ptp(template.skin_vertices[:, 0])
     assert 1.03 < size < 1.13
     assert report["head_part"]["head_vertices"] < report["head_part"]["scan_vertices"]
+    # the lids keep to their eyeballs as the template's do (0.8 mm): no deep-set eyes told of
+    gaps = report["lid_gap_m"]
+    assert set(gaps) == {"eye_l", "eye_r"}
+    assert all(0.0 < g[lid] < 0.002 for g in gaps.values() for lid in ("upper", "lower")), gaps
+    assert lids_off_their_eyes(report) is None
     from PIL import Image
 
     assert Image.open(cmp).size == (3 * 360, 2 * 360)
@@ -542,11 +548,17 @@ def neck_creases(model, more_than: float = 30.0) -> int:
 @needs_mediapipe
 @pytest.mark.slow
 @pytest.mark.parametrize("name", BUSTS)
-def test_a_scanned_bust_becomes_a_head(shared_data, name, tmp_path):
+def test_a_scanned_bust_becomes_a_head(shared_data, name, tmp_path, capsys):
     scan = shared_data / "heads" / "busts" / name / f"{name}.obj"
     out, rep = tmp_path / "head.glb", tmp_path / "r.json"
     assert main(["adapt", str(scan), "-o", str(out), "--report", str(rep), "--no-calibrate"]) == 0
     report = json.loads(rep.read_text())
+    # the sculpted lids lie 5-10 mm (upper) and 2-5 mm (lower) off the eyeballs placed in
+    # their sockets: told on stderr, as the report has it
+    told = lids_off_their_eyes(report)
+    assert set(report["lid_gap_m"]) == {"eye_l", "eye_r"}
+    assert (told is not None) == (max(g["upper"] for g in report["lid_gap_m"].values()) > 0.003)
+    assert told is None or told in capsys.readouterr().err
     assert report["folded_triangles"]["all"] == 0
     e = report["errors"]
     assert e["face_to_scan_rms_rel"] < 0.001 and e["face_coverage"] > 0.95  # 0.058-0.096 %

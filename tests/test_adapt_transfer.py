@@ -2,6 +2,7 @@
 (the template warped by a smooth random field plus fine detail, remeshed, in millimetres,
 turned) must give a valid, animatable head whose feature points and FAPU follow the scan."""
 
+import copy
 from pathlib import Path
 
 import numpy as np
@@ -9,7 +10,7 @@ import pytest
 
 from fae.adapt.calibration import apply_transform
 from fae.adapt.synthetic import template_scan
-from fae.adapt.transfer import adapt_facemodel, visible_skin
+from fae.adapt.transfer import LID_GAP_WARNED, adapt_facemodel, lid_gaps, visible_skin
 from fae.anatomy.checks import facemodel_problems, self_intersections
 from fae.data import shipped_head_path
 from fae.io.facemodel_gltf import read_facemodel, write_facemodel
@@ -575,3 +576,22 @@ def test_teeth_carried_above_the_lips_come_down_to_meet_them(template):
     head = lifted({"upper_teeth": 0.004, "lower_teeth": -0.008})
     moved = mouth_parts_at_lips(template, head, 1.0)
     assert moved["upper_teeth"] == pytest.approx(0.004, abs=1e-6) and moved["lower_teeth"] == 0.0
+
+
+def test_lid_gaps_measure_how_far_each_lid_lies_off_its_eyeball(template):
+    gaps = lid_gaps(template)
+    # the shipped head's lids rest 0.8 mm off its eyeballs, both eyes, both lids
+    assert all(abs(g[lid] - 0.0008) < 0.0003 for g in gaps.values() for lid in ("upper", "lower")), gaps
+    # an eyeball pushed 6 mm back into its orbit (a bust's sculpted lids in front of it)
+    sunk = copy.deepcopy(template)
+    sunk.parts["eye_r"].vertices = np.asarray(sunk.parts["eye_r"].vertices) - np.array([0.0, 0.0, 0.006])
+    deep = lid_gaps(sunk)
+    assert deep["eye_r"]["upper"] > 0.005 and deep["eye_r"]["lower"] > 0.004
+    assert abs(deep["eye_l"]["upper"] - gaps["eye_l"]["upper"]) < 1e-9
+
+    from fae.commands.adapt import lids_off_their_eyes
+
+    assert lids_off_their_eyes({"lid_gap_m": gaps}) is None
+    told = lids_off_their_eyes({"lid_gap_m": deep})
+    assert told is not None and f"eye_r {deep['eye_r']['upper'] * 1000:.1f} mm" in told
+    assert f"{LID_GAP_WARNED * 1000:.0f} mm" in told

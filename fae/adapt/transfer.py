@@ -541,6 +541,27 @@ def gaze_turn(template: FaceModel, model: FaceModel, name: str, c: np.ndarray) -
                         after - np.asarray(c, dtype=np.float64), EYE_MAX_GAZE_TURN)
 
 
+LID_GAP_WARNED = 0.003  # m: an upper lid farther off its eyeball than this is told of (fae adapt)
+
+
+def lid_gaps(model: FaceModel) -> dict[str, dict[str, float]]:
+    """{eye: {"upper": m, "lower": m}}: how far the middle of each of eye's lids (its
+    feature point, EYE_OPENINGS) lies from the eyeball's surface, metres; the template's
+    lie 0.8 mm off. A lid far off its eyeball hangs in front of it: the eye looks set deep
+    behind a thick rim, and a closing lid travels through air and creases where it lands
+    (the busts' upper lids 5-10 mm off: their blinks fold 12-15 triangles a lid)."""
+    fp = model.feature_point_positions()
+    out = {}
+    for name, (upper, lower, _, _) in EYE_OPENINGS.items():
+        if name not in model.parts or upper not in fp or lower not in fp:
+            continue
+        V, F = model.mesh(name)
+        d = MeshQuery(np.asarray(V, np.float64), np.asarray(F, np.int64)).closest_points(
+            np.array([fp[upper], fp[lower]], dtype=np.float64), 1.0)[1]
+        out[name] = {"upper": float(d[0]), "lower": float(d[1])}
+    return out
+
+
 ORBIT_PUSH_RADIUS = 0.004  # m over which a push deepening an orbit takes the skin around along
 EYE_MIN_SHARE = 0.9  # of the ratio of the outer eye corners' distance: no eyeball is scaled below this
 EYE_SINK_STEP = 0.0005  # m: an eyeball that crosses the skin moves away from it by this much at a time
@@ -817,6 +838,7 @@ def personalize(template: FaceModel, skin: np.ndarray, T: np.ndarray, unit: str,
     model.meta.update({"generator": "fae adapt", "adapt_method": method, "scan_unit": unit, "symmetric": False})
     report = {"method": method, "scan_unit": unit, "bone_vertices_pushed_under_skin": pushed,
               "fapu_ratio": fapu_ratio, "eye_scale": eye_scale, "orbits_deepened": orbits_deepened,
+              "lid_gap_m": lid_gaps(model),
               "mouth_parts_moved_back_m": mouth_moved, "mouth_parts_moved_down_m": mouth_lowered,
               "muscle_attachments_moved": moved_muscles, "hidden_skin_lifted_off_bone": lifted,
               "hidden_skin_moved_behind_visible": lining_moved}

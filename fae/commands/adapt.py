@@ -205,6 +205,20 @@ def _outputs_problem(outputs: dict[str, str | None]) -> str | None:
     return None
 
 
+def lids_off_their_eyes(report: dict) -> str | None:
+    """A warning when an upper lid of the adapted head lies farther than LID_GAP_WARNED off
+    its eyeball (the report's lid_gap_m; fae.adapt.transfer.lid_gaps), else None."""
+    from fae.adapt.transfer import LID_GAP_WARNED
+
+    gaps = {eye: g["upper"] for eye, g in (report.get("lid_gap_m") or {}).items()}
+    if not gaps or max(gaps.values()) <= LID_GAP_WARNED:
+        return None
+    shown = ", ".join(f"{eye} {gap * 1000:.1f} mm" for eye, gap in sorted(gaps.items()))
+    return (f"the upper lids' margins lie off their eyeballs ({shown}; the template's 0.8 mm, more than "
+            f"{LID_GAP_WARNED * 1000:.0f} mm told): the eyes sit deep behind the lids, and closing lids crease "
+            "(fae verify-skin shows how much)")
+
+
 def _say(msg: str) -> None:
     print(f"fae adapt: {msg}", file=sys.stderr)
 
@@ -249,6 +263,9 @@ def _finish(args, model, report, V, F, keep, started, start_mapping=None) -> int
     report["scan_turned_outward"] = bool(getattr(args, "turned_outward", False))
     if _refused(args, args.scan, verdict, report, "; --landmarks may help"):
         return 2
+    deep = lids_off_their_eyes(report)
+    if deep:
+        _say(deep)
     model = _calibrated_if_whole(args, args.scan, model, report, start_mapping)
     if model is None:
         return 2
