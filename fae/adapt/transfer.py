@@ -545,11 +545,10 @@ LID_GAP_WARNED = 0.003  # m: an upper lid farther off its eyeball than this is t
 
 
 def lid_gaps(model: FaceModel) -> dict[str, dict[str, float]]:
-    """{eye: {"upper": m, "lower": m}}: how far the middle of each of eye's lids (its
-    feature point, EYE_OPENINGS) lies from the eyeball's surface, metres; the template's
-    lie 0.8 mm off. A lid far off its eyeball hangs in front of it: the eye looks set deep
-    behind a thick rim, and a closing lid travels through air and creases where it lands
-    (the busts' upper lids 5-10 mm off: their blinks fold 12-15 triangles a lid)."""
+    """{eye: {"upper": m, "lower": m}}: how far the middle of each eye's lids (their
+    feature points, EYE_OPENINGS) lies from the eyeball's surface, metres; the template's
+    lie 0.8 mm off. A lid far off its eyeball stands in front of it: seen from the side,
+    the eye sits deep behind a thick rim (the busts' sculpted upper lids 5-10 mm off)."""
     fp = model.feature_point_positions()
     out = {}
     for name, (upper, lower, _, _) in EYE_OPENINGS.items():

@@ -215,8 +215,8 @@ def lids_off_their_eyes(report: dict) -> str | None:
         return None
     shown = ", ".join(f"{eye} {gap * 1000:.1f} mm" for eye, gap in sorted(gaps.items()))
     return (f"the upper lids' margins lie off their eyeballs ({shown}; the template's 0.8 mm, more than "
-            f"{LID_GAP_WARNED * 1000:.0f} mm told): the eyes sit deep behind the lids, and closing lids crease "
-            "(fae verify-skin shows how much)")
+            f"{LID_GAP_WARNED * 1000:.0f} mm told): the eyes sit deep behind the lids (see them from the side "
+            "with fae render --view profile)")
 
 
 def _say(msg: str) -> None:
