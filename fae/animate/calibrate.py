@@ -140,7 +140,8 @@ WHOLE_CHECK_SHIFT = 0.2
 # two, since a lid's skin of lower drag may turn round at an overshoot): on Demosthenes
 # about 15 frames instead of 20 on average at 0.2 %, the measured motion within 3 % of the
 # 20th frame's for 95 % of the probes (a fixed 14 frames: 8 %). At 1 % the busts'
-# calibrations take 10-25 % less time and verify-faps passes as many FAPs (49 / 50 / 49)
+# calibrations take 10-25 % less time and verify-faps passes as many FAPs in all (marble /
+# Demosthenes / wreath 49 / 50 / 49 against 48 / 49 / 50; frames and accuracy not measured again)
 SETTLE_MIN_FRAMES = 8
 SETTLE_TOLERANCE = 0.01
 # FAPs probed alone: the mouth corners' raise, which a batch mate whose footprint does not

@@ -214,9 +214,8 @@ def lids_off_their_eyes(report: dict) -> str | None:
     if not gaps or max(gaps.values()) <= LID_GAP_WARNED:
         return None
     shown = ", ".join(f"{eye} {gap * 1000:.1f} mm" for eye, gap in sorted(gaps.items()))
-    return (f"the upper lids' margins lie off their eyeballs ({shown}; the template's 0.8 mm, more than "
-            f"{LID_GAP_WARNED * 1000:.0f} mm told): the eyes sit deep behind the lids (see them from the side "
-            "with fae render --view profile)")
+    return (f"the upper lids' margins lie off their eyeballs ({shown}; warned above {LID_GAP_WARNED * 1000:.0f} "
+            "mm): the eyes sit deep behind the lids (see them from the side with fae render --view profile)")
 
 
 def _say(msg: str) -> None:
