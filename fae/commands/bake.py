@@ -25,7 +25,7 @@ def register(subparsers) -> None:
     parser.add_argument("head", nargs="?", default=None, metavar="HEAD.glb",
                         help="FaceModel .glb (default: the shipped generic head)")
     parser.add_argument("-o", "--output", required=True, metavar="BAKED.glb", help="the baked head to write")
-    parser.add_argument("--faps", default=None, help="comma-separated FAP numbers or ranges to bake, e.g. 3,19-22 "
+    parser.add_argument("--faps", default=None, help="comma-separated FAP numbers, ranges or names to bake, e.g. 3,19-22,open_jaw "
                         "(default: every FAP that moves the skin)")
     parser.add_argument("--intervals", type=int, default=None, metavar="N",
                         help="table intervals per sign of a FAP's range (default 3)")

@@ -22,25 +22,31 @@ def register(subparsers) -> None:
                                    description=__doc__.split("\n\n", 1)[1] if __doc__ else None)
     parser.add_argument("head", nargs="?", default=None, help="FaceModel .glb (default: the generic head)")
     parser.add_argument("--json", action="store_true", help="print one JSON object on stdout")
-    parser.add_argument("--faps", default=None, help="comma-separated FAP numbers or ranges, e.g. 3,19-22")
+    parser.add_argument("--faps", default=None, help="comma-separated FAP numbers, ranges or names, e.g. 3,19-22,open_jaw")
     parser.set_defaults(func=run)
 
 
 def parse_fap_list(text: str) -> list[int]:
-    """FAP numbers from '3,19-22,51', each once and in order (ValueError naming the bad
-    item: a number outside 1..68, a range backwards)."""
-    from fae.mpeg4.faps import FAP_COUNT
+    """FAP numbers from '3,19-22,open_jaw', each once and in order: numbers, ranges or the
+    standard's names (ValueError naming the bad item: a number outside 1..68, a range
+    backwards, a name no FAP has)."""
+    from fae.mpeg4.faps import FAP_COUNT, fap_by_name
 
     out: set[int] = set()
     for item in text.split(","):
         item = item.strip()
         try:
-            a, b = (int(x) for x in item.split("-", 1)) if "-" in item else (int(item),) * 2
+            if not item.isascii():  # int() reads other scripts' digits too
+                raise ValueError
+            if item and not item[0].isdigit():
+                a = b = fap_by_name(item).number
+            else:
+                a, b = (int(x) for x in item.split("-", 1)) if "-" in item else (int(item),) * 2
             if not 1 <= a <= b <= FAP_COUNT:
                 raise ValueError
-        except ValueError:
-            raise ValueError(f"--faps: expected FAP numbers (1-{FAP_COUNT}) or ranges like 3,19-22, "
-                             f"got {item!r}") from None
+        except (KeyError, ValueError):
+            raise ValueError(f"--faps: expected FAP numbers (1-{FAP_COUNT}), ranges like 3,19-22 or FAP names; "
+                             f"got {item!r}, which is neither a FAP number nor a FAP's name") from None
         out.update(range(a, b + 1))
     return sorted(out)
 

@@ -14,7 +14,7 @@ low-level FAP alone to the limits of its range and the standard's six expression
 intensity; the sweep is reported per FAP too: how far towards the standard's limit each
 one, on each side, keeps the skin whole (climbing a quarter of the range at a time, each
 step held until the skin settles), and what gives first. --faps sweeps only the FAPs
-named (numbers or names), to look at a few closely. Exit status 0 when every stream keeps
+named (numbers, ranges or names), to look at a few closely. Exit status 0 when every stream keeps
 the skin whole, 1 when any does not, 2 when the head or a stream cannot be read.
 """
 
@@ -34,7 +34,7 @@ def register(subparsers) -> None:
     parser.add_argument("streams", nargs="*", metavar="STREAM.fap",
                         help="FAP streams to play (default: the FAP sweep and the six expressions)")
     parser.add_argument("--faps", default=None, metavar="LIST",
-                        help="sweep only these low-level FAPs (3-68), by number or name, comma-separated "
+                        help="sweep only these low-level FAPs (3-68), by number, range or name, comma-separated "
                              "(e.g. 5,open_jaw,19); instead of the default streams")
     parser.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     add_device_argument(parser)
@@ -55,7 +55,7 @@ def run(args) -> int:
         try:
             sweep_faps = swept_faps(args.faps)
         except ValueError as exc:
-            return fail("verify-skin", f"--faps {args.faps!r}: {exc}")
+            return fail("verify-skin", str(exc))
         if streams:
             return fail("verify-skin", "--faps sweeps FAPs instead of playing streams; give one or the other")
     misplaced = [s for s in streams if s.lower().endswith((".glb", ".gltf"))]
@@ -144,26 +144,14 @@ def _column(name: str, width: int = 44) -> str:
 
 
 def swept_faps(text: str) -> list[int]:
-    """FAP numbers (3-68) from "5,open_jaw, 19": numbers or the standard's names."""
-    from fae.mpeg4.faps import fap_by_name
+    """Low-level FAP numbers (3-68) from "5,open_jaw,19-22" (fae.commands.verify_faps.parse_fap_list)."""
+    from fae.commands.verify_faps import parse_fap_list
 
-    out = []
-    for item in (x.strip() for x in text.split(",")):
-        if not item:
-            continue
-        if item.isascii() and item.isdigit():
-            k = int(item)
-        else:
-            try:
-                k = fap_by_name(item).number
-            except (KeyError, ValueError):
-                raise ValueError(f"{item!r} is neither a FAP number nor a FAP's name") from None
-        if not 3 <= k <= 68:
-            raise ValueError(f"FAP {k}: expected a low-level FAP, 3 to 68")
-        out.append(k)
-    if not out:
-        raise ValueError("expected at least one FAP")
-    return sorted(set(out))
+    faps = parse_fap_list(text)
+    high_level = [k for k in faps if k < 3]
+    if high_level:
+        raise ValueError(f"--faps: FAP {high_level[0]}: expected a low-level FAP, 3 to 68")
+    return faps
 
 
 def per_fap_text(report: dict) -> str:
