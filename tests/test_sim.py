@@ -198,7 +198,8 @@ def test_left_muscle_moves_the_left_side_only(face, model):
 
 def test_a_part_of_the_skin_simulated_alone_settles_as_it_does_in_the_whole(face, model):
     """A muscle's footprint (and a margin) simulated alone, the rest held: a fraction of the
-    particles, and the skin settles where the whole model puts it; a mask of the wrong size is refused."""
+    particles, and the skin settles where the whole model puts it; a mask of the wrong size, or of
+    skin nothing simulates, is refused."""
     from fae.mesh import adjacency
     from fae.sim.build import dilate
 
@@ -220,6 +221,9 @@ def test_a_part_of_the_skin_simulated_alone_settles_as_it_does_in_the_whole(face
     assert part.particle_count < 0.5 * model.particle_count
     with pytest.raises(ValueError, match="only: expected shape"):
         skin_model(face, only=moved[:10] > 0, like=model)
+    # and one of skin the simulation does not move (held by a bone: the scalp)
+    with pytest.raises(ValueError, match="none of these skin vertices is simulated"):
+        skin_model(face, only=model.skin_particle < 0, like=model)
     alone = settled(part) - model.skin_rest
     assert np.abs(alone - whole).max() < 0.01 * moved.max()  # 0.1 % here; 1.8 % without the margin
     # the skin outside the part stays where its hold puts it

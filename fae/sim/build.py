@@ -607,6 +607,8 @@ def skin_model(face: FaceModel, device: str = "cpu", fields: list[PullField] | N
         if only.shape != (nv,):
             raise ValueError(f"only: expected shape ({nv},), got {only.shape}")
         active &= only
+        if not active.any():  # (a solver of nothing to move has nothing to launch)
+            raise ValueError("only: none of these skin vertices is simulated (all move with their holds)")
     simulated = dilate(active, A, 1)
     sim_vertices = np.flatnonzero(simulated)
     nsv = len(sim_vertices)
