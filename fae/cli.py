@@ -85,10 +85,15 @@ def run() -> None:
     Everything a command writes is closed and renamed before main returns; what Python's
     teardown does after that (freeing Warp's kernel modules and arrays, MediaPipe's graph,
     OSMesa's context) took 0.2-0.7 s of every command on two cores (`fae adapt` of a bust
-    0.5 s), which a user waits for and nothing needs. The exit handlers still run, and the
+    0.6-0.7 s), which a user waits for and nothing needs. The exit handlers still run, and the
     usual exit is kept where something may still need the teardown: under a profiler or a
-    tracer (coverage writes its data then), or with a thread of the command still running."""
+    tracer (coverage writes its data then), or with a thread of the command still running
+    (the idle threads that split Warp's launches over the cores are let go first: kept, they
+    had made every `fae adapt` take the usual exit)."""
     code = main()
+    split = sys.modules.get("fae.warp_setup")  # (not imported for a command without Warp)
+    if split is not None:
+        split.stop_split_pools()  # idle kernel-launch threads, which would keep the usual exit
     quick = (sys.gettrace() is None and sys.getprofile() is None
              and all(t.daemon or t is threading.main_thread() for t in threading.enumerate()))
     if not quick:

@@ -97,6 +97,17 @@ def _split_pool(threads: int) -> ThreadPoolExecutor:
         return pool
 
 
+def stop_split_pools() -> None:
+    """Let the pools' threads go (each is idle once launch_split returns); a later launch
+    makes new ones. The `fae` command does so before it exits (fae.cli.run): it skips
+    Python's teardown only when no thread of the command is left running."""
+    with _split_pools_lock:
+        pools = list(_split_pools.values())
+        _split_pools.clear()
+    for pool in pools:
+        pool.shutdown(wait=True)
+
+
 def _forget_split_pools() -> None:
     # a forked child has none of its parent's threads: its pools are made anew
     global _split_pools_lock
@@ -107,4 +118,4 @@ def _forget_split_pools() -> None:
 os.register_at_fork(after_in_child=_forget_split_pools)
 
 
-__all__ = ["launch_split", "wp"]
+__all__ = ["launch_split", "stop_split_pools", "wp"]
