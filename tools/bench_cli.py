@@ -4,9 +4,11 @@ Each command runs --repeat times two ways, alternated so that a drift of the mac
 touches both alike: as the `fae` command does (fae.cli.run: main, then the exit handlers
 and an exit without Python's teardown) and, as the baseline, main followed by the usual
 interpreter teardown (freeing Warp's modules, MediaPipe's graph, OSMesa's context).
-Prints the median seconds of each and their ratio. Commands: `fae inspect` of a shipped
-stream, `fae render` of the shipped head, `fae play` of the shipped visemes stream (48
-frames, 640x480 mp4), and `fae adapt` of the bust the tests make
+Prints the median seconds of each and their ratio, and the median seconds from each
+command's last line of output to its exit (the teardown's share alone, which a long
+command's drift does not blur). Commands: `fae inspect` of a shipped stream, `fae render`
+of the shipped head, `fae play` of the shipped visemes stream (48 frames, 640x480 mp4),
+and `fae adapt` of the bust the tests make
 (fae.adapt.synthetic.bust_scan, seed 3; with its FAP calibration) and, with --real, of
 the scanned busts in shared/data/heads/busts when that folder is there.
 
@@ -29,13 +31,20 @@ REAL_BUSTS = ("marble_bust", "man_with_wreath", "demosthenes")
 TEARDOWN = "import sys; from fae.cli import main; sys.exit(main(sys.argv[1:]))"
 
 
-def wall(argv: list[str]) -> float:
+def wall(argv: list[str]) -> tuple[float, float]:
+    """(seconds from start to exit, seconds from the command's last line of output, on
+    stdout or stderr, to its exit; nan if it printed nothing): the second is the teardown's
+    own share, which a long command's drift (a bust's adapt varies by 1-2 s between runs
+    here) does not blur."""
     t = time.perf_counter()
-    done = subprocess.run(argv, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-    seconds = time.perf_counter() - t
-    if done.returncode != 0:
-        raise SystemExit(f"bench_cli: {' '.join(argv)} exited {done.returncode}: {done.stderr.strip()[-400:]}")
-    return seconds
+    last, said = float("nan"), ""
+    with subprocess.Popen(argv, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True) as run:
+        for line in run.stdout:
+            last, said = time.perf_counter(), (said + line)[-400:]
+    end = time.perf_counter()
+    if run.returncode != 0:
+        raise SystemExit(f"bench_cli: {' '.join(argv)} exited {run.returncode}: {said.strip()}")
+    return end - t, end - last
 
 
 def synthetic_bust(folder: Path) -> Path:
@@ -68,14 +77,16 @@ def main() -> None:
                          for name in REAL_BUSTS]
         elif args.real:
             print(f"note: {busts} not found; the scanned busts are left out")
-        print(f"{'command':28s} {'fae (s)':>8s} {'with teardown (s)':>18s} {'ratio':>6s}")
+        print(f"{'command':28s} {'fae (s)':>8s} {'with teardown (s)':>18s} {'ratio':>6s}   "
+              f"{'last output to exit: fae / with teardown (s)':>44s}")
         for name, argv in commands:
             quick, full = [], []
             for _ in range(args.repeat):
                 quick.append(wall([sys.executable, "-m", "fae", *argv]))
                 full.append(wall([sys.executable, "-c", TEARDOWN, *argv]))
-            q, f = statistics.median(quick), statistics.median(full)
-            print(f"{name:28s} {q:8.2f} {f:18.2f} {f / q:6.2f}x")
+            q, f = (statistics.median(t for t, _ in runs) for runs in (quick, full))
+            qe, fe = (statistics.median(e for _, e in runs) for runs in (quick, full))
+            print(f"{name:28s} {q:8.2f} {f:18.2f} {f / q:6.2f}x   {qe:21.2f} / {fe:.2f}")
 
 
 if __name__ == "__main__":
