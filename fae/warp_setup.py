@@ -76,7 +76,7 @@ def launch_split(kernel, n: int, inputs: list, outputs: list, device: str = "cpu
     wp.load_module(kernel.module, device=device)  # loaded once, before two threads would both load it
     # the calling thread runs the first range, threads kept for the purpose the others (a pool
     # made per call cost 1-2 ms of thread starts, a fit makes about a hundred such launches)
-    rest = [_split_pool(parts - 1).submit(run, k) for k in range(1, parts)]
+    rest = _submitted(parts - 1, run, range(1, parts))
     try:
         run(0)
     finally:
@@ -88,13 +88,16 @@ _split_pools: dict[int, ThreadPoolExecutor] = {}
 _split_pools_lock = threading.Lock()
 
 
-def _split_pool(threads: int) -> ThreadPoolExecutor:
-    """The process's pool of `threads` threads for launch_split's further ranges."""
+def _submitted(threads: int, run, ranges) -> list:
+    """Futures of run(k) for each k of `ranges`, on the process's pool of `threads` threads
+    for launch_split's further ranges (made on first use). Submitted under the pools' lock:
+    a pool that stop_split_pools lets go has every range it was given done first, and gets
+    no more."""
     with _split_pools_lock:
         pool = _split_pools.get(threads)
         if pool is None:
             pool = _split_pools[threads] = ThreadPoolExecutor(threads, thread_name_prefix="fae-split")
-        return pool
+        return [pool.submit(run, k) for k in ranges]
 
 
 def stop_split_pools() -> None:

@@ -91,6 +91,51 @@ def test_the_command_exits_quickly_with_its_status_and_all_its_output(repo_root,
         assert done.returncode == 2 and f"{bad}:3: token 'NaN'" in done.stderr
 
 
+def test_the_command_exits_quickly_after_splitting_warp_launches_over_the_cores():
+    # launch_split keeps idle threads for its further ranges; left running, they had made
+    # every `fae adapt` take Python's slow teardown. run() lets them go, exits at once with
+    # main's status, and a launch after that makes new ones
+    script = """
+import os, sys, threading
+import numpy as np
+import fae.cli
+from fae.adapt.query import MeshQuery
+from fae.cores import workers
+from fae.data import shipped_head_path
+from fae.io.facemodel_gltf import read_facemodel
+from fae.warp_setup import SPLIT_MIN, SPLIT_THREADS, stop_split_pools
+
+exit_now = os._exit
+def quick(code):
+    print("quick exit", code, flush=True)
+    exit_now(code)
+os._exit = quick
+
+def split_threads():
+    return sum(t.name.startswith("fae-split") for t in threading.enumerate())
+
+head = read_facemodel(shipped_head_path())
+query = MeshQuery(head.skin_vertices, head.skin_faces)
+X = np.asarray(head.skin_vertices)[np.arange(3 * SPLIT_MIN) % len(head.skin_vertices)] + 0.001
+faces = query.closest_points(X)[2]
+split = workers(SPLIT_THREADS) > 1
+assert split_threads() == (workers(SPLIT_THREADS) - 1 if split else 0), split_threads()
+stop_split_pools()
+assert split_threads() == 0
+assert np.array_equal(query.closest_points(X)[2], faces)  # new pools, the same answers
+assert split_threads() == (workers(SPLIT_THREADS) - 1 if split else 0)
+
+def main(argv=None):
+    print("main ran", flush=True)
+    return 3
+fae.cli.main = main
+fae.cli.run()
+"""
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 3, done.stderr[-2000:]
+    assert done.stdout.splitlines() == ["main ran", "quick exit 3"]
+
+
 @pytest.mark.skipif(os.name != "posix", reason="file size limits and closing descriptors in the child are POSIX")
 def test_output_that_cannot_be_written_fails_the_command_and_a_closed_stderr_does_not(repo_root, tmp_path):
     import resource
