@@ -18,6 +18,7 @@ the scanned busts in shared/data/heads/busts when that folder is there.
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import subprocess
 import sys
@@ -35,10 +36,13 @@ def wall(argv: list[str]) -> tuple[float, float]:
     """(seconds from start to exit, seconds from the command's last line of output, on
     stdout or stderr, to its exit; nan if it printed nothing): the second is the teardown's
     own share, which a long command's drift (a bust's adapt varies by 1-2 s between runs
-    here) does not blur."""
+    here) does not blur. The command's output is unbuffered, so that each line arrives when
+    printed (piped, stdout would otherwise come at the exit's flush, after the exit handlers)."""
     t = time.perf_counter()
     last, said = float("nan"), ""
-    with subprocess.Popen(argv, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True) as run:
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    with subprocess.Popen(argv, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                          errors="replace", env=env) as run:
         for line in run.stdout:
             last, said = time.perf_counter(), (said + line)[-400:]
     end = time.perf_counter()
@@ -86,7 +90,7 @@ def main() -> None:
                 full.append(wall([sys.executable, "-c", TEARDOWN, *argv]))
             q, f = (statistics.median(t for t, _ in runs) for runs in (quick, full))
             qe, fe = (statistics.median(e for _, e in runs) for runs in (quick, full))
-            print(f"{name:28s} {q:8.2f} {f:18.2f} {f / q:6.2f}x   {qe:21.2f} / {fe:.2f}")
+            print(f"{name:28s} {q:8.2f} {f:18.2f} {f / q:6.2f}x   {qe:24.2f} / {fe:.2f}")
 
 
 if __name__ == "__main__":
