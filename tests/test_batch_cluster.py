@@ -30,8 +30,13 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def child_env() -> dict:
+def child_env(tmp: Path) -> dict:
     env = dict(os.environ)
+    # the killed worker cannot remove its job folder (nor Dask its scratch space): both go
+    # under the test's own folder, not the machine's /tmp
+    scratch = tmp / "tmp"
+    scratch.mkdir(exist_ok=True)
+    env["TMPDIR"] = str(scratch)
     env["PYTHONPATH"] = os.pathsep.join([str(REPO), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
     env.update(OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", LP_NUM_THREADS="1", PYOPENGL_PLATFORM="osmesa")
     # A lost worker comes back to fae as a failed try (retried by fae) rather than being
@@ -55,7 +60,7 @@ class Cluster:
     """A scheduler and workers, each in its own session (a worker's nanny and its child die together)."""
 
     def __init__(self, tmp: Path):
-        self.env = child_env()
+        self.env = child_env(tmp)
         self.port = free_port()
         self.address = f"tcp://127.0.0.1:{self.port}"
         self.log = open(tmp / "cluster.log", "wb")
