@@ -1035,6 +1035,43 @@ def test_a_front_half_cut_at_the_ears_is_fitted_without_them(template, tmp_path)
     assert report["scan_unit"] == "mm" and abs(report["fapu_ratio"] - 1.0) < 0.03
 
 
+@pytest.mark.parametrize("size, cut", [(0.8, 40), (0.85, 40), (1.35, 0)], ids=["0.8x front", "0.85x front", "1.35x whole"])
+def test_ears_are_found_on_a_head_of_another_size(template, size, cut):
+    """The template scaled (0.8x or 0.85x, cut behind the ears as a front half; 1.35x whole),
+    its face's feature points given: the ears are looked for at the template's size, where
+    the fit's start places them, and their pairs land where the scaled ears are, as they do
+    at 1x. Searched on the scan as it is, the small halves' ears were not found and the
+    large head's pairs lay 11 mm off (median)."""
+    from fae.adapt.ears import ear_pairs
+    from fae.adapt.errors import surface
+    from fae.adapt.nonrigid import start_placement
+    from fae.adapt.transfer import visible_skin
+
+    P = np.asarray(template.skin_vertices, np.float64)
+    F = np.asarray(template.skin_faces, np.int64)
+    seen = visible_skin(template)
+    keep = seen & (P[:, 2] > np.percentile(P[:, 2], cut)) if cut else np.ones(len(P), bool)
+    scan = surface(*kept_part(P * size, F, keep))
+    points = [(fp.triangle, np.asarray(fp.bary)) for name, fp in template.feature_points.items()
+              if fp.part == "skin" and not name.startswith("10.")]  # the face's, no ears
+    faces, bary = np.array([f for f, _ in points]), np.array([b for _, b in points])
+    placement, partial = start_placement(P, F, scan, seen, (faces, bary, size * np.einsum("kj,kjd->kd", bary, P[F[faces]])))
+    assert partial == bool(cut)
+    pairs, report = ear_pairs(template, scan, partial, placement)
+    assert report["ear_l"]["found"] and report["ear_r"]["found"], report
+    on_template = np.einsum("kj,kjd->kd", pairs[1], P[F[pairs[0]]])
+    error = np.linalg.norm(pairs[2] - size * on_template, axis=1)
+    # (on a front half some ear points lie past the cut: their pairs are the scan nearest, as at 1x)
+    assert np.median(error) < 0.0005 and np.quantile(error, 0.9) < 0.004 * size, np.sort(error)[-5:]
+    # the old search, on the scan as it is, found less or placed worse
+    old_pairs, old = ear_pairs(template, scan, partial)
+    if old_pairs is not None:
+        old_on = np.einsum("kj,kjd->kd", old_pairs[1], P[F[old_pairs[0]]])
+        assert np.median(np.linalg.norm(old_pairs[2] - size * old_on, axis=1)) > 0.003
+    else:
+        assert not old["ear_l"]["found"]
+
+
 def test_a_head_with_no_ears_stands_out_has_none_found(template):
     """A head whose sides are smooth (the template's ears cut away and the holes left) has
     no ear to find: no pairs, and the report says why for each side."""

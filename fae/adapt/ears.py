@@ -1,7 +1,7 @@
 """The ears of a scan, found by their shape, so the fit can place the template's there.
 
-    found_ears(template, scan, partial=False) -> ([Ear], report)
-    ear_pairs(template, scan, partial=False) -> ((faces (k,), bary (k, 3), points (k, 3)) or None, report)
+    found_ears(template, scan, partial=False, placement=None) -> ([Ear], report)
+    ear_pairs(template, scan, partial=False, placement=None) -> ((faces (k,), bary (k, 3), points (k, 3)) or None, report)
     ears_carried(P, X, ears) -> X (n, 3): the skin with each found ear carried there
 
 No face-landmark model sees ears, and a scan's ears may sit centimetres from where the
@@ -20,6 +20,15 @@ both ways (the closer kept: hair may hide part of the scan's ear, and more of an
 stand out of a flatter side than of the template's); a turn beyond MAX_TURN or a residual
 beyond MAX_RESIDUAL drops the ear. Template ear vertices so moved, put onto the scan,
 become corresponding points for the fit (fae.adapt.nonrigid, through fae.adapt.from_scan).
+
+All of it is done at the template's size: the scan is brought there by the scale of the
+fit's start placement (`placement`, fae.adapt.nonrigid.start_placement), about where that
+puts the template's middle (its turn is left out: the ears are looked for as the face
+frame holds them; with it, the marble bust's ears turned 26 degrees and were dropped), so
+a head 0.75x or 1.35x the template's has ears of the size looked for, where they are
+looked for, and the gates mean the same (on the scan as it is, a 0.85x front half's ears
+were not found at all, a 0.75x one's rejected as a poor match, and a 1.35x head's ear
+pairs lay 8-13 mm off).
 """
 
 from __future__ import annotations
@@ -51,7 +60,8 @@ MAX_RESIDUAL = 0.003  # m, trimmed RMS of the ICP (sculpted ears: 2.0-2.9)
 # found farther than this from the template's is taken for the rim (the menpo3d mask's ears
 # 2.1 cm; the rims of the meshmonk face and of the suite's front halves cut at the ears
 # 5.3-7.1 cm, which carried the template's ears there and swelled the jaw). A whole head's
-# ears may sit farther (a marble bust's 4.8 cm low)
+# ears may sit farther (a marble bust's 4.8 cm low). Metres at the template's size (the scan
+# is brought to it by the scale of the fit's start placement)
 PARTIAL_SCAN_EAR_REACH = 0.04
 PAIRS_PER_EAR = 40
 PROJECT_REACH = 0.005  # m: a mapped ear point is put onto the scan when this close
@@ -166,7 +176,8 @@ def ear_rigid(A: np.ndarray, B: np.ndarray, t0: np.ndarray) -> tuple[np.ndarray,
 @dataclass
 class Ear:
     """An ear found on the scan: the template's `vertices` (k,) of that ear carried there
-    by x -> R x + t (R (3, 3), t (3,) metres, face frame), and corresponding points for the
+    by x -> R x + t (R (3, 3): a rotation times the person's size over the template's; t
+    (3,) metres, face frame), and corresponding points for the
     fit: template skin `faces` (p,), `bary` (p, 3), scan `points` (p, 3) metres."""
 
     name: str
@@ -178,12 +189,30 @@ class Ear:
     points: np.ndarray
 
 
-def found_ears(template: FaceModel, scan: Surface, partial: bool = False) -> tuple[list[Ear], dict]:
+def found_ears(template: FaceModel, scan: Surface, partial: bool = False,
+               placement: np.ndarray | None = None) -> tuple[list[Ear], dict]:
     """The template's ears found on a scan (in the face frame, metres, head part only), and a
-    report per ear (found or why not). partial: the scan covers only part of the head (as
-    the fit's start finds it: fae.adapt.nonrigid.partial_scan_at_start): an ear found
-    farther than PARTIAL_SCAN_EAR_REACH from the template's is its rim."""
+    report per ear (found or why not). placement: (4, 4) the map placing the template on
+    the scan (the fit's start: fae.adapt.nonrigid.start_placement; default none): the
+    search runs on the scan brought to the template's size by its scale (see above), so the
+    report's lengths (moved_m, residual_m) are at the template's size.
+    partial: the scan covers only part of the head (as the fit's start finds it): an ear
+    found farther than PARTIAL_SCAN_EAR_REACH from the template's is its rim. Each Ear's
+    map and points are the scan's."""
     P = np.asarray(template.skin_vertices, dtype=np.float64)
+    # M: the template's size to the scan's (the placement's scale about where it puts the
+    # template's middle; not its turn). The scan brought back by it: the side maps, areas,
+    # heights and gates below are at the template's size
+    M = np.eye(4)
+    scan_V, scan_query = scan.V, scan.query
+    if placement is not None:
+        placement = np.asarray(placement, dtype=np.float64)
+        middle = P.mean(axis=0)
+        size = float(abs(np.linalg.det(placement[:3, :3]))) ** (1.0 / 3.0)
+        M[:3, :3] = size * np.eye(3)
+        M[:3, 3] = placement[:3, :3] @ middle + placement[:3, 3] - size * middle
+        scan_V = (scan.V - M[:3, 3]) / size
+        scan_query = MeshQuery(scan_V, scan.F)
     F = np.asarray(template.skin_faces, dtype=np.int64)
     region = np.asarray(template.skin_region)
     # a triangle holding each vertex, and the vertex's corner in it
@@ -207,21 +236,21 @@ def found_ears(template: FaceModel, scan: Surface, partial: bool = False) -> tup
         if t_cells.sum() * CELL * CELL < 1e-4:
             report[name] = {"found": False, "why": "the template's ear is not seen from the side"}
             continue
-        s_map = side_map(scan.query, side, centre)
+        s_map = side_map(scan_query, side, centre)
         found = ear_cells(s_map, t_cells)
         if found is None:
             report[name] = {"found": False, "why": "nothing of an ear's size stands out of the scan's side"}
             continue
         s_cells, shift = found
         # each ear's vertices on the side seen (not the back of the ear, nor the head behind it)
-        s_ear = np.flatnonzero(s_map.seen(scan.V, ndimage.binary_dilation(s_cells, iterations=2)))
+        s_ear = np.flatnonzero(s_map.seen(scan_V, ndimage.binary_dilation(s_cells, iterations=2)))
         t_ear = np.flatnonzero(ear & t_map.seen(P, t_cells))
         if len(s_ear) < MIN_EAR_POINTS or len(t_ear) < MIN_EAR_POINTS:
             report[name] = {"found": False, "why": f"{len(s_ear)} scan points and {len(t_ear)} template points "
                                                    f"seen of the ear (at least {MIN_EAR_POINTS} each)"}
             continue
         A = P[t_ear]
-        R, t, rms = ear_rigid(A, scan.V[s_ear], ear_shift(t_map, t_cells, s_map, shift))
+        R, t, rms = ear_rigid(A, scan_V[s_ear], ear_shift(t_map, t_cells, s_map, shift))
         turn = float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
         entry = {"scan_points": int(len(s_ear)), "turn_degrees": turn, "residual_m": rms,
                  "moved_m": float(np.linalg.norm(R @ A.mean(axis=0) + t - A.mean(axis=0)))}
@@ -233,23 +262,25 @@ def found_ears(template: FaceModel, scan: Surface, partial: bool = False) -> tup
                                                    "the template's ear is taken for the scan's rim", **entry}
             continue
         pick = t_ear[np.linspace(0, len(t_ear) - 1, min(PAIRS_PER_EAR, len(t_ear))).astype(int)]
-        on_scan, _, tri, _ = scan.query.closest_points(P[pick] @ R.T + t, PROJECT_REACH)
+        on_scan, _, tri, _ = scan_query.closest_points(P[pick] @ R.T + t, PROJECT_REACH)
         ok = (tri >= 0) & (corner_face[pick] >= 0)
         if ok.sum() < MIN_EAR_POINTS // 3:
             report[name] = {"found": False, "why": "the mapped ear lies off the scan", **entry}
             continue
         bary = np.zeros((int(ok.sum()), 3))
         bary[np.arange(len(bary)), corner[pick[ok]]] = 1.0
-        ears.append(Ear(name, np.flatnonzero(ear), R, t, corner_face[pick[ok]], bary, on_scan[ok]))
+        # back to the scan: the points, and the map (then the person's size, not a rotation)
+        ears.append(Ear(name, np.flatnonzero(ear), M[:3, :3] @ R, M[:3, :3] @ t + M[:3, 3], corner_face[pick[ok]],
+                        bary, on_scan[ok] @ M[:3, :3].T + M[:3, 3]))
         report[name] = {"found": True, "pairs": int(ok.sum()), **entry}
     return ears, report
 
 
-def ear_pairs(template: FaceModel, scan: Surface, partial: bool = False
+def ear_pairs(template: FaceModel, scan: Surface, partial: bool = False, placement: np.ndarray | None = None
               ) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray] | None, dict]:
     """Corresponding points on the template's ears and the scan's (see found_ears): (faces
     (k,), bary (k, 3), points (k, 3) metres) or None when no ear was found, and the report."""
-    ears, report = found_ears(template, scan, partial)
+    ears, report = found_ears(template, scan, partial, placement)
     if not ears:
         return None, report
     return (np.concatenate([e.faces for e in ears]), np.vstack([e.bary for e in ears]),

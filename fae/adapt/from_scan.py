@@ -32,7 +32,7 @@ from fae.adapt.calibration import apply_transform
 from fae.adapt.ears import ears_carried, found_ears
 from fae.adapt.errors import FACE_REGIONS, scan_fit_errors, surface
 from fae.adapt.head_pose import HeadInScan, kept_part
-from fae.adapt.nonrigid import fit_to_scan, folded_triangles, partial_scan_at_start
+from fae.adapt.nonrigid import fit_to_scan, folded_triangles, start_placement
 from fae.adapt.transfer import personalize, visible_skin
 from fae.io.facemodel import FaceModel
 
@@ -160,9 +160,9 @@ def adapt_to_scan(template: FaceModel, scan_V: np.ndarray, scan_F: np.ndarray, h
         used_landmarks.append(name)
     # no face-landmark model sees ears; on a scan of part of the head its rim may stand out like
     # one. Part of the head or not: as the fit's start decides it, from the face's points
-    partial = partial_scan_at_start(np.asarray(P, np.float64), F, fit_scan, seen,
-                                    (np.concatenate(faces), np.vstack(bary), np.vstack(points)) if faces else None)
-    ears, ear_report = found_ears(template, scan, partial)
+    placed, partial = start_placement(np.asarray(P, np.float64), F, fit_scan, seen,
+                                      (np.concatenate(faces), np.vstack(bary), np.vstack(points)) if faces else None)
+    ears, ear_report = found_ears(template, scan, partial, placed)
     face_rows = sum(len(f) for f in faces)
     for ear in ears:
         faces.append(ear.faces)

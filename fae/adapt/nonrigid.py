@@ -247,13 +247,14 @@ def covers_part_of_head(X: np.ndarray, scan: Surface, keep: float = 0.8) -> bool
     return bool(np.mean(by_rim[j[d <= np.quantile(d, keep)]]) > PARTIAL_EDGE_SHARE)
 
 
-def partial_scan_at_start(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray,
-                          landmarks: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> bool:
-    """Whether fit_to_scan's start will find that `scan` covers part of the head only
-    (affine_to_scan's first step: the template P (n, 3), F (m, 3), seams welded, placed by
-    the feature points `landmarks` (faces (k,), bary (k, 3), scan points (k, 3)), its
-    `movable` (n,) bool skin tested), for a caller that needs to know before the fit (the
-    ears found on a face scan's rim)."""
+def start_placement(P: np.ndarray, F: np.ndarray, scan: Surface, movable: np.ndarray,
+                    landmarks: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, bool]:
+    """Where fit_to_scan's start first places the template on `scan`, and whether it will
+    find that the scan covers part of the head only: affine_to_scan's first step ((4, 4)
+    map, partial) for the template P (n, 3), F (m, 3), seams welded, placed by the feature
+    points `landmarks` (faces (k,), bary (k, 3), scan points (k, 3)), its `movable` (n,)
+    bool skin tested; for a caller that needs them before the fit (the ears, looked for
+    around where the template's fall at the person's size, and not on a face scan's rim)."""
     P_in, F_in = np.asarray(P, dtype=np.float64), np.asarray(F, dtype=np.int64)
     n, label = coincident_groups(P_in)
     P = group_means(P_in, label, n)
@@ -262,7 +263,7 @@ def partial_scan_at_start(P: np.ndarray, F: np.ndarray, scan: Surface, movable: 
     if landmarks is not None and len(landmarks[0]):
         on_template = np.einsum("kj,kjd->kd", landmarks[1], P[label[F_in[landmarks[0]]]])
         points = (on_template, np.asarray(landmarks[2], dtype=np.float64), np.ones(len(on_template)))
-    return affine_to_scan(P, scan, use, iterations=1, points=points, similarity=SIMILARITY_START)[1]
+    return affine_to_scan(P, scan, use, iterations=1, points=points, similarity=SIMILARITY_START)
 
 
 def scan_pairs(X: np.ndarray, NX: np.ndarray, scan: Surface, reach: float, candidates: np.ndarray,
