@@ -458,6 +458,66 @@ def test_verify_skin_reports_each_stream_as_json_and_its_status(tmp_path):
                             and stream["frames_lining_shown"] == 0 and stream["frames_back_shown"] == 0)
 
 
+def test_the_frame_that_breaks_most_is_kept_with_where_it_breaks(face, check):
+    """check_stream(shown=...) keeps the frame that breaks the most, as played, and marks
+    where: a cheek vertex pushed 2 cm into the head marks it and its fan's corners, not the
+    rest of the face; a stream that stays whole keeps nothing."""
+    from fae.animate.skin_check import problem_vertices
+
+    F = np.asarray(face.skin_faces)
+    v = _region_vertex(face, "cheek_l", x=0.045)
+    fan = np.unique(F[np.any(F == v, axis=1)])
+
+    def pushed(depth):
+        def make(V):
+            V[v, 2] -= depth
+            return V
+        return make
+
+    shown: dict = {}
+    report = check_stream(_SkinPlayer(face), [pushed(0.0), pushed(0.01), pushed(0.02), pushed(0.0)], "s", check=check,
+                          shown=shown)
+    assert not report["ok"] and shown["index"] == 2
+    assert shown["skin"][v, 2] == pytest.approx(face.skin_vertices[v, 2] - 0.02)
+    marked = np.flatnonzero(shown["problem"])
+    assert v in marked and set(marked) <= set(np.unique(F[np.isin(F, fan).any(axis=1)]))
+    # a frame of rest marks nothing, and a whole stream keeps nothing
+    rest = np.asarray(face.skin_vertices, dtype=np.float64)
+    assert not problem_vertices(check, rest, check.frame(rest)).any()
+    kept: dict = {}
+    assert check_stream(_SkinPlayer(face), [pushed(0.0)] * 3, "whole", check=check, shown=kept)["ok"] and not kept
+
+
+def test_verify_skin_draws_the_worst_frame_of_each_stream_that_breaks(tmp_path):
+    """--pictures: a stream that folds the lips (the lower lip raised to its limit) gets a
+    picture of its worst frame, the face beside a close-up, with red marks where it breaks
+    in the close-up; a stream that stays whole gets none; a folder that cannot be made is
+    refused before any work."""
+    mask = " ".join(["0"] * 4 + ["1"] + ["0"] * 63)  # raise_b_midlip alone
+    broken = tmp_path / "lip up.fap"
+    broken.write_text("2.1 up 25 8\n" + "".join(f"{mask}\n{i} {min(1860, 400 * i)}\n" for i in range(8)))
+    whole = tmp_path / "still.fap"
+    whole.write_text("2.1 still 25 3\n" + "".join(f"{mask}\n{i} 0\n" for i in range(3)))
+    folder = tmp_path / "pictures" / "new"
+    r = _verify_skin(str(broken), str(whole), "--pictures", str(folder), "--json")
+    assert r.returncode == 1, r.stderr
+    report = json.loads(r.stdout)
+    up, still = report["streams"]
+    assert not up["ok"] and still["ok"] and "picture" not in still
+    assert sorted(p.name for p in folder.iterdir()) == ["lip_up.png"] and up["picture"] == str(folder / "lip_up.png")
+    assert "lip up.fap: frame" in r.stderr
+    from PIL import Image
+
+    image = np.asarray(Image.open(folder / "lip_up.png").convert("RGB")).astype(int)
+    assert image.shape == (480, 960, 3)
+    red = (image[..., 0] > 170) & (image[..., 1] < 90) & (image[..., 2] < 90)
+    assert red[:, 480:].sum() > 200 and red.sum() < 0.2 * red.size  # marked, close up; not everything
+    blocked = tmp_path / "a file"
+    blocked.write_text("x")
+    r = _verify_skin(str(whole), "--pictures", str(blocked / "sub"))
+    assert r.returncode == 2 and "--pictures" in r.stderr and "Traceback" not in r.stderr
+
+
 @pytest.mark.slow
 def test_verify_skin_sweeps_the_faps_asked_and_says_how_far_each_stays_whole():
     """`--faps` sweeps only the FAPs named (an eyeball's turn moves no skin: whole over its

@@ -338,6 +338,32 @@ def _triangle_edges(F: np.ndarray) -> np.ndarray:
     return np.unique(e, axis=0)
 
 
+def problem_vertices(check: "SkinCheck", skin: np.ndarray, r: FrameCheck) -> np.ndarray:
+    """(V,) bool: the skin vertices of what keeps frame `r` of `skin` (V, 3) metres, head
+    frame, from being whole, to show a person where: the corners of folded triangles, of
+    triangles seen by their back, of lip triangles an edge of the other lip passes through
+    and of the visible triangles a lining edge comes out through, the ends of those edges,
+    and the ends of edges past the strain limits."""
+    out = np.zeros(len(skin), dtype=bool)
+    F = check.faces
+    out[F[r.folded].ravel()] = True
+    out[F[r.back_rays > 0].ravel()] = True
+    for tris, edges in check.lips:
+        if len(tris) and len(edges):
+            pairs = segment_triangle_pairs_crossing(skin[edges[:, 0]][:, None], skin[edges[:, 1]][:, None],
+                                                    skin[tris][None])
+            out[edges[pairs.any(axis=1)].ravel()] = True
+            out[tris[pairs.any(axis=0)].ravel()] = True
+    L = check.lining
+    if len(L):
+        through = segment_triangle_pairs_crossing(skin[L[:, 0]], skin[L[:, 1]], skin[F[L[:, 2]]])
+        out[L[through, :2].ravel()] = True
+        out[F[L[through, 2]].ravel()] = True
+    ratio = np.linalg.norm(skin[check.edges[:, 0]] - skin[check.edges[:, 1]], axis=1) / check.rest_length
+    out[check.edges[(ratio > MAX_STRETCH) | (ratio < MIN_COMPRESSION)].ravel()] = True
+    return out
+
+
 def in_head_frame(skin: np.ndarray, head: np.ndarray) -> np.ndarray:
     """(V, 3): skin posed by the head transform `head` (4, 4) taken back to the head's frame."""
     return (skin - head[:3, 3]) @ head[:3, :3]
@@ -425,7 +451,7 @@ class PerFap:
 
 
 def check_stream(player, frames: Iterable, name: str = "", fps: float | None = None,
-                 check: SkinCheck | None = None) -> dict:
+                 check: SkinCheck | None = None, shown: dict | None = None) -> dict:
     """Play `frames` (a FapStream or DenseFrames) from rest and check every frame.
 
     Returns {"stream", "frames", "frames_not_finite" (skin positions NaN or infinite: not
@@ -440,7 +466,10 @@ def check_stream(player, frames: Iterable, name: str = "", fps: float | None = N
     A sweep (SweepFrames) plays each FAP's side from rest (what one leaves behind, down to
     a skin no longer finite, is not laid on the next) and adds "per_fap": PerFap.report's
     records, one per FAP and side; "worst_frame" and "worst_back_frame" count the sweep's
-    frames from its start."""
+    frames from its start. shown: a dict to fill with the frame that breaks the most (by
+    folded triangles, lining and lip crossings, back rays and strain past its limits; a
+    finite one), to show it: "index", "skin" (V, 3) metres, "bones" and "pupil_scale" as played, and
+    "problem" (V,) bool, problem_vertices of it; left empty when every frame is whole."""
     check = check or SkinCheck(player.face)
     per_fap = PerFap(len(check.faces)) if isinstance(frames, SweepFrames) else None
     if per_fap is not None:
@@ -455,6 +484,7 @@ def check_stream(player, frames: Iterable, name: str = "", fps: float | None = N
     stretch, compression = 1.0, 1.0
     broken = 0  # frames whose skin is not finite: nothing of it can be measured, and it is not whole
     whole = True  # every frame so far (what_breaks)
+    shown_score = 0
 
     def played():  # (frame index in the stream, its label or None, the played frame)
         for offset, part, part_labels in parts:
@@ -470,9 +500,19 @@ def check_stream(player, frames: Iterable, name: str = "", fps: float | None = N
             if label is not None:
                 per_fap.add(label, None, what_breaks(None))
             continue
-        r = check.frame(in_head_frame(frame.skin_vertices, frame.bone_transforms["head"]))
+        skin = in_head_frame(frame.skin_vertices, frame.bone_transforms["head"])
+        r = check.frame(skin)
         why = what_breaks(r)
         whole = whole and not why
+        if shown is not None and why:
+            score = (int(r.folded.sum()) + r.lining_crossings + r.lip_crossings + int(r.back_rays.sum())
+                     + (r.stretch > MAX_STRETCH) + (r.compression < MIN_COMPRESSION))
+            if score > shown_score:
+                shown_score = score
+                shown.update(index=index, skin=np.array(frame.skin_vertices, dtype=np.float64),
+                             bones={k: np.array(v) for k, v in frame.bone_transforms.items()},
+                             pupil_scale=dict(frame.pupil_scale),
+                             problem=problem_vertices(check, skin, r))
         if label is not None:
             per_fap.add(label, r, why)
         k = int(r.folded.sum())

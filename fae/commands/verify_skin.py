@@ -14,7 +14,9 @@ low-level FAP alone to the limits of its range and the standard's six expression
 intensity; the sweep is reported per FAP too: how far towards the standard's limit each
 one, on each side, keeps the skin whole (climbing a quarter of the range at a time, each
 step held until the skin settles), and what gives first. --faps sweeps only the FAPs
-named (numbers, ranges or names), to look at a few closely. Exit status 0 when every stream keeps
+named (numbers, ranges or names), to look at a few closely. --pictures DIR draws, for each
+stream that breaks, its worst frame with what breaks marked red: the face from the front
+beside a close-up (DIR/<stream>.png). Exit status 0 when every stream keeps
 the skin whole, 1 when any does not, 2 when the head or a stream cannot be read.
 """
 
@@ -22,6 +24,7 @@ from __future__ import annotations
 
 import contextlib
 import sys
+from pathlib import Path
 
 from fae.commands.common import add_device_argument
 
@@ -37,6 +40,9 @@ def register(subparsers) -> None:
                         help="sweep only these low-level FAPs (3-68), by number, range or name, comma-separated "
                              "(e.g. 5,open_jaw,19); instead of the default streams")
     parser.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    parser.add_argument("--pictures", default=None, metavar="DIR",
+                        help="for each stream that breaks, write DIR/<stream>.png: its worst frame with what "
+                             "breaks marked red, the face and a close-up (DIR is made if missing)")
     add_device_argument(parser)
     parser.set_defaults(func=run)
 
@@ -62,6 +68,13 @@ def run(args) -> int:
     if misplaced:
         return fail("verify-skin", f"{misplaced[0]}: a head among the streams; expected .fap streams after the head "
                     "(fae verify-skin [HEAD.glb] [STREAM.fap ...])")
+    pictures = None
+    if args.pictures is not None:
+        pictures = Path(args.pictures)
+        try:
+            pictures.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            return fail("verify-skin", f"--pictures {args.pictures}: cannot make the folder ({exc.strerror or exc})")
     try:
         device = warp_device(args.device)
     except ValueError as exc:
@@ -94,14 +107,18 @@ def run(args) -> int:
         elif not loaded:
             loaded = default_streams()
         reports = []
+        drawn: set[str] = set()
         for name, stream in loaded:
             is_file = hasattr(stream, "header")
             frames = dense_frames(stream) if is_file else stream  # a file's: its warnings kept, at its own rate
+            shown: dict | None = {} if pictures is not None else None
             try:
                 reports.append(check_stream(player, frames, name, fps=stream.header.fps if is_file else None,
-                                            check=check))
+                                            check=check, shown=shown))
             except FapFormatError as exc:
                 return fail("verify-skin", str(exc))
+            if shown:
+                reports[-1]["picture"] = str(_draw(player.face, shown, pictures, name, drawn))
             if reports[-1]["frames"] == 0:
                 return fail("verify-skin", f"{name}: no frames to check; expected at least one frame after the header")
             for warning in getattr(stream, "warnings", []) + getattr(frames, "warnings", []):
@@ -135,6 +152,27 @@ def run(args) -> int:
         print("the skin stays whole" if whole else
               "the skin folds, tears, the lips cross, a lining or the skin's back shows, or it is not finite: see above")
     return 0 if whole else 1
+
+
+def _draw(face, shown: dict, folder: Path, name: str, drawn: set[str]) -> Path:
+    """Write the picture of a stream's worst frame (check_stream's `shown`) into `folder`,
+    named after the stream (`drawn`: the names taken so far, each picture its own file)."""
+    import re
+
+    from fae.render.png import write_png
+    from fae.render.problems import problem_image
+
+    stem = re.sub(r"[^A-Za-z0-9._-]+", "_", Path(name).stem if name.endswith(".fap") else name)[:80] or "stream"
+    file, k = f"{stem}.png", 1
+    while file in drawn:
+        k += 1
+        file = f"{stem}-{k}.png"
+    drawn.add(file)
+    image = problem_image(face, shown["skin"], shown["bones"], shown["problem"], shown.get("pupil_scale"))
+    path = folder / file
+    write_png(path, image)
+    print(f"fae verify-skin: {name}: frame {shown['index']} drawn to {path}", file=sys.stderr)
+    return path
 
 
 def _column(name: str, width: int = 44) -> str:

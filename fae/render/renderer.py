@@ -336,13 +336,16 @@ class FaceRenderer:
     normal_groups  (V,) int labels: skin vertices with the same label share one normal (a
                  mesh split along its texture seams: each side of a seam lit by its own
                  triangles alone shows the seam as a crease); None: every vertex its own
+    skin_rgb     (V, 3) linear RGB of the skin's vertices instead of its own colours (to
+                 mark some of them); a texture, where the head has one, is drawn over it
 
     Use as a context manager or call `close()` to free the GL context.
     """
 
     def __init__(self, model: FaceModel, size: tuple[int, int] = (640, 480), view: str = "front",
                  supersample: int = 1, background=BACKGROUND, show_bones: bool = False,
-                 camera: CameraView | None = None, normal_groups: np.ndarray | None = None):
+                 camera: CameraView | None = None, normal_groups: np.ndarray | None = None,
+                 skin_rgb: np.ndarray | None = None):
         width, height = (int(s) for s in size)
         if width <= 0 or height <= 0:
             raise ValueError(f"image size {width}x{height}: expected positive width and height")
@@ -406,7 +409,9 @@ class FaceRenderer:
 
         # Vertex arrays: the skin, then each drawn rigid part. The skin's inner side (the
         # cavity) is the same vertices drawn again with front faces culled.
-        skin_rgb = skin_colors(model)
+        skin_rgb = skin_colors(model) if skin_rgb is None else np.asarray(skin_rgb, dtype=np.float32)
+        if skin_rgb.shape != (nv, 3):
+            raise ValueError(f"skin_rgb: expected ({nv}, 3) linear RGB, got {skin_rgb.shape}")
         colors = [np.concatenate([skin_rgb, skin_rgb[self._seam_source]])]
         gloss = [np.tile(np.asarray(GLOSS["skin"], dtype=np.float32), (skin_count, 1))]
         texcoords = [texcoord]
