@@ -55,10 +55,13 @@ def jaw_carried(pose: dict[int, float]) -> dict[int, float]:
     return out
 
 
-# (15, 68) viseme code -> low-level FAP values (FAPU units), lips relative to the jaw
+# (15, 68) viseme code -> low-level FAP values (FAPU units), lips relative to the jaw. PP
+# closes the lips along their width, the midlip FAPs and the lateral ones (8-11, 55-58)
+# together: with the midlips' alone (60 / 120 MNS) the lips met in the middle only, teeth
+# showing 0.8 mm either side, and pressed through each other there (4 frames of 20 held)
 VISEME_FAPS = _table({
     0: {},                                                                              # sil
-    1: _sym(f4=60, f5=120, f51=40, f52=80, f16_17=40, f3=0),                          # PP: lips pressed
+    1: _sym(f4=30, f5=60, f51=20, f52=40, f8_9=25, f10_11=50, f55_56=15, f57_58=30, f16_17=40, f3=0),  # PP: lips pressed
     2: _sym(f3=60, f5=200, f52=160, f16=-120, f4=-40, f51=-30),                       # FF: lower lip to teeth
     3: _sym(f3=160, f4=-60, f51=-60, f6_7=20, f53_54=20, f44=300, f45=250),           # TH: tongue between teeth
     4: _sym(f3=140, f4=-40, f51=-40, f6_7=30, f53_54=30, f44=350),                    # DD
