@@ -81,7 +81,7 @@ VISEME_FAPS = _table({
 # the jaw, after the standard's descriptions (fae.mpeg4.highlevel) and the muscle actions of
 # FACS: joy = lip corners back and up, cheeks lifted, lower lids raised, jaw open; sadness =
 # inner brows up, upper lids lowered, lip corners down, chin raised; anger = brows down and
-# together, upper lids raised, lips pressed, nostrils flared; fear = brows up and together,
+# together, upper lids raised, lips pressed (along their width, as PP's), nostrils flared; fear = brows up and together,
 # upper lids wide, mouth stretched open; disgust = upper lip raised (more on the left), nose
 # wrinkled, cheeks lifted; surprise = brows up, upper lids wide, jaw dropped, lips rounded.
 # Magnitudes are clearly visible yet anatomically possible: a fifth to a third of each FAP's
@@ -95,8 +95,8 @@ EXPRESSION_POSES: dict[str, dict[int, float]] = {
                 f41_42=150, f21_22=150, f19_20=80, f33_34=40),
     "sadness": _sym(f31_32=200, f33_34=60, f35_36=-80, f37_38=60, f19_20=300, f12_13=-100, f59_60=-100,
                     f5=60, f52=60, f18=120),
-    "anger": _sym(f31_32=-200, f33_34=-120, f35_36=-40, f37_38=150, f19_20=-150, f21_22=100, f4=60, f51=60,
-                  f5=120, f52=120, f6_7=-40, f53_54=-40, f61_62=60),
+    "anger": _sym(f31_32=-200, f33_34=-120, f35_36=-40, f37_38=150, f19_20=-150, f21_22=100, f4=30, f51=30,
+                  f5=60, f52=60, f8_9=25, f10_11=50, f55_56=25, f57_58=50, f6_7=-40, f53_54=-40, f61_62=60),
     "fear": _sym(f31_32=250, f33_34=180, f35_36=100, f37_38=80, f19_20=-250, f21_22=-50, f3=150, f6_7=100,
                  f53_54=100, f12_13=-60, f59_60=-60, f5=-60, f52=-60),
     "disgust": _sym(f4=-150, f51=-150, f8=-180, f9=-80, f55=-180, f56=-80, f12=-40, f59=-40, f61_62=120, f63=100,
