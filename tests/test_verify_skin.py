@@ -516,6 +516,29 @@ def test_verify_skin_draws_the_worst_frame_of_each_stream_that_breaks(tmp_path):
     blocked.write_text("x")
     r = _verify_skin(str(whole), "--pictures", str(blocked / "sub"))
     assert r.returncode == 2 and "--pictures" in r.stderr and "Traceback" not in r.stderr
+    # a picture that cannot be written loses itself, not the report
+    taken = tmp_path / "taken"
+    (taken / "lip_up.png").mkdir(parents=True)
+    r = _verify_skin(str(broken), "--pictures", str(taken), "--json")
+    assert r.returncode == 1 and "Traceback" not in r.stderr and "no picture" in r.stderr
+    assert json.loads(r.stdout)["streams"][0]["picture"] is None
+
+
+def test_the_marks_show_on_a_textured_head(face):
+    """A textured head (fae adapt --photo's, a retargeted one) draws its texture over the
+    vertices' colours: the marks are drawn on its skin colour instead, where they show."""
+    import dataclasses
+
+    from fae.render.problems import problem_image
+
+    v = _region_vertex(face, "cheek_l", x=0.045)
+    marked = np.zeros(len(face.skin_vertices), dtype=bool)
+    marked[np.unique(face.skin_faces[np.any(face.skin_faces == v, axis=1)])] = True
+    textured = dataclasses.replace(face, skin_texture=np.full((64, 64, 3), 120, dtype=np.uint8))
+    for model in (face, textured):
+        image = problem_image(model, np.asarray(face.skin_vertices), {}, marked, size=(240, 240)).astype(int)
+        red = (image[..., 0] > 170) & (image[..., 1] < 90) & (image[..., 2] < 90)
+        assert red[:, 240:].sum() > 100, red.sum()
 
 
 @pytest.mark.slow

@@ -341,13 +341,15 @@ def _triangle_edges(F: np.ndarray) -> np.ndarray:
 def problem_vertices(check: "SkinCheck", skin: np.ndarray, r: FrameCheck) -> np.ndarray:
     """(V,) bool: the skin vertices of what keeps frame `r` of `skin` (V, 3) metres, head
     frame, from being whole, to show a person where: the corners of folded triangles, of
-    triangles seen by their back, of lip triangles an edge of the other lip passes through
-    and of the visible triangles a lining edge comes out through, the ends of those edges,
-    and the ends of edges past the strain limits."""
+    triangles seen by their back (when the frame shows more than BACK_AREA_LIMIT of it), of
+    lip triangles an edge of the other lip passes through and of the visible triangles a
+    lining edge comes out through, the ends of those edges, and the ends of edges past the
+    strain limits."""
     out = np.zeros(len(skin), dtype=bool)
     F = check.faces
     out[F[r.folded].ravel()] = True
-    out[F[r.back_rays > 0].ravel()] = True
+    if r.back_area > BACK_AREA_LIMIT:  # (specks under the limit are tolerated, as the check does)
+        out[F[r.back_rays > 0].ravel()] = True
     for tris, edges in check.lips:
         if len(tris) and len(edges):
             pairs = segment_triangle_pairs_crossing(skin[edges[:, 0]][:, None], skin[edges[:, 1]][:, None],
@@ -505,7 +507,8 @@ def check_stream(player, frames: Iterable, name: str = "", fps: float | None = N
         why = what_breaks(r)
         whole = whole and not why
         if shown is not None and why:
-            score = (int(r.folded.sum()) + r.lining_crossings + r.lip_crossings + int(r.back_rays.sum())
+            score = (int(r.folded.sum()) + r.lining_crossings + r.lip_crossings
+                     + (int(r.back_rays.sum()) if r.back_area > BACK_AREA_LIMIT else 0)
                      + (r.stretch > MAX_STRETCH) + (r.compression < MIN_COMPRESSION))
             if score > shown_score:
                 shown_score = score

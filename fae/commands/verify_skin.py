@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import contextlib
 import sys
+import tempfile
 from pathlib import Path
 
 from fae.commands.common import add_device_argument
@@ -42,13 +43,14 @@ def register(subparsers) -> None:
     parser.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     parser.add_argument("--pictures", default=None, metavar="DIR",
                         help="for each stream that breaks, write DIR/<stream>.png: its worst frame with what "
-                             "breaks marked red, the face and a close-up (DIR is made if missing)")
+                             "breaks marked red, the face and a close-up (DIR is made if missing; a picture "
+                             "of the same name there is replaced)")
     add_device_argument(parser)
     parser.set_defaults(func=run)
 
 
 def run(args) -> int:
-    from fae.commands.common import fail, json_text, load_head, warp_device
+    from fae.commands.common import fail, json_text, load_head, os_error_text, warp_device
     from fae.io.facemodel_gltf import FaceModelError
     from fae.io.fap import FapFormatError, read_fap
     from fae.io.frames import dense_frames
@@ -73,8 +75,11 @@ def run(args) -> int:
         pictures = Path(args.pictures)
         try:
             pictures.mkdir(parents=True, exist_ok=True)
+            with tempfile.TemporaryFile(dir=pictures):  # writable: found now, not after minutes of checking
+                pass
         except OSError as exc:
-            return fail("verify-skin", f"--pictures {args.pictures}: cannot make the folder ({exc.strerror or exc})")
+            return fail("verify-skin", f"--pictures {args.pictures}: cannot write pictures there "
+                                       f"({exc.strerror or exc})")
     try:
         device = warp_device(args.device)
     except ValueError as exc:
@@ -118,7 +123,15 @@ def run(args) -> int:
             except FapFormatError as exc:
                 return fail("verify-skin", str(exc))
             if shown:
-                reports[-1]["picture"] = str(_draw(player.face, shown, pictures, name, drawn))
+                try:
+                    reports[-1]["picture"] = str(_draw(player.face, shown, pictures, name, drawn))
+                except (OSError, RuntimeError) as exc:  # the report is kept: the picture alone is lost
+                    why = os_error_text(exc) if isinstance(exc, OSError) else str(exc)
+                    reports[-1]["picture"] = None
+                    print(f"fae verify-skin: {name}: no picture: {why}", file=sys.stderr)
+            elif pictures is not None and reports[-1]["frames_not_finite"] and not reports[-1]["ok"]:
+                print(f"fae verify-skin: {name}: no picture: no finite frame breaks (only frames not finite)",
+                      file=sys.stderr)
             if reports[-1]["frames"] == 0:
                 return fail("verify-skin", f"{name}: no frames to check; expected at least one frame after the header")
             for warning in getattr(stream, "warnings", []) + getattr(frames, "warnings", []):
@@ -164,10 +177,10 @@ def _draw(face, shown: dict, folder: Path, name: str, drawn: set[str]) -> Path:
 
     stem = re.sub(r"[^A-Za-z0-9._-]+", "_", Path(name).stem if name.endswith(".fap") else name)[:80] or "stream"
     file, k = f"{stem}.png", 1
-    while file in drawn:
+    while file.casefold() in drawn:  # (one file on a filesystem that ignores case)
         k += 1
         file = f"{stem}-{k}.png"
-    drawn.add(file)
+    drawn.add(file.casefold())
     image = problem_image(face, shown["skin"], shown["bones"], shown["problem"], shown.get("pupil_scale"))
     path = folder / file
     write_png(path, image)

@@ -53,7 +53,10 @@ def close_up_camera(skin_local: np.ndarray, faces: np.ndarray, marked: np.ndarra
 def problem_image(model: FaceModel, skin: np.ndarray, bones: dict[str, np.ndarray], problem: np.ndarray,
                   pupil_scale: dict[str, float] | None = None, size: tuple[int, int] = (480, 480)) -> np.ndarray:
     """(H, 2 W, 3) uint8: the head at a frame (skin (V, 3) metres and bones as played) with
-    the vertices `problem` (V,) bool red, whole from the front (left) and close up (right)."""
+    the vertices `problem` (V,) bool red, whole from the front (left) and close up (right);
+    a textured head is drawn in its skin colour (the marks show through no texture)."""
+    import dataclasses
+
     from fae.render.renderer import FaceRenderer, skin_colors
 
     problem = np.asarray(problem, dtype=bool)
@@ -64,6 +67,8 @@ def problem_image(model: FaceModel, skin: np.ndarray, bones: dict[str, np.ndarra
     local = (skin - head[:3, 3]) @ head[:3, :3]
     rgb = skin_colors(model)
     rgb[problem] = PROBLEM_RGB
+    # a texture is drawn over the vertices' colours: the marks would not show through it
+    model = dataclasses.replace(model, skin_texture=None)
     aspect = size[0] / size[1]
     cameras = (_posed(camera_view(model, "front", aspect=aspect), head),
                _posed(close_up_camera(local, np.asarray(model.skin_faces, np.int64), problem, aspect), head))
