@@ -979,8 +979,9 @@ def test_a_small_head_in_a_known_unit_keeps_its_pose_and_unit(template, bust, tm
     assert report["errors"]["face_to_scan_rms_rel"] < 0.0005
 
 
+@pytest.mark.parametrize("placed", [False, True], ids=["as it is", "placed"])
 @pytest.mark.parametrize("cut, found", [(40, True), (50, False), (55, False)])
-def test_the_rim_of_a_front_half_is_not_taken_for_an_ear(template, cut, found):
+def test_the_rim_of_a_front_half_is_not_taken_for_an_ear(template, cut, found, placed):
     """The template's front (skin in front of the cut, a percentile of its depth): cut
     behind the ears, they are found where they are; cut at them, the rim seen from the
     side stands out like an ear and was taken for one 5.5-6.6 cm from the template's, which
@@ -996,7 +997,16 @@ def test_the_rim_of_a_front_half_is_not_taken_for_an_ear(template, cut, found):
     seen = visible_skin(template)
     scan = surface(*kept_part(P, F, seen & (P[:, 2] > np.percentile(P[:, 2], cut))))
     assert covers_part_of_head(P[seen], scan)
-    pairs, report = ear_pairs(template, scan, partial=True)
+    placement = None
+    if placed:  # as adapt searches: at the template's size, where the fit's start places it
+        from fae.adapt.nonrigid import start_placement
+
+        points = [(fp.triangle, np.asarray(fp.bary)) for name, fp in template.feature_points.items()
+                  if fp.part == "skin" and not name.startswith("10.")]
+        faces, bary = np.array([f for f, _ in points]), np.array([b for _, b in points])
+        placement, partial = start_placement(P, F, scan, seen, (faces, bary, np.einsum("kj,kjd->kd", bary, P[F[faces]])))
+        assert partial
+    pairs, report = ear_pairs(template, scan, partial=True, placement=placement)
     for side in ("ear_l", "ear_r"):
         assert report[side]["found"] == found, report
         if found:
@@ -1005,7 +1015,7 @@ def test_the_rim_of_a_front_half_is_not_taken_for_an_ear(template, cut, found):
             assert "rim" in report[side]["why"]
     assert (pairs is not None) == found
     # a whole head's ear may stand out that far from the template's (a marble bust's low ears)
-    assert ear_pairs(template, scan, partial=False)[1]["ear_l"]["found"]
+    assert ear_pairs(template, scan, partial=False, placement=placement)[1]["ear_l"]["found"]
 
 
 @needs_mediapipe

@@ -60,8 +60,9 @@ MAX_RESIDUAL = 0.003  # m, trimmed RMS of the ICP (sculpted ears: 2.0-2.9)
 # found farther than this from the template's is taken for the rim (the menpo3d mask's ears
 # 2.1 cm; the rims of the meshmonk face and of the suite's front halves cut at the ears
 # 5.3-7.1 cm, which carried the template's ears there and swelled the jaw). A whole head's
-# ears may sit farther (a marble bust's 4.8 cm low). Metres at the template's size (the scan
-# is brought to it by the scale of the fit's start placement)
+# ears may sit farther (a marble bust's 4.8 cm low from the template's as it is, 2.2 cm from
+# where the placement puts them). Metres at the template's size (the scan is brought to it by
+# the scale of the fit's start placement)
 PARTIAL_SCAN_EAR_REACH = 0.04
 PAIRS_PER_EAR = 40
 PROJECT_REACH = 0.005  # m: a mapped ear point is put onto the scan when this close
@@ -289,7 +290,8 @@ def ear_pairs(template: FaceModel, scan: Surface, partial: bool = False, placeme
 
 def ears_carried(P: np.ndarray, X: np.ndarray, ears: list[Ear]) -> np.ndarray:
     """(n, 3) metres: the skin X (n, 3) (the template P (n, 3) placed on the scan) with each
-    ear carried to where `ears` found it (P's ear vertices moved rigidly by the ear's R, t)
+    ear carried to where `ears` found it (P's ear vertices moved by the ear's R, t: turned,
+    and scaled to the person's size)
     and the skin around along with it, by a weight falling smoothly (smoothstep of the
     distance to the ear, in P) to 0 at EAR_FADE. An ear moved 4.5 cm folds some skin
     between it and the jaw; the fit blends that back (fae.adapt.nonrigid.fit_to_scan).

@@ -160,9 +160,9 @@ def adapt_to_scan(template: FaceModel, scan_V: np.ndarray, scan_F: np.ndarray, h
         used_landmarks.append(name)
     # no face-landmark model sees ears; on a scan of part of the head its rim may stand out like
     # one. Part of the head or not: as the fit's start decides it, from the face's points
-    placed, partial = start_placement(np.asarray(P, np.float64), F, fit_scan, seen,
-                                      (np.concatenate(faces), np.vstack(bary), np.vstack(points)) if faces else None)
-    ears, ear_report = found_ears(template, scan, partial, placed)
+    start_map, partial = start_placement(np.asarray(P, np.float64), F, fit_scan, seen,
+                                         (np.concatenate(faces), np.vstack(bary), np.vstack(points)) if faces else None)
+    ears, ear_report = found_ears(template, scan, partial, start_map)
     face_rows = sum(len(f) for f in faces)
     for ear in ears:
         faces.append(ear.faces)
