@@ -516,6 +516,8 @@ def test_verify_skin_draws_the_worst_frame_of_each_stream_that_breaks(tmp_path):
     blocked.write_text("x")
     r = _verify_skin(str(whole), "--pictures", str(blocked / "sub"))
     assert r.returncode == 2 and "--pictures" in r.stderr and "Traceback" not in r.stderr
+    r = _verify_skin(str(tmp_path / "missing.fap"), "--pictures", str(tmp_path / "unmade"))
+    assert r.returncode == 2 and not (tmp_path / "unmade").exists()  # a refused run makes no folder
     # a picture that cannot be written loses itself, not the report
     taken = tmp_path / "taken"
     (taken / "lip_up.png").mkdir(parents=True)

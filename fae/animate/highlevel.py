@@ -81,7 +81,8 @@ VISEME_FAPS = _table({
 # the jaw, after the standard's descriptions (fae.mpeg4.highlevel) and the muscle actions of
 # FACS: joy = lip corners back and up, cheeks lifted, lower lids raised, jaw open; sadness =
 # inner brows up, upper lids lowered, lip corners down, chin raised; anger = brows down and
-# together, upper lids raised, lips pressed (along their width, as PP's), nostrils flared; fear = brows up and together,
+# together, upper lids raised, lips pressed (along their width, as PP's), nostrils flared;
+# fear = brows up and together,
 # upper lids wide, mouth stretched open; disgust = upper lip raised (more on the left), nose
 # wrinkled, cheeks lifted; surprise = brows up, upper lids wide, jaw dropped, lips rounded.
 # Magnitudes are clearly visible yet anatomically possible: a fifth to a third of each FAP's

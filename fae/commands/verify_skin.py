@@ -70,16 +70,6 @@ def run(args) -> int:
     if misplaced:
         return fail("verify-skin", f"{misplaced[0]}: a head among the streams; expected .fap streams after the head "
                     "(fae verify-skin [HEAD.glb] [STREAM.fap ...])")
-    pictures = None
-    if args.pictures is not None:
-        pictures = Path(args.pictures)
-        try:
-            pictures.mkdir(parents=True, exist_ok=True)
-            with tempfile.TemporaryFile(dir=pictures):  # writable: found now, not after minutes of checking
-                pass
-        except OSError as exc:
-            return fail("verify-skin", f"--pictures {args.pictures}: cannot write pictures there "
-                                       f"({exc.strerror or exc})")
     try:
         device = warp_device(args.device)
     except ValueError as exc:
@@ -96,6 +86,16 @@ def run(args) -> int:
             return fail("verify-skin", str(exc))
         except OSError as exc:
             return fail("verify-skin", f"{s}: cannot read ({exc.strerror or exc})")
+    pictures = None
+    if args.pictures is not None:  # (made once the head and streams are read: no folder for a refused run)
+        pictures = Path(args.pictures)
+        try:
+            pictures.mkdir(parents=True, exist_ok=True)
+            with tempfile.TemporaryFile(dir=pictures):  # writable: found now, not after minutes of checking
+                pass
+        except OSError as exc:
+            return fail("verify-skin", f"--pictures {args.pictures}: cannot write pictures there "
+                                       f"({exc.strerror or exc})")
 
     with contextlib.redirect_stdout(sys.stderr):  # Warp's banner and kernel-load lines: stdout is the report's
         from fae.animate.player import Player, playable_head
