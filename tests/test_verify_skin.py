@@ -483,7 +483,7 @@ def test_the_frame_that_breaks_most_is_kept_with_where_it_breaks(face, check):
     assert v in marked and set(marked) <= set(np.unique(F[np.isin(F, fan).any(axis=1)]))
     # a frame of rest marks nothing, and a whole stream keeps nothing
     rest = np.asarray(face.skin_vertices, dtype=np.float64)
-    assert not problem_vertices(check, rest, check.frame(rest)).any()
+    assert not problem_vertices(check, check.frame(rest)).any()
     kept: dict = {}
     assert check_stream(_SkinPlayer(face), [pushed(0.0)] * 3, "whole", check=check, shown=kept)["ok"] and not kept
 

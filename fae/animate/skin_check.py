@@ -86,7 +86,10 @@ class FrameCheck:
     the other lip; lining_crossings: edges of skin hidden at rest that pass through a
     visible triangle; back_area: m^2 of the face a viewer in front sees by the skin's back;
     back_rays: (T,) int per skin triangle, the rays that meet it first and by its back
-    (BACK_RAY_SPACING^2 each; empty where not measured)."""
+    (BACK_RAY_SPACING^2 each; empty where not measured); crossed: (V,) bool per skin
+    vertex, the ends of the lip and lining edges that cross and the corners of the
+    triangles they cross, and the ends of edges past the strain limits (empty where not
+    measured)."""
 
     folded: np.ndarray
     turned: np.ndarray
@@ -96,15 +99,7 @@ class FrameCheck:
     lining_crossings: int = 0
     back_area: float = 0.0
     back_rays: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
-
-
-def segments_through_triangles(a: np.ndarray, b: np.ndarray, T: np.ndarray) -> np.ndarray:
-    """(S,) bool: whether segment a[i]-b[i] passes through any triangle of T (m, 3, 3).
-
-    a, b (S, 3); every pair (S x m) tested by `segment_triangle_pairs_crossing`."""
-    if len(a) == 0 or len(T) == 0:
-        return np.zeros(len(a), dtype=bool)
-    return segment_triangle_pairs_crossing(a[:, None], b[:, None], T[None]).any(axis=1)
+    crossed: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
 
 
 def point_triangle_distances(p: np.ndarray, T: np.ndarray) -> np.ndarray:
@@ -278,17 +273,28 @@ class SkinCheck:
         folded[a[crease]] = True
         folded[b[crease]] = True
         ratio = np.linalg.norm(skin[self.edges[:, 0]] - skin[self.edges[:, 1]], axis=1) / self.rest_length
+        crossed = np.zeros(len(skin), dtype=bool)  # where they cross or strain (problem_vertices)
+        crossed[self.edges[(ratio > MAX_STRETCH) | (ratio < MIN_COMPRESSION)].ravel()] = True
         crossings = 0
         for tris, edges in self.lips:
-            crossings += int(segments_through_triangles(skin[edges[:, 0]], skin[edges[:, 1]], skin[tris]).sum())
+            if len(tris) == 0 or len(edges) == 0:
+                continue
+            pairs = segment_triangle_pairs_crossing(skin[edges[:, 0]][:, None], skin[edges[:, 1]][:, None],
+                                                    skin[tris][None])
+            through_lip = pairs.any(axis=1)
+            crossings += int(through_lip.sum())
+            crossed[edges[through_lip].ravel()] = True
+            crossed[tris[pairs.any(axis=0)].ravel()] = True
         L = self.lining
         through = segment_triangle_pairs_crossing(skin[L[:, 0]], skin[L[:, 1]], skin[self.faces[L[:, 2]]])
         lining = len(np.unique(L[through, :2], axis=0))
+        crossed[L[through, :2].ravel()] = True
+        crossed[self.faces[L[through, 2]].ravel()] = True
         back = self.back_rays(skin, n)
         return FrameCheck(folded=folded, turned=turned, stretch=float(ratio.max(initial=1.0)),
                           compression=float(ratio.min(initial=1.0)), lip_crossings=crossings,
                           lining_crossings=lining, back_area=float(back.sum()) * BACK_RAY_SPACING ** 2,
-                          back_rays=back)
+                          back_rays=back, crossed=crossed)
 
     def back_rays(self, skin: np.ndarray, normals: np.ndarray | None = None) -> np.ndarray:
         """(T,) int: per skin triangle, the rays of the front grid (BACK_RAY_SPACING apart,
@@ -338,31 +344,17 @@ def _triangle_edges(F: np.ndarray) -> np.ndarray:
     return np.unique(e, axis=0)
 
 
-def problem_vertices(check: "SkinCheck", skin: np.ndarray, r: FrameCheck) -> np.ndarray:
-    """(V,) bool: the skin vertices of what keeps frame `r` of `skin` (V, 3) metres, head
-    frame, from being whole, to show a person where: the corners of folded triangles, of
-    triangles seen by their back (when the frame shows more than BACK_AREA_LIMIT of it), of
-    lip triangles an edge of the other lip passes through and of the visible triangles a
-    lining edge comes out through, the ends of those edges, and the ends of edges past the
-    strain limits."""
-    out = np.zeros(len(skin), dtype=bool)
+def problem_vertices(check: "SkinCheck", r: FrameCheck) -> np.ndarray:
+    """(V,) bool: the skin vertices of what keeps frame check `r` (SkinCheck.frame) from
+    being whole, to show a person where: the corners of folded triangles and of triangles
+    seen by their back (when the frame shows more than BACK_AREA_LIMIT of it), and what the
+    check found crossing or past the strain limits (`r.crossed`: lip and lining edges
+    through skin and the triangles they cross, over-strained edges)."""
+    out = np.array(r.crossed, dtype=bool)
     F = check.faces
     out[F[r.folded].ravel()] = True
     if r.back_area > BACK_AREA_LIMIT:  # (specks under the limit are tolerated, as the check does)
         out[F[r.back_rays > 0].ravel()] = True
-    for tris, edges in check.lips:
-        if len(tris) and len(edges):
-            pairs = segment_triangle_pairs_crossing(skin[edges[:, 0]][:, None], skin[edges[:, 1]][:, None],
-                                                    skin[tris][None])
-            out[edges[pairs.any(axis=1)].ravel()] = True
-            out[tris[pairs.any(axis=0)].ravel()] = True
-    L = check.lining
-    if len(L):
-        through = segment_triangle_pairs_crossing(skin[L[:, 0]], skin[L[:, 1]], skin[F[L[:, 2]]])
-        out[L[through, :2].ravel()] = True
-        out[F[L[through, 2]].ravel()] = True
-    ratio = np.linalg.norm(skin[check.edges[:, 0]] - skin[check.edges[:, 1]], axis=1) / check.rest_length
-    out[check.edges[(ratio > MAX_STRETCH) | (ratio < MIN_COMPRESSION)].ravel()] = True
     return out
 
 
@@ -515,7 +507,7 @@ def check_stream(player, frames: Iterable, name: str = "", fps: float | None = N
                 shown.update(index=index, skin=np.array(frame.skin_vertices, dtype=np.float64),
                              bones={k: np.array(v) for k, v in frame.bone_transforms.items()},
                              pupil_scale=dict(frame.pupil_scale),
-                             problem=problem_vertices(check, skin, r))
+                             problem=problem_vertices(check, r))
         if label is not None:
             per_fap.add(label, r, why)
         k = int(r.folded.sum())
