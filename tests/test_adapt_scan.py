@@ -366,8 +366,10 @@ def test_a_mouth_marked_on_the_chin_is_left_out_and_the_scans_mouth_kept(bust, t
     assert not set(mouth) & set(report["landmarks_used"])
     assert report["folded_triangles"]["all"] == 0
     on_scan = report["feature_points_on_scan"]
-    for n in ("8.1", "8.2", "8.3", "8.4"):  # mm, the scan's unit; the chin lies 20 mm and more away
-        assert np.linalg.norm(np.asarray(on_scan[n]) - pts[n]) < 5.0, n
+    # mm, the scan's unit: 2.4-5.1 (the lower lip's the most; 0.7 mm more since the template's
+    # upper lip lost its caps); the chin lies 20 mm and more away
+    for n in ("8.1", "8.2", "8.3", "8.4"):
+        assert np.linalg.norm(np.asarray(on_scan[n]) - pts[n]) < 6.0, n
 
 
 @needs_mediapipe
