@@ -402,11 +402,11 @@ def test_a_blink_as_streams_send_it_closes_the_eye(player):
     its deepest the upper lid's point 3.1 comes within 15 % of the opening (3.1 over 3.3,
     12 mm) of the lower lid's (1.3 mm measured; 4 mm, a third of the eye open, while the
     lid followed a step in 3-4 frames and its limit was scaled as its half range), and a
-    lid held at 1024 within 9 % (1.1 mm: the lids' fronts meet, the points lie on their
-    inner edges, 0.5 and 0.3 mm from the fronts' edges; 0.94-1.0 mm measured as the
-    calibration of the template's build varies, the eye shut in the render either way;
-    0.1 mm while the upper lid ran 3 mm past the lower lid's margin, 1.8 mm before its
-    limit was measured)."""
+    lid held at 1024 within 9 % (1.0 mm measured, 0.94 before the upper lip's caps were
+    flipped away, which moved the template's calibration: the lids' fronts meet, the points
+    lie on their inner edges, 0.5 and 0.3 mm from the fronts' edges, and the eye is shut in
+    the render either way; 0.1 mm while the upper lid ran 3 mm past the lower lid's margin,
+    1.8 mm before its limit was measured)."""
     face = player.face
     gap = {}
     for name, shape in (("blink", [512, 1024, 1024, 512, 0]), ("held", [1024] * 25)):

@@ -376,6 +376,19 @@ def test_the_lower_lips_rim_and_the_lower_lids_carry_no_caps(head):
     assert lids.sum() > 600 and widest[lids].max() < CAP_COLLAPSE_ANGLE
 
 
+def test_the_upper_lip_carries_no_caps(head):
+    """The shipped skin's upper lip has no corner over 150 degrees but at the mouth's
+    corners (8 faces up to 169 degrees whose normals turned over as soon as the lip moved:
+    disgust's upper lip folded 8 triangles in 20 frames), their long edges flipped."""
+    from fae.anatomy.geometry import _corner_angles
+
+    F = np.asarray(head.skin_faces)
+    widest = np.degrees(_corner_angles(np.asarray(head.skin_vertices) * 1000.0, F).max(axis=1))
+    lip = np.isin(head.skin_region, [head.region_names.index("lip_upper")])[F].sum(axis=1) >= 2
+    corners = np.abs(np.asarray(head.skin_vertices)[F].mean(axis=1)[:, 0]) > 0.022
+    assert lip.sum() > 200 and widest[lip & ~corners].max() < 150.0
+
+
 def test_the_lips_keep_no_short_edges(head):
     """No edge of the shipped skin's lips is shorter than SHORT_EDGE (0.5-0.6 mm ones near
     the mouth corners, with needles of 6-10 degrees beside them, creased as the corners
@@ -395,6 +408,10 @@ def test_skin_is_mirror_symmetric(head):
     reflected = V[head.skin_mirror] * np.array([-1.0, 1.0, 1.0])
     assert np.abs(reflected - V).max() < 1e-9
     assert np.array_equal(head.skin_mirror[head.skin_mirror], np.arange(len(V)))
+    # and so are its faces (the upper lip's caps are flipped on the whole skin)
+    F = np.asarray(head.skin_faces)
+    mirror = np.asarray(head.skin_mirror)
+    assert {tuple(sorted(f)) for f in F} == {tuple(sorted(f)) for f in mirror[F]}
 
 
 def test_lips_are_separate_surfaces_over_a_mouth_pouch(head):

@@ -604,7 +604,9 @@ def test_real_streams_keep_the_lips_apart_and_the_folds_few(name):
     """The xface streams on the shipped head: the lips never pass through each other (0-3
     frames a stream, pressed together as xface_beg and xface_hate press them, while each lip
     particle was kept in order with the other lip's nearest alone), at
-    most 20 visible triangles ever fold or crease (0-16 measured: fear and joy none, 2 a lid
+    most 8 visible triangles ever fold or crease (0-4 measured: anger, fear, joy and test
+    none, 2 a lid on the upper lids of the five streams that blink, since the upper lip's caps
+    were flipped away; 0-12 before, disgust's upper lip 8; 0-16 measured earlier: fear and joy none, 2 a lid
     on the upper lids of the streams that blink, 4-12 on the lips of the others, since the fold guard sets in at half a triangle's area and 0.2
     of an edge's crease over four passes; 0-23 before, 10-19 of them on the upper
     lids of the streams that blink, since the lips' short edges near the mouth corners were
@@ -621,7 +623,8 @@ def test_real_streams_keep_the_lips_apart_and_the_folds_few(name):
     corner sent by its inner and outer FAPs moved twice as far, 52-281 while open_jaw
     also lowered the lips, 367-714 before the fold guard; the issue's goal, 0, is not
     reached yet) and no edge stretches past 3.2x (the edge joining the lips at each mouth
-    corner as the mouth opens: up to 3.05x, 2.9x before the lips' short edges were merged; 4.0x at the closing lids' front before; 7.6x while the corners were pulled
+    corner as the mouth opens: up to 3.00x, 3.05x before the upper lip's caps were flipped
+    away, 2.9x before the lips' short edges were merged; 4.0x at the closing lids' front before; 7.6x while the corners were pulled
     into spikes). What folds mostly sits on a crease (the lower lip's inner rim as the lips
     press, the closed lids' margins); at most four triangles' own normals turn over (0-2
     measured, 0-4 before the lining was kept in order: on the upper lids' margins for the
@@ -634,7 +637,7 @@ def test_real_streams_keep_the_lips_apart_and_the_folds_few(name):
     player = Player(playable_head(read_facemodel(shipped_head_path())))
     r = check_stream(player, read_fap(SHARED_FAP / name), name)
     assert r["frames_lips_crossed"] == 0
-    assert r["triangles_folded"] <= 20
+    assert r["triangles_folded"] <= 8
     assert r["triangles_turned"] <= 4
     assert r["max_stretch"] <= 3.2
     assert r["frames_lining_shown"] <= 1
@@ -642,12 +645,12 @@ def test_real_streams_keep_the_lips_apart_and_the_folds_few(name):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name, most_folded, most_turned", [("eyes_head.fap", 8, 2), ("expressions.fap", 20, 2),
-                                                            ("visemes.fap", 25, 8)])
+@pytest.mark.parametrize("name, most_folded, most_turned", [("eyes_head.fap", 8, 2), ("expressions.fap", 12, 2),
+                                                            ("visemes.fap", 16, 8)])
 def test_the_projects_own_streams_keep_the_skin_nearly_whole(name, most_folded, most_turned):
     """The streams fae ships, on the shipped head (measured: 4 / 8 / 11 triangles ever
-    folded or creased; 4 / 12 / 13, 0 / 0 / 2 turned over, before the upper lip's caps were
-    flipped away; the lips cross in no frame, since each lip
+    folded or creased, since the upper lip's caps were flipped away; 4 / 12 / 13 before, 0 /
+    0 / 2 of them turned over; the lips cross in no frame, since each lip
     particle keeps LIP_CLEARANCE over its partner: anger pressed a lower lip's particle
     0.2 mm through the upper lip's sloping wall in 33 frames; since the fold guard sets in at half a
     triangle's area and 0.2 of an edge's crease over four passes; 10 / 29 / 24 triangles ever
@@ -658,7 +661,7 @@ def test_the_projects_own_streams_keep_the_skin_nearly_whole(name, most_folded, 
     away: the visemes' turned ones are at the mouth corners as viseme 14 narrows them,
     frames 25-27, which the calibration's noise moves; 18 / 56 / 49 before the closing
     lids' pulls were led),
-    no lining out and no skin's back seen but for a frame of visemes. Not 0 yet: the upper lids' margins as blinks
+    no lining out and no skin's back seen but for two frames of visemes (one before the upper lip's caps were flipped away). Not 0 yet: the upper lids' margins as blinks
     close them (6 a lid in eyes_head; 16 before their caps were flipped away, 38 in all
     and 4 turned over), the lower lip's inner rim as the lips press, the mouth corners of
     the visemes (all on the lips: 46 and 2 turned over before the lids' flips, which shift

@@ -58,16 +58,19 @@ FLIP_KEPT_REGIONS = ("lip_upper", "lip_lower", "mouth_cavity", "eyelid_upper_l",
 # as a crease on every blink. Their long edge is flipped where that changes the lid's shape
 # by at most CAP_FLIP_CHANGE (fae.anatomy.geometry.flip_caps). From 120 degrees, the
 # flipped lid's short edges compressed to 0.25 of their length as it closed.
-# Not in the lips: flipped there, the lower lip's inner band shaded jagged when the mouth
-# opened; not in the lower lids: the brows' calibration then drove a frightened face's
+# Not here in the lips (the upper lip's are flipped on the finished skin:
+# LIP_CAP_FLIPPED_REGIONS, below); flipped here in the lower lip, its inner band shaded
+# jagged when the mouth opened; not in the lower lids: the brows' calibration then drove a frightened face's
 # forehead into folds.
 CAP_FLIPPED_REGIONS = ("eyelid_upper_l", "eyelid_upper_r")
 # The upper lip's caps go too (8 of its visible faces had a corner over 150 degrees, the
 # highest 169): a cap's normal turned over as soon as the lip moved, and the skin check
 # counted it and its neighbour as a fold (disgust's upper lip, the expressions' and
 # visemes' most frequent folds). They are flipped on the finished skin, where no vertex
-# moves any more: flipped with the lids' (above), the skin's shaping that follows moved
-# the upper lip and nose by up to 2.4 mm, and the feature points with them.
+# moves any more (tried flipped with the lids' in symmetric_mesh, before reshaped_skin, the
+# shaping moved the upper lip and nose by up to 2.4 mm, and the feature points with them).
+# The flip runs on the whole mirrored skin: its vertices are exactly symmetric, so each cap
+# and its mirror image flip alike (test_skin_is_mirror_symmetric checks the faces).
 LIP_CAP_FLIPPED_REGIONS = ("lip_upper",)
 CAP_ANGLE = 130.0  # degrees
 CAP_FLIP_CHANGE = 0.5  # mm
