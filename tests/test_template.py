@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from typing import Callable
 
 import numpy as np
 import pytest
@@ -354,14 +355,11 @@ def test_a_short_edge_is_merged_away_and_the_sheet_stays_whole():
     assert border_edges(V7, F7) == border_edges(V6, F6)
 
 
-def test_the_lower_lips_rim_and_the_lower_lids_carry_no_caps(head):
-    """The shipped skin's lower lip has no corner over CAP_COLLAPSE_ANGLE (the caps along its
-    inner rim that turned over as the rim bent: 8 a side, up to 169 degrees) but at the
-    mouth's corners, where merging one would turn the faces around it (one a side, 158
-    degrees); the lower lids none at all (three a side at the outer corner, up to 174
-    degrees, which creased as blinks lowered the upper lids)."""
+def widest_corners(head) -> tuple[np.ndarray, Callable[..., np.ndarray], np.ndarray]:
+    """Per skin face of `head`: its widest corner (degrees); faces_in(*regions), the faces
+    with two corners or more in those regions; and the faces near the mouth's corners (their
+    centre over 22 mm from the midline)."""
     from fae.anatomy.geometry import _corner_angles
-    from fae.anatomy.template import CAP_COLLAPSE_ANGLE
 
     F = np.asarray(head.skin_faces)
     widest = np.degrees(_corner_angles(np.asarray(head.skin_vertices) * 1000.0, F).max(axis=1))
@@ -369,8 +367,19 @@ def test_the_lower_lips_rim_and_the_lower_lids_carry_no_caps(head):
     def faces_in(*regions):
         return np.isin(head.skin_region, [head.region_names.index(r) for r in regions])[F].sum(axis=1) >= 2
 
+    return widest, faces_in, np.abs(np.asarray(head.skin_vertices)[F].mean(axis=1)[:, 0]) > 0.022
+
+
+def test_the_lower_lips_rim_and_the_lower_lids_carry_no_caps(head):
+    """The shipped skin's lower lip has no corner over CAP_COLLAPSE_ANGLE (the caps along its
+    inner rim that turned over as the rim bent: 8 a side, up to 169 degrees) but at the
+    mouth's corners, where merging one would turn the faces around it (one a side, 158
+    degrees); the lower lids none at all (three a side at the outer corner, up to 174
+    degrees, which creased as blinks lowered the upper lids)."""
+    from fae.anatomy.template import CAP_COLLAPSE_ANGLE
+
+    widest, faces_in, corners = widest_corners(head)
     lip, lids = faces_in("lip_lower"), faces_in("eyelid_lower_l", "eyelid_lower_r")
-    corners = np.abs(np.asarray(head.skin_vertices)[F].mean(axis=1)[:, 0]) > 0.022
     assert lip.sum() > 200 and widest[lip & ~corners].max() < CAP_COLLAPSE_ANGLE
     assert np.sum(lip & corners & (widest >= CAP_COLLAPSE_ANGLE)) <= 2
     assert lids.sum() > 600 and widest[lids].max() < CAP_COLLAPSE_ANGLE
@@ -380,12 +389,8 @@ def test_the_upper_lip_carries_no_caps(head):
     """The shipped skin's upper lip has no corner over 150 degrees but at the mouth's
     corners (8 faces up to 169 degrees whose normals turned over as soon as the lip moved:
     disgust's upper lip folded 8 triangles in 20 frames), their long edges flipped."""
-    from fae.anatomy.geometry import _corner_angles
-
-    F = np.asarray(head.skin_faces)
-    widest = np.degrees(_corner_angles(np.asarray(head.skin_vertices) * 1000.0, F).max(axis=1))
-    lip = np.isin(head.skin_region, [head.region_names.index("lip_upper")])[F].sum(axis=1) >= 2
-    corners = np.abs(np.asarray(head.skin_vertices)[F].mean(axis=1)[:, 0]) > 0.022
+    widest, faces_in, corners = widest_corners(head)
+    lip = faces_in("lip_upper")
     assert lip.sum() > 200 and widest[lip & ~corners].max() < 150.0
 
 
