@@ -1202,21 +1202,26 @@ def test_a_calibrated_real_bust_moves_its_feature_points_as_the_standard_asks(de
 def test_a_real_bust_blinks_without_showing_its_lids_lining(demosthenes, shared_data):
     """xface_beg's blink (frames 28-38) on the head adapted from Demosthenes: its lids,
     fitted to the bust's sculpted eyes, stand 5-10 mm off the eyeballs, and as the blink
-    reopened their lining rolled out through the front (139 mm^2 seen by its back; 7 now,
-    specks along the margin: fae.sim.build.LINING_STANDOFF)."""
+    reopened their lining rolled out through the front (139 mm^2 seen by its back; 7 then,
+    specks along the margin: fae.sim.build.LINING_STANDOFF; none now). And the lids crease
+    in few places: 27 triangles before the caps the fit left in the upper lids were flipped
+    away (fae.adapt.transfer.fitted_caps_flipped), 12 after."""
     from fae.animate.player import Player, playable_head
     from fae.animate.skin_check import SkinCheck, in_head_frame
     from fae.io.fap import read_fap
 
     check = SkinCheck(demosthenes)
     player = Player(playable_head(demosthenes))
-    seen = []
+    seen, folded = [], np.zeros(len(demosthenes.skin_faces), dtype=bool)
     for frame in player.play(read_fap(shared_data / "fap" / "xface_beg.fap")):
         if 28 <= frame.index <= 38:
-            seen.append(check.frame(in_head_frame(frame.skin_vertices, frame.bone_transforms["head"])).back_area)
+            result = check.frame(in_head_frame(frame.skin_vertices, frame.bone_transforms["head"]))
+            seen.append(result.back_area)
+            folded |= result.folded
         if frame.index > 38:
             break
     assert len(seen) == 11 and max(seen) <= 20e-6, seen
+    assert folded.sum() <= 18, int(folded.sum())
 
 
 @needs_mediapipe

@@ -596,3 +596,64 @@ def test_lid_gaps_measure_how_far_each_lid_lies_off_its_eyeball(template):
     told = lids_off_their_eyes({"lid_gap_m": deep})
     assert told is not None and f"eye_r {deep['eye_r']['upper'] * 1000:.1f} mm" in told
     assert f"{LID_GAP_WARNED * 1000:.0f} mm" in told
+
+
+def _cap_made(model, face):
+    """Make skin face `face` of `model` a cap: its corner off its longest edge pressed to
+    within a tenth of its height of that edge's middle (a corner near 170 degrees).
+    Returns (the apex vertex, the long edge's two vertices)."""
+    from fae.anatomy.geometry import _corner_angles
+
+    F = np.asarray(model.skin_faces, np.int64)
+    k = int(np.argmax(_corner_angles(model.skin_vertices, F[[face]])[0]))
+    c, a, b = F[face, k], F[face, (k + 1) % 3], F[face, (k + 2) % 3]
+    V = np.array(model.skin_vertices)
+    middle = 0.5 * (V[a] + V[b])
+    V[c] = middle + 0.1 * (V[c] - middle)
+    model.skin_vertices = V
+    return c, (a, b)
+
+
+def test_caps_the_fit_leaves_in_the_upper_lids_are_flipped_away_where_nothing_binds(template):
+    """A fit that squeezes an upper lid's face into a cap (a corner near 170 degrees, which
+    turns over as the lid closes) gets that cap's long edge flipped (fitted_caps_flipped):
+    no vertex and no feature point moves, only faces about the cap change; a cap in a face a
+    feature point binds to, and caps outside the upper lids, stay as they are."""
+    from fae.adapt.transfer import FIT_CAP_FLIPPED_REGIONS, bound_skin_faces, fitted_caps_flipped
+    from fae.anatomy.geometry import _corner_angles
+    from fae.anatomy.template import CAP_ANGLE
+
+    F = np.asarray(template.skin_faces, np.int64)
+    names = list(template.region_names)
+    region = np.asarray(template.skin_region)
+    lid = np.isin(region, [names.index(r) for r in FIT_CAP_FLIPPED_REGIONS])[F].sum(axis=1) >= 2
+    cheek = (region == names.index("cheek_l"))[F].all(axis=1)
+    bound = bound_skin_faces(template)
+    assert bound.sum() >= len([p for p in template.feature_points.values() if p.part == "skin"]) // 2
+    assert fitted_caps_flipped(template)[1] == 0  # the shipped head's lids carry none a flip removes
+
+    def widest(model, faces):
+        return np.degrees(_corner_angles(model.skin_vertices, np.asarray(model.skin_faces, np.int64)[faces]).max(axis=1))
+
+    for faces, flips in ((lid & ~bound, True), (lid & bound, False), (cheek & ~bound, False)):
+        # (to flip: a face whose neighbours across every edge may flip too, a quad to flip into)
+        face = next(f for f in np.flatnonzero(faces) if widest(template, [f])[0] < 90.0
+                    and (not flips or all(faces[np.flatnonzero((F == F[f, i]).any(axis=1)
+                                                               & (F == F[f, (i + 1) % 3]).any(axis=1))].all()
+                                          for i in range(3))))
+        model = copy.deepcopy(template)
+        apex, _ = _cap_made(model, face)
+        cap = widest(model, [face])[0]
+        assert cap > CAP_ANGLE
+        before = model.feature_point_positions()
+        faces_after, changed = fitted_caps_flipped(model)
+        if not flips:
+            assert changed == 0 and np.array_equal(faces_after, model.skin_faces), face
+            continue
+        assert 2 <= changed <= 4, changed  # the cap's quad, and a face the pressed apex narrowed
+        model.skin_faces = faces_after
+        moved = np.flatnonzero(np.any(faces_after != template.skin_faces, axis=1))
+        assert set(moved) <= set(np.flatnonzero(lid)) and face in moved
+        assert widest(model, moved).max() < cap - 15.0  # the apex now ends the new edge
+        assert all(np.allclose(before[n], p) for n, p in model.feature_point_positions().items())
+        assert len(self_intersections(model.skin_vertices, faces_after.astype(np.int64))) == 0

@@ -1,7 +1,9 @@
 """Personalize a FaceModel: fit its skin to a scan and carry the anatomy over (paper 000 §6.2).
 
-- skin: the fitted surface (same topology, so regions, mirror, uv, FDPs and muscle ends,
-  all stored as triangle + barycentric coordinates, carry over unchanged); skin no scanner
+- skin: the fitted surface (the same vertices and faces, so regions, mirror, uv, FDPs and
+  muscle ends, all stored as triangle + barycentric coordinates, carry over unchanged; but
+  the upper lids' caps the fit made are flipped away, faces no surface point binds to:
+  fitted_caps_flipped); skin no scanner
   sees (visible_skin: inside the mouth, between the lips, the eye sockets) gets no scan
   target and follows its neighbours; feature points that would fold the skin (inner lip
   points of a scan with the mouth open) are ignored and reported;
@@ -835,13 +837,51 @@ def personalize(template: FaceModel, skin: np.ndarray, T: np.ndarray, unit: str,
     model.scan_transform = np.linalg.inv(T)
     model.meta = dict(template.meta)
     model.meta.update({"generator": "fae adapt", "adapt_method": method, "scan_unit": unit, "symmetric": False})
+    model.skin_faces, caps_flipped = fitted_caps_flipped(model)
     report = {"method": method, "scan_unit": unit, "bone_vertices_pushed_under_skin": pushed,
               "fapu_ratio": fapu_ratio, "eye_scale": eye_scale, "orbits_deepened": orbits_deepened,
               "lid_gap_m": lid_gaps(model),
               "mouth_parts_moved_back_m": mouth_moved, "mouth_parts_moved_down_m": mouth_lowered,
               "muscle_attachments_moved": moved_muscles, "hidden_skin_lifted_off_bone": lifted,
-              "hidden_skin_moved_behind_visible": lining_moved}
+              "hidden_skin_moved_behind_visible": lining_moved, "lid_faces_reflipped": caps_flipped}
     return model, report
+
+
+# The fit bends the upper lids' fine triangles onto a scan's lids, and a bust's sculpted
+# lids leave 30-52 caps there (a corner over CAP_ANGLE; the template has 2): a cap's normal
+# turns over as the lid closes, and the skin check counts it and its neighbour as a crease.
+# Flipped as the template's own are (fae.anatomy.template.CAP_FLIPPED_REGIONS, same angle and
+# change), the busts' upper-lid folds over the nine xface streams fell from 65 / 82 / 135 to
+# 51 / 34 / 64 (marble, wreath, Demosthenes). Not the lower lids (marble's lining then showed
+# in more frames) nor the lips (the lower lip folded more).
+FIT_CAP_FLIPPED_REGIONS = ("eyelid_upper_l", "eyelid_upper_r")
+
+
+def bound_skin_faces(model: FaceModel) -> np.ndarray:
+    """(F,) bool: skin faces a surface point of `model` binds to (feature points, muscle
+    attachments and insertions on the skin): their corners must stay as they are."""
+    bound = np.zeros(len(model.skin_faces), dtype=bool)
+    points = list(model.feature_points.values())
+    points += [p for m in model.muscles for p in (m.attachment, m.insertion) if p is not None]
+    for point in points:
+        if point.part == "skin":
+            bound[point.triangle] = True
+    return bound
+
+
+def fitted_caps_flipped(model: FaceModel) -> tuple[np.ndarray, int]:
+    """The skin faces (F, 3) of the fitted `model` with the caps of FIT_CAP_FLIPPED_REGIONS
+    flipped away (fae.anatomy.geometry.flip_caps, the template build's angle and change;
+    faces a surface point binds to stay), and how many faces changed. No vertex moves."""
+    from fae.anatomy.geometry import flip_caps
+    from fae.anatomy.template import CAP_ANGLE, CAP_FLIP_CHANGE, MM
+
+    F = np.asarray(model.skin_faces)
+    names = list(model.region_names)
+    lids = np.isin(np.asarray(model.skin_region), [names.index(r) for r in FIT_CAP_FLIPPED_REGIONS if r in names])
+    allowed = (lids[F].sum(axis=1) >= 2) & ~bound_skin_faces(model)
+    flipped = flip_caps(model.skin_vertices, F, allowed, cap_angle=CAP_ANGLE, max_change=CAP_FLIP_CHANGE * MM)
+    return flipped.astype(F.dtype), int(np.any(flipped != F, axis=1).sum())
 
 
 
