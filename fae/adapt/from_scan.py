@@ -193,12 +193,13 @@ def adapt_to_scan(template: FaceModel, scan_V: np.ndarray, scan_F: np.ndarray, h
     # the errors, in the scan's own frame through the head's scan_transform (no refit)
     S = model.scan_transform
     face = in_regions(template, FACE_REGIONS) & seen
-    MF = np.asarray(model.skin_faces, dtype=np.int64)  # the template's, but for flipped caps
-    errors = scan_fit_errors(apply_transform(S, model.skin_vertices), MF, face,
+    errors = scan_fit_errors(apply_transform(S, model.skin_vertices), model.skin_faces, face,
                              apply_transform(np.linalg.inv(T), part_V), part_F, neck=in_regions(template, ["neck"]))
     errors["face_vertices_scored"] = int(face.sum())  # the lids' rims over the eyeballs are not
-    visible_faces = seen[MF].all(axis=1)
-    folded = folded_triangles(P, model.skin_vertices, MF)
+    # the fit's folds, on the template's faces: a cap flipped since (fitted_caps_flipped) is a
+    # face the template does not have, which may lie reversed on it; the flip folds nothing
+    visible_faces = seen[F].all(axis=1)
+    folded = folded_triangles(P, model.skin_vertices, F)
     verdict = []
     if folded[visible_faces].any():
         verdict.append(f"{int(folded[visible_faces].sum())} visible skin triangles folded")

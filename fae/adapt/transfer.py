@@ -1,9 +1,9 @@
 """Personalize a FaceModel: fit its skin to a scan and carry the anatomy over (paper 000 §6.2).
 
-- skin: the fitted surface (the same vertices and faces, so regions, mirror, uv, FDPs and
-  muscle ends, all stored as triangle + barycentric coordinates, carry over unchanged; but
-  the upper lids' caps the fit made are flipped away, faces no surface point binds to:
-  fitted_caps_flipped); skin no scanner
+- skin: the fitted surface on the template's vertices, so regions, mirror, uv, FDPs and
+  muscle ends, all stored as triangle + barycentric coordinates, carry over unchanged; its
+  faces are the template's but for caps the fit made in the upper lids, which are flipped
+  where no surface point binds (fitted_caps_flipped); skin no scanner
   sees (visible_skin: inside the mouth, between the lips, the eye sockets) gets no scan
   target and follows its neighbours; feature points that would fold the skin (inner lip
   points of a scan with the mouth open) are ignored and reported;
@@ -850,10 +850,11 @@ def personalize(template: FaceModel, skin: np.ndarray, T: np.ndarray, unit: str,
 # The fit bends the upper lids' fine triangles onto a scan's lids, and a bust's sculpted
 # lids leave 30-52 caps there (a corner over CAP_ANGLE; the template has 2): a cap's normal
 # turns over as the lid closes, and the skin check counts it and its neighbour as a crease.
-# Flipped as the template's own are (fae.anatomy.template.CAP_FLIPPED_REGIONS, same angle and
-# change), the busts' upper-lid folds over the nine xface streams fell from 65 / 82 / 135 to
-# 51 / 34 / 64 (marble, wreath, Demosthenes). Not the lower lids (marble's lining then showed
-# in more frames) nor the lips (the lower lip folded more).
+# Flipped where a flip may, as the template's own are (fae.anatomy.template.
+# CAP_FLIPPED_REGIONS, same angle and change; about half of them go), the busts' upper-lid
+# folds over the nine xface streams fell from 65 / 82 / 135 to 51 / 36 / 68 (marble,
+# wreath, Demosthenes). Not the lower lids (marble's lining then showed in more frames) nor
+# the lips (the lower lip folded more).
 FIT_CAP_FLIPPED_REGIONS = ("eyelid_upper_l", "eyelid_upper_r")
 
 

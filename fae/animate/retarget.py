@@ -14,8 +14,9 @@ Once per target (`retarget`): the template is fitted to the target from its feat
 points exactly as `fae adapt` fits it to a scan (fae.adapt.workflow.adapt_scan, without the
 face-landmark model: the feature points given stand in for it), which is a far denser
 correspondence than an RBF through a few dozen points. Each target vertex is bound to the
-closest point of the fitted skin (triangle + barycentric coordinates); since the fitted
-skin has the template's topology, that point is also a point of the template. Where
+closest point of the fitted skin on the template's faces (the fitted head's own flip a
+few upper-lid caps; the motion carried lives on the template's), so that point is also a
+point of the template. Where
 neighbours on the target bind to points far apart on the template (either side of a
 crease), their bindings are averaged over the target's mesh (smoothed_across_jumps): the
 menpo3d mask's fold lines along its creases went, and its folded share halved. Where the
