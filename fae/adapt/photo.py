@@ -192,7 +192,7 @@ def adapt_photo(template: FaceModel, photo: PhotoPoints, on_template: TemplatePo
     T = np.linalg.inv(face_to_photo(s, R, t))  # photo pixels -> face frame
     model, transfer_report = personalize(template, X, T, "pixel", "photo")
     model.meta["photo"] = {"name": str(photo_name), "size": [int(photo.size[0]), int(photo.size[1])]}
-    folded = folded_triangles(template.skin_vertices, model.skin_vertices, template.skin_faces)  # the fit's
+    folded = folded_triangles(template.skin_vertices, model.skin_vertices, template.skin_faces)
     report.update(transfer_report)
     report["contour_feature_points"] = sorted(found)
     report["folded_triangles"] = int(folded.sum())
