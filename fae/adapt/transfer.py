@@ -312,6 +312,12 @@ LINING_CLEARANCE = 0.001  # m: hidden skin keeps this much (or its template's) b
 LINING_REACH = 0.004  # m: hidden skin farther than this from the visible skin is left alone
 LINING_PUSH_RADIUS = 0.002  # m over which a push spreads among the hidden skin
 LINING_ROUNDS = 3
+# whose rim moves back too: a sculpted lower lid pressed its rim's lining against the lid's
+# front, and as a smile's cheek raised the lid the skin's back showed (marble: 23 frames of
+# xface_pride, 2-5 mm^2 at the lower lids; 2 with it moved). The three busts' folds over
+# the nine xface streams 80 / 120 / 113 -> 77 / 115 / 111. The upper lids' rim moved as
+# well folded Demosthenes' upper lids more (68 -> 89 triangles)
+LINING_RIM_MOVED_REGIONS = ("eyelid_lower_l", "eyelid_lower_r")
 
 
 def hidden_skin_behind_visible(template: FaceModel, X: np.ndarray) -> tuple[np.ndarray, int]:
@@ -339,10 +345,13 @@ def hidden_skin_behind_visible(template: FaceModel, X: np.ndarray) -> tuple[np.n
         hidden &= np.asarray(template.skin_region) != names.index("mouth_cavity")
     # the rim (hidden skin beside visible skin: a lid's margin) stays: feature points bind
     # to its triangles, and it is where the two meet anyway; so do the corners feature
-    # points bind to elsewhere (the upper lids' points lie just inside their margins)
+    # points bind to elsewhere (the upper lids' points lie just inside their margins). Not
+    # the lower lids' rim (LINING_RIM_MOVED_REGIONS), but for its feature points' corners
     rim = np.zeros(len(P), dtype=bool)
     mixed = F[seen[F].any(axis=1) & ~seen[F].all(axis=1)]
     rim[mixed.ravel()] = True
+    rim &= ~np.isin(np.asarray(template.skin_region),
+                    [names.index(r) for r in LINING_RIM_MOVED_REGIONS if r in names])
     for point in template.feature_points.values():  # a lid's point may bind just inside its margin
         if point.part == "skin":
             rim[F[point.triangle][np.asarray(point.bary) > 0.0]] = True
