@@ -323,7 +323,8 @@ LINING_RIM_MOVED_REGIONS = ("eyelid_lower_l", "eyelid_lower_r")
 def hidden_skin_behind_visible(template: FaceModel, X: np.ndarray) -> tuple[np.ndarray, int]:
     """The fitted skin X (n, 3) metres (a copy) with its hidden skin (not visible_skin of
     the template, the mouth's lining left out: the lids' lining, the nostrils, the backs
-    of the ears), all but its rim beside the visible skin, moved back where the fit
+    of the ears), all but its rim beside the visible skin (a lower lid's rim moves too:
+    LINING_RIM_MOVED_REGIONS), moved back where the fit
     brought it nearer the visible skin than min(its template clearance, LINING_CLEARANCE),
     or through it: along its closest visible triangle's normal, to the side the template
     has it on, spread over LINING_PUSH_RADIUS among the hidden skin only, and held wherever
