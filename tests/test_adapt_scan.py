@@ -1204,12 +1204,14 @@ def test_a_real_busts_lower_lids_keep_their_back_hidden_as_a_smile_raises_them(s
     their rim's lining against the lid's front, and as the cheeks rose the skin's back
     showed at the lower lids (2-5 mm^2 in 20 frames) until the lower lids' rim moved back
     behind the visible skin with the rest of their lining (fae.adapt.transfer.
-    LINING_RIM_MOVED_REGIONS): 0 frames now over 3 mm^2."""
+    LINING_RIM_MOVED_REGIONS): 0-2 frames now over 3 mm^2."""
     from fae.animate.player import Player, playable_head
     from fae.animate.skin_check import check_stream
     from fae.io.fap import read_fap
 
     scan = shared_data / "heads" / "busts" / "marble_bust" / "marble_bust.obj"
+    if not scan.is_file():
+        pytest.skip("marble bust not in the shared data")
     out = tmp_path / "head.glb"
     assert main(["adapt", str(scan), "-o", str(out)]) == 0
     stream = shared_data / "fap" / "xface_pride.fap"

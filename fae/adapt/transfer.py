@@ -312,11 +312,12 @@ LINING_CLEARANCE = 0.001  # m: hidden skin keeps this much (or its template's) b
 LINING_REACH = 0.004  # m: hidden skin farther than this from the visible skin is left alone
 LINING_PUSH_RADIUS = 0.002  # m over which a push spreads among the hidden skin
 LINING_ROUNDS = 3
-# whose rim moves back too: a sculpted lower lid pressed its rim's lining against the lid's
-# front, and as a smile's cheek raised the lid the skin's back showed (marble: 23 frames of
-# xface_pride, 2-5 mm^2 at the lower lids; 2 with it moved). The three busts' folds over
-# the nine xface streams 80 / 120 / 113 -> 77 / 115 / 111. The upper lids' rim moved as
-# well folded Demosthenes' upper lids more (68 -> 89 triangles)
+# Skin regions whose rim moves back too: a sculpted lower lid pressed its rim's lining
+# against the lid's front, and as a smile's cheek raised the lid the skin's back showed
+# (marble: 2-5 mm^2 at the lower lids in 20 frames of xface_pride, 23 over the nine xface
+# streams; 2 with the rim moved). The three busts' folds over the nine streams 80 / 120 /
+# 113 -> 77 / 115 / 111. The upper lids' rim moved as well folded Demosthenes' upper lids
+# more (68 -> 89 triangles)
 LINING_RIM_MOVED_REGIONS = ("eyelid_lower_l", "eyelid_lower_r")
 
 
@@ -324,12 +325,12 @@ def hidden_skin_behind_visible(template: FaceModel, X: np.ndarray) -> tuple[np.n
     """The fitted skin X (n, 3) metres (a copy) with its hidden skin (not visible_skin of
     the template, the mouth's lining left out: the lids' lining, the nostrils, the backs
     of the ears), all but its rim beside the visible skin (a lower lid's rim moves too:
-    LINING_RIM_MOVED_REGIONS), moved back where the fit
-    brought it nearer the visible skin than min(its template clearance, LINING_CLEARANCE),
-    or through it: along its closest visible triangle's normal, to the side the template
-    has it on, spread over LINING_PUSH_RADIUS among the hidden skin only, and held wherever
-    it would fold a triangle or pass an edge through other skin (the rim and the corners
-    feature points bind to stay where the fit put them). The fit pulls the visible
+    LINING_RIM_MOVED_REGIONS), moved back where the fit brought it nearer the visible skin
+    than min(its template clearance, LINING_CLEARANCE), or through it: along its closest
+    visible triangle's normal, to the side the template has it on, spread over
+    LINING_PUSH_RADIUS among the hidden skin only, and held wherever it would fold a
+    triangle or pass an edge through other skin (the rim outside LINING_RIM_MOVED_REGIONS
+    and the corners feature points bind to stay where the fit put them). The fit pulls the visible
     skin onto the scan and lets the hidden skin follow its neighbours, so a sculpted lid
     pressed in or a thin nostril wing can leave the lining touching the skin at rest, and
     the slightest motion then brings it out through the skin. Returns the skin and how
